@@ -1,0 +1,180 @@
+"""Sparse storage of NDT-OMs: two Taichi SNode trees shared by every map in the process.
+
+Both trees are ``pointer(slots x L1) -> pointer(L2) -> dense(leaf^3)`` with
+struct-of-arrays leaves (docs: two pointer levels over dense 8^3 leaves measured fastest
+for rays). The first index is the map's slot, so all maps share one set of node
+allocators: Taichi reserves pool memory per node type in chunks of up to 128 MiB, and
+per-map trees would each reserve their own.
+
+* occupancy tree: every cell a ray or a point touched: log-odds (f32) and the number of
+  rays that passed the cell in the current scan (i32, zero between scans).
+* Gaussian index tree: only cells that received points: the cell's record number in the
+  map's dense Gaussian records (N, mean, scatter; numpy on the CPU, outside Taichi's
+  pool), and two scan-local scratch integers (points of this scan in the cell, slot of
+  the cell in this scan's hit list).
+
+Each L2 pointer cell also holds one i32 "leaf mark" beside its dense leaf, so kernels
+count leaves exactly as they create them (Taichi 1.7 has no reliable way to ask).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+POINTER_SLOT_BYTES = 16  # pointer + lock word per slot (CPU backend)
+OCC_CELL_BYTES = 4 + 4
+GIDX_CELL_BYTES = 4 + 4 + 4
+LEAF_MARK_BYTES = 4
+# One Gaussian record: N (i32), cell index (3 x i32), mean (3 x f64), scatter (6 x f64).
+RECORD_BYTES = 4 + 12 + 24 + 48
+
+# Taichi 1.7 CPU pool, measured (see README "Memory"): per node type, chunks hold 16384
+# nodes, halved while a chunk would exceed 128 MiB; finalising a tree takes ~17-26 MiB.
+_CHUNK_NODES = 16384
+_CHUNK_MAX = 128 * 2**20
+TREE_BASE_BYTES = 32 * 2**20
+
+
+def chunk_bytes(node_bytes: int) -> tuple[int, int]:
+    """(nodes per chunk, bytes per chunk) of Taichi's CPU node allocator."""
+    n = _CHUNK_NODES
+    while n > 1 and n * node_bytes > _CHUNK_MAX:
+        n //= 2
+    return n, n * node_bytes
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Shape of the sparse grid, in cells. The grid is centred on cell index 0."""
+
+    l1: tuple[int, int, int] = (128, 128, 16)
+    l2: int = 32
+    leaf: int = 8
+
+    @property
+    def region(self) -> int:
+        """Cells per axis under one top-level pointer slot."""
+        return self.l2 * self.leaf
+
+    @property
+    def cells(self) -> tuple[int, int, int]:
+        return tuple(n * self.region for n in self.l1)  # type: ignore[return-value]
+
+    @property
+    def lo(self) -> tuple[int, int, int]:
+        """Smallest valid cell index per axis (inclusive)."""
+        return tuple(-(c // 2) for c in self.cells)  # type: ignore[return-value]
+
+    @property
+    def hi(self) -> tuple[int, int, int]:
+        """Largest valid cell index per axis plus one (exclusive)."""
+        return tuple(c - c // 2 for c in self.cells)  # type: ignore[return-value]
+
+    @property
+    def leaf_cells(self) -> int:
+        return self.leaf**3
+
+    @property
+    def region_bytes(self) -> int:
+        """One activated top-level slot: its block of L2 pointer slots."""
+        return self.l2**3 * POINTER_SLOT_BYTES
+
+    @property
+    def occ_leaf_bytes(self) -> int:
+        return self.leaf_cells * OCC_CELL_BYTES + LEAF_MARK_BYTES
+
+    @property
+    def gidx_leaf_bytes(self) -> int:
+        return self.leaf_cells * GIDX_CELL_BYTES + LEAF_MARK_BYTES
+
+    def node_bytes(self) -> tuple[int, int, int, int]:
+        """Bytes per node of the four allocated node types: occupancy regions,
+        occupancy leaves, index regions, index leaves."""
+        return (self.region_bytes, self.occ_leaf_bytes, self.region_bytes, self.gidx_leaf_bytes)
+
+    def validate(self) -> None:
+        if any(n < 1 for n in self.l1) or self.l2 < 1 or self.leaf < 1:
+            raise ValueError(f"grid layout sizes must be positive, got {self}")
+        if any(c >= 2**30 for c in self.cells):
+            raise ValueError(f"grid of {self.cells} cells per axis overflows 32-bit cell indices")
+
+
+def pool_bytes(layout: Layout, nodes) -> int:
+    """Pool bytes Taichi reserves for ``nodes`` (counts of the four node types)."""
+    total = 2 * TREE_BASE_BYTES
+    for count, nb in zip(nodes, layout.node_bytes()):
+        per, size = chunk_bytes(nb)
+        total += math.ceil(count / per) * size
+    return total
+
+
+class Storage:
+    """The Taichi fields of up to ``slots`` maps. Built once per process and layout;
+    never destroyed (destroying a tree leaks in Taichi 1.7 and drops compiled kernels)."""
+
+    def __init__(self, layout: Layout, slots: int):
+        layout.validate()
+        self.layout = layout
+        self.slots = slots
+        off = (0, *layout.lo)
+        moff = (0, *(o // layout.leaf for o in layout.lo))
+
+        self.lo = ti.field(ti.f32)  # occupancy log-odds
+        self.ne = ti.field(ti.i32)  # rays that passed the cell in this scan
+        self.olm = ti.field(ti.i32)  # leaf mark of the occupancy tree
+        self.gslot = ti.field(ti.i32)  # record number + 1 of the cell's Gaussian (0: none)
+        self.hn = ti.field(ti.i32)  # points of this scan in the cell
+        self.hslot = ti.field(ti.i32)  # the cell's slot in this scan's hit list
+        self.glm = ti.field(ti.i32)  # leaf mark of the Gaussian index tree
+        self.l1_nodes = []
+        self.l2_nodes = []
+        self._trees = []
+        for mark, cells in ((self.olm, (self.lo, self.ne)), (self.glm, (self.gslot, self.hn, self.hslot))):
+            fb = ti.FieldsBuilder()
+            l1 = fb.pointer(ti.ijkl, (slots, *layout.l1))
+            l2 = l1.pointer(ti.ijkl, (1, layout.l2, layout.l2, layout.l2))
+            l2.place(mark, offset=moff)
+            l2.dense(ti.ijkl, (1, layout.leaf, layout.leaf, layout.leaf)).place(*cells, offset=off)
+            self.l1_nodes.append(l1)
+            self.l2_nodes.append(l2)
+            self._trees.append(fb.finalize())
+
+        # Exact node counts kept by the kernels, per slot: [occupancy leaves, index leaves],
+        # and the top-level regions in use per slot and tree.
+        self.leaf_count = np.zeros((slots, 2), np.int64)
+        self.occ_regions = np.zeros((slots, *layout.l1), np.int8)
+        self.gidx_regions = np.zeros((slots, *layout.l1), np.int8)
+        # Most nodes of each type ever allocated: Taichi keeps freed nodes for reuse but
+        # never returns a chunk, so the pool follows the high-water mark.
+        self.node_high_water = np.zeros(4, np.int64)
+        self.free_slots = list(range(slots - 1, -1, -1))
+        self.kernels = None  # built lazily by kernels.ndt.make_kernels
+
+    def nodes(self, slot: int | None = None) -> np.ndarray:
+        """Live node counts of the four node types, for one slot or all."""
+        sl = slice(None) if slot is None else slice(slot, slot + 1)
+        return np.array(
+            [
+                np.count_nonzero(self.occ_regions[sl]),
+                self.leaf_count[sl, 0].sum(),
+                np.count_nonzero(self.gidx_regions[sl]),
+                self.leaf_count[sl, 1].sum(),
+            ],
+            np.int64,
+        )
+
+    def slot_bytes(self, slot: int) -> int:
+        """Bytes of nodes one map holds (without chunk rounding)."""
+        return int((self.nodes(slot) * np.array(self.layout.node_bytes())).sum())
+
+    def note_usage(self) -> None:
+        np.maximum(self.node_high_water, self.nodes(), out=self.node_high_water)
+
+    def pool_bytes(self, extra=(0, 0, 0, 0)) -> int:
+        """Pool bytes reserved now, or after ``extra`` more nodes of each type."""
+        want = np.maximum(self.node_high_water, self.nodes() + np.asarray(extra, np.int64))
+        return pool_bytes(self.layout, want)

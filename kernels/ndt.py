@@ -1,0 +1,369 @@
+"""Taichi kernels of the NDT-OM update (method.md sections 2 and 3).
+
+Per scan, in this order:
+1. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
+2. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
+3. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
+                     record with the RCU (a new record for a cell's first points).
+4. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
+                     rays passing each cell and a compact list of the touched cells.
+5. ``apply_free`` / ``apply_hits``: eq. (12) once per touched cell, clamp, and reset of
+                     the Gaussian of a cell whose log-odds fell to <= 0.
+
+Kernels are closures over the process's storage, built once. The map's slot, its
+resolution, sensor model and Gaussian records are arguments, so nothing recompiles per
+map.
+"""
+
+from types import SimpleNamespace
+
+import taichi as ti
+
+from .layout import Storage
+
+# Counter slots of the per-call int64 counter array.
+C_HIT_CELLS = 0
+C_TOUCHED = 1
+C_VISITS = 2
+C_ERASED = 3
+C_EXPORT = 4
+C_RECORDS = 5  # records in use (copied in and out by the caller)
+COUNTERS = 8
+
+BIG = 1.0e300
+
+i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
+i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
+i64_1d = ti.types.ndarray(dtype=ti.i64, ndim=1)
+f64_2d = ti.types.ndarray(dtype=ti.f64, ndim=2)
+f64_1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
+f32_1d = ti.types.ndarray(dtype=ti.f32, ndim=1)
+i8_4d = ti.types.ndarray(dtype=ti.i8, ndim=4)
+i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
+
+
+def make_kernels(f: Storage) -> SimpleNamespace:
+    """Build (once) and return the kernels bound to the storage ``f``."""
+    if f.kernels is not None:
+        return f.kernels
+    lo, ne, olm = f.lo, f.ne, f.olm
+    gslot, hn, hslot, glm = f.gslot, f.hn, f.hslot, f.glm
+    L = f.layout
+    leaf = L.leaf
+    region = L.region
+    grid_lo = ti.Vector(list(L.lo))
+    occ_l1, gidx_l1 = f.l1_nodes
+    occ_l2, gidx_l2 = f.l2_nodes
+
+    @ti.func
+    def row(a: ti.template(), i) -> ti.types.vector(3, ti.i32):
+        return ti.Vector([a[i, 0], a[i, 1], a[i, 2]], dt=ti.i32)
+
+    @ti.func
+    def at(slot, c) -> ti.types.vector(4, ti.i32):
+        return ti.Vector([slot, c[0], c[1], c[2]], dt=ti.i32)
+
+    @ti.func
+    def note_leaf(mark: ti.template(), slot, c, regions: ti.template(), leaves: ti.template(), which: ti.template()):
+        # Called before a cell is written: counts the leaf (and region) it creates.
+        b = at(slot, c // leaf)
+        if mark[b] == 0:
+            if ti.atomic_or(mark[b], 1) == 0:
+                ti.atomic_add(leaves[slot, which], 1)
+                r = (c - grid_lo) // region
+                regions[slot, r[0], r[1], r[2]] = ti.i8(1)
+
+    @ti.kernel
+    def hits_count(
+        slot: ti.i32,
+        cells: i32_2d,  # [N, 3] cell of each hit point
+        n: ti.i32,
+        hitlist: i32_2d,  # [N, 3] out: distinct hit cells
+        ctr: i64_1d,  # [COUNTERS]
+        regions: i8_4d,  # [L1] index-tree regions in use
+        leaves: i64_2d,  # [2] leaf counts
+    ):
+        for i in range(n):
+            c = row(cells, i)
+            note_leaf(glm, slot, c, regions, leaves, 1)
+            if ti.atomic_add(hn[at(slot, c)], 1) == 0:
+                s = ti.atomic_add(ctr[C_HIT_CELLS], 1)
+                for a in ti.static(range(3)):
+                    hitlist[s, a] = c[a]
+                hslot[at(slot, c)] = ti.i32(s)
+
+    @ti.kernel
+    def hits_sum(
+        slot: ti.i32,
+        pts: f64_2d,  # [N, 3] world points
+        cells: i32_2d,  # [N, 3]
+        n: ti.i32,
+        acc: f64_2d,  # [H, 9] out: sum q (3), sum q q^T (6), q = x - cell centre
+        res: ti.f64,
+    ):
+        for i in range(n):
+            c = row(cells, i)
+            s = hslot[at(slot, c)]
+            q = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - (c.cast(ti.f64) + 0.5) * res
+            ti.atomic_add(acc[s, 0], q[0])
+            ti.atomic_add(acc[s, 1], q[1])
+            ti.atomic_add(acc[s, 2], q[2])
+            ti.atomic_add(acc[s, 3], q[0] * q[0])
+            ti.atomic_add(acc[s, 4], q[0] * q[1])
+            ti.atomic_add(acc[s, 5], q[0] * q[2])
+            ti.atomic_add(acc[s, 6], q[1] * q[1])
+            ti.atomic_add(acc[s, 7], q[1] * q[2])
+            ti.atomic_add(acc[s, 8], q[2] * q[2])
+
+    @ti.kernel
+    def merge(
+        slot: ti.i32,
+        hitlist: i32_2d,  # [H, 3]
+        acc: f64_2d,  # [H, 9]
+        nh: ti.i32,
+        n_max: ti.i32,  # 0: no cap
+        rec_n: i32_1d,  # [C] records: points
+        rec_cell: i32_2d,  # [C, 3] records: cell index
+        rec_mean: f64_2d,  # [C, 3] records: mean minus cell centre
+        rec_scat: f64_2d,  # [C, 6] records: scatter xx xy xz yy yz zz
+        ctr: i64_1d,  # [COUNTERS]; C_RECORDS holds the records in use
+    ):
+        for s in range(nh):
+            c = row(hitlist, s)
+            r = gslot[at(slot, c)] - 1
+            if r < 0:
+                r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                gslot[at(slot, c)] = r + 1
+                for a in ti.static(range(3)):
+                    rec_cell[r, a] = c[a]
+            n = ti.cast(hn[at(slot, c)], ti.f64)
+            sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+            mu_y = sv / n
+            ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
+            s_y = ss - ti.Vector(
+                [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
+            ) / n
+            m_i = rec_n[r]
+            tot_i = m_i + hn[at(slot, c)]
+            if m_i == 0:
+                for a in ti.static(range(3)):
+                    rec_mean[r, a] = mu_y[a]
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = s_y[a]
+            else:
+                m = ti.cast(m_i, ti.f64)
+                tot = m + n
+                mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+                d = mu_x - mu_y
+                w = m * n / tot
+                dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
+                mu = (m * mu_x + n * mu_y) / tot
+                for a in ti.static(range(3)):
+                    rec_mean[r, a] = mu[a]
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
+            if n_max > 0 and tot_i > n_max:
+                k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = rec_scat[r, a] * k
+                tot_i = n_max
+            rec_n[r] = tot_i
+
+    @ti.func
+    def visit(slot, c, touched: ti.template(), cap, ctr: ti.template(), regions: ti.template(), leaves: ti.template()):
+        note_leaf(olm, slot, c, regions, leaves, 0)
+        if ti.atomic_add(ne[at(slot, c)], 1) == 0:
+            t = ti.atomic_add(ctr[C_TOUCHED], 1)
+            if t < cap:
+                for a in ti.static(range(3)):
+                    touched[t, a] = c[a]
+
+    @ti.kernel
+    def rays(
+        slot: ti.i32,
+        pts: f64_2d,  # [N, 3] world endpoints
+        cells: i32_2d,  # [N, 3] endpoint cells
+        n_hit: ti.i32,  # rays [0, n_hit) end in a hit; the rest are free rays
+        n: ti.i32,
+        origin: f64_1d,  # [3] world sensor origin
+        ocell: i32_1d,  # [3] its cell
+        res: ti.f64,
+        touched: i32_2d,  # [cap, 3] out: cells touched for the first time this scan
+        cap: ti.i64,
+        ctr: i64_1d,  # [COUNTERS]
+        regions: i8_4d,  # [L1] occupancy-tree regions in use
+        leaves: i64_2d,  # [2]
+    ):
+        o = ti.Vector([origin[0], origin[1], origin[2]])
+        co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+        for i in range(n):
+            ce = row(cells, i)
+            d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
+            cur = co
+            step = ti.Vector([0, 0, 0], dt=ti.i32)
+            rem = ti.Vector([0, 0, 0], dt=ti.i32)
+            tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+            for a in ti.static(range(3)):
+                diff = ce[a] - co[a]
+                if diff > 0:
+                    step[a] = 1
+                    rem[a] = diff
+                    tmax[a] = (ti.cast(co[a] + 1, ti.f64) * res - o[a]) / d[a]
+                elif diff < 0:
+                    step[a] = -1
+                    rem[a] = -diff
+                    tmax[a] = (ti.cast(co[a], ti.f64) * res - o[a]) / d[a]
+            visits = 0
+            # Each pass steps at least one axis towards the endpoint cell, so the loop
+            # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+            while rem[0] + rem[1] + rem[2] > 0:
+                visit(slot, cur, touched, cap, ctr, regions, leaves)
+                visits += 1
+                tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                # Ties (the segment crosses an edge or corner): axes stepping up move first,
+                # so the cell holding the crossing point itself (floor semantics) is visited.
+                up = False
+                for a in ti.static(range(3)):
+                    if rem[a] > 0 and tmax[a] == tmin and step[a] > 0:
+                        up = True
+                for a in ti.static(range(3)):
+                    if rem[a] > 0 and tmax[a] == tmin and (step[a] > 0) == up:
+                        cur[a] += step[a]
+                        rem[a] -= 1
+                        if rem[a] > 0:
+                            face = cur[a] + 1 if step[a] > 0 else cur[a]
+                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                        else:
+                            tmax[a] = BIG
+            if i >= n_hit:
+                visit(slot, ce, touched, cap, ctr, regions, leaves)
+                visits += 1
+            ti.atomic_add(ctr[C_VISITS], visits)
+
+    @ti.func
+    def free_update(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+        k = ne[at(slot, c)]
+        ne[at(slot, c)] = 0
+        if hn[at(slot, c)] == 0:
+            l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
+            lo[at(slot, c)] = l
+            if l <= 0.0:
+                r = gslot[at(slot, c)] - 1
+                if r >= 0:
+                    if rec_n[r] > 0:
+                        # Mean and scatter are overwritten by the next first merge.
+                        rec_n[r] = 0
+                        ti.atomic_add(ctr[C_ERASED], 1)
+
+    @ti.kernel
+    def apply_free(
+        slot: ti.i32,
+        touched: i32_2d,  # [T, 3]
+        nt: ti.i32,
+        l_free: ti.f64,
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,
+        ctr: i64_1d,
+    ):
+        for t in range(nt):
+            free_update(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr)
+
+    @ti.kernel
+    def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d):
+        # Fallback when the touched list overflowed: visit every known cell.
+        for I in ti.grouped(ne):
+            if I[0] == slot and ne[I] > 0:
+                free_update(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
+
+    @ti.kernel
+    def apply_hits(
+        slot: ti.i32,
+        hitlist: i32_2d,  # [H, 3]
+        nh: ti.i32,
+        l_hit: ti.f64,
+        l_min: ti.f32,
+        l_max: ti.f32,
+        regions: i8_4d,  # [L1] occupancy-tree regions in use
+        leaves: i64_2d,
+    ):
+        for s in range(nh):
+            c = row(hitlist, s)
+            note_leaf(olm, slot, c, regions, leaves, 0)
+            lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
+            hn[at(slot, c)] = 0
+
+    # ---- queries, export, load -------------------------------------------------------
+
+    @ti.kernel
+    def query(slot: ti.i32, cells: i32_2d, n: ti.i32, out: f32_1d):
+        for i in range(n):
+            out[i] = lo[at(slot, row(cells, i))]
+
+    @ti.kernel
+    def count_known(slot: ti.i32, ctr: i64_1d):
+        for I in ti.grouped(lo):
+            if I[0] == slot and lo[I] != 0.0:
+                ti.atomic_add(ctr[C_EXPORT], 1)
+
+    @ti.kernel
+    def export_known(slot: ti.i32, idx: i32_2d, val: f32_1d, ctr: i64_1d):
+        for I in ti.grouped(lo):
+            if I[0] == slot and lo[I] != 0.0:
+                k = ti.atomic_add(ctr[C_EXPORT], 1)
+                for a in ti.static(range(3)):
+                    idx[k, a] = I[a + 1]
+                val[k] = lo[I]
+
+    @ti.kernel
+    def load_known(slot: ti.i32, idx: i32_2d, val: f32_1d, n: ti.i32, regions: i8_4d, leaves: i64_2d):
+        for k in range(n):
+            c = row(idx, k)
+            note_leaf(olm, slot, c, regions, leaves, 0)
+            lo[at(slot, c)] = val[k]
+
+    @ti.kernel
+    def load_slots(slot: ti.i32, rec_cell: i32_2d, n: ti.i32, regions: i8_4d, leaves: i64_2d):
+        for r in range(n):
+            c = row(rec_cell, r)
+            note_leaf(glm, slot, c, regions, leaves, 1)
+            gslot[at(slot, c)] = r + 1
+
+    @ti.kernel
+    def count_leaf_cells(ctr: i64_2d):
+        # Independent check of the leaf counters (tests): cells of active leaves per slot.
+        for I in ti.grouped(lo):
+            ti.atomic_add(ctr[I[0], 0], 1)
+        for I in ti.grouped(gslot):
+            ti.atomic_add(ctr[I[0], 1], 1)
+
+    @ti.kernel
+    def clear_slot(slot: ti.i32):
+        # Bottom-up: leaves (L2 cells) first, then the L2 blocks, so every node goes back
+        # to Taichi's free lists.
+        for i, j, k in ti.ndrange(L.l1[0], L.l1[1], L.l1[2]):
+            for l1, l2 in ti.static(((occ_l1, occ_l2), (gidx_l1, gidx_l2))):
+                if ti.is_active(l1, [slot, i, j, k]):
+                    for a, b, c in ti.ndrange(L.l2, L.l2, L.l2):
+                        p = [slot, i * L.l2 + a, j * L.l2 + b, k * L.l2 + c]
+                        if ti.is_active(l2, p):
+                            ti.deactivate(l2, p)
+                    ti.deactivate(l1, [slot, i, j, k])
+
+    f.kernels = SimpleNamespace(
+        hits_count=hits_count,
+        hits_sum=hits_sum,
+        merge=merge,
+        rays=rays,
+        apply_free=apply_free,
+        apply_free_all=apply_free_all,
+        apply_hits=apply_hits,
+        query=query,
+        count_known=count_known,
+        export_known=export_known,
+        load_known=load_known,
+        load_slots=load_slots,
+        count_leaf_cells=count_leaf_cells,
+        clear_slot=clear_slot,
+    )
+    return f.kernels

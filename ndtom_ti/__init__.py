@@ -1,0 +1,27 @@
+"""ndtom_ti: exact NDT Occupancy Maps (Saarinen et al., ICRA 2013) with Taichi kernels.
+
+No Taichi field or kernel is created at import time: ``init`` (or the first map) does it.
+"""
+
+from . import metrics as metrics
+from .config import MapConfig as MapConfig
+from .kernels.layout import Layout as Layout
+from .map import NdtOmMap as NdtOmMap
+from .map import ScanReport as ScanReport
+from .mapfile import MapFileError as MapFileError
+from .runtime import MapMemoryError as MapMemoryError
+from .runtime import current_arch as current_arch
+from .runtime import init as init
+
+__version__ = "0.1.0"
+__all__ = [
+    "Layout",
+    "MapConfig",
+    "MapFileError",
+    "MapMemoryError",
+    "NdtOmMap",
+    "ScanReport",
+    "current_arch",
+    "init",
+    "metrics",
+]

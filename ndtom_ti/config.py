@@ -1,0 +1,79 @@
+"""Sensor model and map options."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Options of an NDT-OM.
+
+    Defaults for ``p_occupied``, ``p_empty`` and ``min_points`` are the paper's
+    (Saarinen et al., ICRA 2013, sec. III and IV: p_o = 0.6, p_e = 0.49, 3 points per
+    Gaussian). The paper gives no clamp; we clamp log-odds to [-2.0, 2.0] (p in
+    [0.12, 0.88]) so that a cell of an object that left is cleared after ~50 rays pass
+    it (a few scans of a 32-beam lidar) while a wall hit by ~5 points per scan needs
+    ~10 such scans of misses in a row to lose its Gaussian.
+    """
+
+    p_occupied: float = 0.6  # p_o: probability a cell holding an endpoint is occupied
+    p_empty: float = 0.49  # p_e: probability a cell a ray passes is occupied
+    logodds_min: float = -2.0
+    logodds_max: float = 2.0
+    min_points: int = 3  # a Gaussian needs at least this many points
+    min_range: float = 0.0  # points closer to the sensor are dropped (metres)
+    max_range: float = math.inf  # points farther are dropped, or carved as free rays
+    max_range_mode: str = "drop"  # "drop" | "free": free rays clipped at max_range, no hit
+    n_max: int = 0  # cap on N (adaptive Gaussians, method.md sec. 2); 0 disables
+
+    def __post_init__(self) -> None:
+        def bad(msg: str) -> None:
+            raise ValueError(f"MapConfig: {msg}")
+
+        if not 0.5 < self.p_occupied < 1.0:
+            bad(f"p_occupied must be in (0.5, 1), got {self.p_occupied}")
+        if not 0.0 < self.p_empty < 0.5:
+            bad(f"p_empty must be in (0, 0.5), got {self.p_empty}")
+        if not (math.isfinite(self.logodds_min) and math.isfinite(self.logodds_max)):
+            bad("log-odds clamps must be finite")
+        if not self.logodds_min < 0.0 < self.logodds_max:
+            bad(f"need logodds_min < 0 < logodds_max, got {self.logodds_min}, {self.logodds_max}")
+        if int(self.min_points) != self.min_points or self.min_points < 1:
+            bad(f"min_points must be a positive integer, got {self.min_points}")
+        if not (self.min_range >= 0.0 and math.isfinite(self.min_range)):
+            bad(f"min_range must be finite and >= 0, got {self.min_range}")
+        if not self.max_range > self.min_range:
+            bad(f"max_range must be > min_range, got {self.max_range} <= {self.min_range}")
+        if self.max_range_mode not in ("drop", "free"):
+            bad(f"max_range_mode must be 'drop' or 'free', got {self.max_range_mode!r}")
+        if self.max_range_mode == "free" and not math.isfinite(self.max_range):
+            bad("max_range_mode='free' needs a finite max_range")
+        if int(self.n_max) != self.n_max or self.n_max < 0 or self.n_max == 1:
+            bad(f"n_max must be 0 (off) or an integer >= 2, got {self.n_max}")
+
+    @property
+    def l_hit(self) -> float:
+        return math.log(self.p_occupied / (1.0 - self.p_occupied))
+
+    @property
+    def l_free(self) -> float:
+        return math.log(self.p_empty / (1.0 - self.p_empty))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        if math.isinf(d["max_range"]):
+            d["max_range"] = None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MapConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"MapConfig: unknown options {sorted(unknown)}; known: {sorted(known)}")
+        d = dict(d)
+        if d.get("max_range", 0.0) is None:
+            d["max_range"] = math.inf
+        return cls(**d)

@@ -1,0 +1,230 @@
+"""TF tree built from tf2_msgs/TFMessage messages (/tf and /tf_static)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import RecordingError, TransformTimeError
+from .transforms import PoseTrack, invert, make_transform
+
+__all__ = ['TfBuffer', 'TfEdge', 'normalize_frame', 'stamp_ns']
+
+
+def normalize_frame(frame: str) -> str:
+    """tf2 ignores a leading '/' (ROS1 tf allowed '/world'); so do we."""
+    return frame.lstrip('/')
+
+
+def stamp_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time (ROS1 'time' is read into the same type) -> int ns."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _fmt_s(ns: int) -> str:
+    return f'{ns / 1e9:.3f} s'
+
+
+@dataclass(frozen=True)
+class TfEdge:
+    """One parent->child edge of the tree, as recorded."""
+    parent: str
+    child: str
+    static: bool
+    count: int          # transforms recorded for this edge
+    first_ns: int | None  # None for static edges (valid for all time)
+    last_ns: int | None
+
+
+class TfBuffer:
+    """All transforms of a recording; answers T_target_source queries at a time.
+
+    Static edges (from /tf_static) hold for all time. Each dynamic edge is a
+    :class:`PoseTrack` interpolated at the query stamp. A child has one parent
+    (a tree, as tf2 requires); a conflicting second parent is ignored and noted.
+    An edge recorded both on /tf_static and /tf uses the static value (valid at
+    all times, so clouds before the first /tf message still get it).
+    """
+
+    def __init__(self) -> None:
+        self._parent: dict[str, str] = {}
+        self._static: dict[str, np.ndarray] = {}            # child -> T_parent_child
+        self._samples: dict[str, list[tuple[int, tuple[float, ...], tuple[float, ...]]]] = {}
+        self._tracks: dict[str, PoseTrack] = {}
+        self._static_count: dict[str, int] = {}
+        self.notes: list[str] = []
+        self._noted: set[tuple[str, str, str]] = set()
+
+    # ------------------------------------------------------------------ building
+    def add(self, parent: str, child: str, stamp: int, translation: tuple[float, float, float],
+            rotation: tuple[float, float, float, float], static: bool = False) -> None:
+        """Add one transform T_parent_child (quaternion x, y, z, w)."""
+        parent, child = normalize_frame(parent), normalize_frame(child)
+        if not parent or not child or parent == child:
+            self._note(('bad', parent, child), f'ignored a transform with frames {parent!r} -> {child!r}')
+            return
+        known = self._parent.get(child)
+        if known is not None and known != parent:
+            self._note(('reparent', child, parent),
+                       f"frame {child!r} has parent {known!r} but a transform also names {parent!r} as its "
+                       f"parent; kept {known!r}")
+            return
+        if known is None and self._creates_cycle(parent, child):
+            self._note(('cycle', parent, child), f'ignored {parent!r} -> {child!r}: it would close a loop in the tree')
+            return
+        self._parent[child] = parent
+        if static:
+            self._static[child] = make_transform(translation, rotation)
+            self._static_count[child] = self._static_count.get(child, 0) + 1
+        else:
+            self._samples.setdefault(child, []).append((int(stamp), tuple(translation), tuple(rotation)))
+            self._tracks.pop(child, None)
+        if child in self._static and child in self._samples:
+            self._note(('both', parent, child),
+                       f'{parent} -> {child} is on both /tf_static and /tf; using the static transform')
+
+    def add_message(self, msg: Any, static: bool) -> None:
+        """Add every transform of a tf2_msgs/TFMessage (or ROS1 tf/tfMessage)."""
+        for tr in msg.transforms:
+            v, q = tr.transform.translation, tr.transform.rotation
+            self.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header.stamp),
+                     (v.x, v.y, v.z), (q.x, q.y, q.z, q.w), static)
+
+    def _creates_cycle(self, parent: str, child: str) -> bool:
+        f: str | None = parent
+        while f is not None:
+            if f == child:
+                return True
+            f = self._parent.get(f)
+        return False
+
+    def _note(self, key: tuple[str, str, str], text: str) -> None:
+        if key not in self._noted:
+            self._noted.add(key)
+            self.notes.append(text)
+
+    # ------------------------------------------------------------------ structure
+    def frames(self) -> list[str]:
+        return sorted(set(self._parent) | set(self._parent.values()))
+
+    def tree(self) -> dict[str, str]:
+        """child -> parent."""
+        return dict(sorted(self._parent.items()))
+
+    def roots(self) -> list[str]:
+        return sorted(set(self._parent.values()) - set(self._parent))
+
+    def root_of(self, frame: str) -> str:
+        frame = normalize_frame(frame)
+        while frame in self._parent:
+            frame = self._parent[frame]
+        return frame
+
+    def is_static(self, child: str) -> bool:
+        return normalize_frame(child) in self._static
+
+    def edges(self) -> list[TfEdge]:
+        out = []
+        for child, parent in sorted(self._parent.items()):
+            if child in self._static:
+                out.append(TfEdge(parent, child, True, self._static_count[child], None, None))
+            else:
+                tr = self._track(child)
+                out.append(TfEdge(parent, child, False, len(tr), tr.first_ns, tr.last_ns))
+        return out
+
+    def __contains__(self, frame: str) -> bool:
+        f = normalize_frame(frame)
+        return f in self._parent or f in self._parent.values()
+
+    def _ancestors(self, frame: str) -> list[str]:
+        chain = [frame]
+        while chain[-1] in self._parent:
+            chain.append(self._parent[chain[-1]])
+        return chain
+
+    def path(self, target: str, source: str) -> tuple[list[str], list[str]]:
+        """Frames from source up to the common ancestor, and from target up to it.
+
+        Raises RecordingError (naming the frames that exist) when either frame is
+        unknown or the two are in different trees.
+        """
+        target, source = normalize_frame(target), normalize_frame(source)
+        missing = [f for f in (target, source) if f not in self]
+        if missing and target != source:
+            raise RecordingError(
+                f"frame {missing[0]!r} is not in the TF tree; frames that exist: "
+                f"{', '.join(self.frames()) or '(none: the recording has no /tf or /tf_static)'}")
+        up_s = self._ancestors(source)
+        up_t = self._ancestors(target)
+        common = next((f for f in up_s if f in set(up_t)), None)
+        if common is None:
+            raise RecordingError(
+                f"frames {target!r} and {source!r} are not connected by TF: {target!r} is in the tree rooted at "
+                f"{up_t[-1]!r}, {source!r} in the tree rooted at {up_s[-1]!r}; tree (child -> parent): "
+                + ', '.join(f'{c} -> {p}' for c, p in self.tree().items()))
+        return up_s[:up_s.index(common) + 1], up_t[:up_t.index(common) + 1]
+
+    def chain_is_static(self, target: str, source: str) -> bool:
+        """True when every edge between the two frames is static (a constant transform)."""
+        up_s, up_t = self.path(target, source)
+        return all(f in self._static for f in up_s[:-1] + up_t[:-1])
+
+    def chain_str(self, target: str, source: str) -> str:
+        """'map -> base_link -> lidar' (target first)."""
+        up_s, up_t = self.path(target, source)
+        return ' -> '.join(up_t + list(reversed(up_s[:-1])))
+
+    def dynamic_range_ns(self, target: str, source: str) -> tuple[int, int] | None:
+        """Stamps where every dynamic edge of the chain has data; None if all static."""
+        up_s, up_t = self.path(target, source)
+        lo, hi = None, None
+        for f in up_s[:-1] + up_t[:-1]:
+            if f in self._static:
+                continue
+            tr = self._track(f)
+            lo = tr.first_ns if lo is None else max(lo, tr.first_ns)
+            hi = tr.last_ns if hi is None else min(hi, tr.last_ns)
+        return None if lo is None or hi is None else (lo, hi)
+
+    # ------------------------------------------------------------------ queries
+    def _track(self, child: str) -> PoseTrack:
+        tr = self._tracks.get(child)
+        if tr is None:
+            s = self._samples[child]
+            tr = PoseTrack.from_tq([x[0] for x in s], [x[1] for x in s], [x[2] for x in s],
+                                   source=f'{self._parent[child]} -> {child}')
+            self._tracks[child] = tr
+        return tr
+
+    def _edge(self, child: str, stamp: int, tolerance_ns: int) -> np.ndarray:
+        """T_parent_child at the stamp."""
+        T = self._static.get(child)
+        if T is not None:
+            return T
+        tr = self._track(child)
+        T = tr.at(stamp, tolerance_ns)
+        if T is None:
+            gap = tr.gap_ns(stamp)
+            where = 'before the first' if gap < 0 else 'after the last'
+            raise TransformTimeError(
+                f'transform {self._parent[child]} -> {child} is not available at {_fmt_s(stamp)}: that is '
+                f'{abs(gap) / 1e9:.3f} s {where} of its {len(tr)} transforms '
+                f'({_fmt_s(tr.first_ns)} .. {_fmt_s(tr.last_ns)}; tolerance {tolerance_ns / 1e9:.3f} s)')
+        return T
+
+    def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray:
+        """T_target_source (4x4): maps points in ``source_frame`` into ``target_frame``.
+
+        Goes up from the source to the common ancestor and down to the target,
+        each dynamic edge interpolated at the stamp (clamped within the tolerance).
+        """
+        up_s, up_t = self.path(target_frame, source_frame)
+        T_anc_src = np.eye(4)
+        for f in up_s[:-1]:
+            T_anc_src = self._edge(f, stamp_ns, tolerance_ns) @ T_anc_src
+        T_anc_tgt = np.eye(4)
+        for f in up_t[:-1]:
+            T_anc_tgt = self._edge(f, stamp_ns, tolerance_ns) @ T_anc_tgt
+        return invert(T_anc_tgt) @ T_anc_src

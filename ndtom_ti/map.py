@@ -1,0 +1,524 @@
+"""NdtOmMap: the NDT Occupancy Map of Saarinen et al. (ICRA 2013), exact and parallel."""
+
+from __future__ import annotations
+
+import math
+import time
+import weakref
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import runtime
+from .config import MapConfig
+from .kernels.layout import Layout
+from .kernels.layout import RECORD_BYTES
+from .kernels.ndt import C_ERASED, C_EXPORT, C_HIT_CELLS, C_RECORDS, C_TOUCHED, C_VISITS, COUNTERS, make_kernels
+from .runtime import MapMemoryError
+
+_TOUCHED_START = 1 << 20
+
+
+@dataclass
+class ScanReport:
+    """What one ``insert_scan`` did."""
+
+    points_in: int = 0
+    points_used: int = 0  # endpoints inserted as hits
+    free_rays: int = 0  # rays past max_range carved as free space (max_range_mode="free")
+    dropped_nonfinite: int = 0
+    dropped_range: int = 0  # closer than min_range, or past max_range with mode "drop"
+    dropped_outside_grid: int = 0
+    cells_hit: int = 0
+    cells_passed: int = 0  # distinct cells rays passed through (occupancy maps)
+    ray_cell_visits: int = 0
+    gaussians_erased: int = 0
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _as_points(points: Any) -> np.ndarray:
+    arr = np.asarray(points)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise TypeError(f"points must be a real numeric (N, 3) array in metres, got dtype {arr.dtype}")
+    if np.issubdtype(arr.dtype, np.bool_):
+        raise TypeError("points must be a real numeric (N, 3) array in metres, got booleans")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def as_pose(T: Any, name: str = "T_world_sensor") -> np.ndarray:
+    """Validate a rigid 4x4 transform and return it as float64."""
+    try:
+        M = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a 4x4 numeric array: {exc}") from None
+    if M.shape != (4, 4):
+        raise ValueError(f"{name} must have shape (4, 4), got {M.shape}")
+    if not np.isfinite(M).all():
+        raise ValueError(f"{name} contains NaN or Inf")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ValueError(f"{name} bottom row must be [0, 0, 0, 1], got {M[3].tolist()}")
+    R = M[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > 1e-5 or np.linalg.det(R) < 0.0:
+        raise ValueError(
+            f"{name} is not a rigid transform: its 3x3 block must be a rotation "
+            f"(|R^T R - I| = {err:.2e}, det = {np.linalg.det(R):.4f})"
+        )
+    return M
+
+
+class NdtOmMap:
+    """An NDT Occupancy Map.
+
+    Cells are cubes of side ``resolution`` (metres); a point ``x`` (world frame) falls in
+    cell ``floor(x / resolution)``. Each cell holds a Gaussian (N, mean, covariance)
+    updated exactly by the Recursive Covariance Update and, with ``occupancy=True``, a
+    log-odds updated by ray tracing (eq. 12): Gaussians of cells that rays show empty are
+    erased. ``occupancy=False`` is the paper's "Recursive NDT": no ray tracing; log-odds
+    only rise with hits.
+
+    The grid spans ``layout.cells`` cells per axis centred on the origin (default
+    32768 x 32768 x 4096: +-1.6 km x +-1.6 km x +-205 m at 0.1 m). Points outside it are
+    dropped and counted.
+    """
+
+    def __init__(
+        self,
+        resolution: float,
+        *,
+        occupancy: bool = True,
+        config: MapConfig | None = None,
+        layout: Layout | None = None,
+        metadata: dict | None = None,
+        **options: Any,
+    ):
+        if isinstance(resolution, bool) or not isinstance(resolution, (int, float, np.floating, np.integer)):
+            raise TypeError(f"resolution must be a number of metres, got {type(resolution).__name__}")
+        resolution = float(resolution)
+        if not (math.isfinite(resolution) and resolution > 0.0):
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if config is not None and options:
+            raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
+        self.config = config if config is not None else MapConfig(**options)
+        self.resolution = resolution
+        self.occupancy_enabled = bool(occupancy)
+        self.layout = layout or Layout()
+        self.metadata: dict = dict(metadata or {})
+        self.scans_inserted = 0
+        self.points_inserted = 0
+
+        self._st, self._slot = runtime.acquire_slot(self.layout)
+        self._k = make_kernels(self._st)
+        # Empty the slot for the next map; nothing to do at interpreter exit.
+        weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
+        self._ctr = np.zeros(COUNTERS, np.int64)
+        self._touched = np.empty((_TOUCHED_START, 3), np.int32)
+        self._glo = np.array(self.layout.lo, np.int64)
+        self._ghi = np.array(self.layout.hi, np.int64)
+        # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
+        self._nrec = 0
+        self._alloc_records(1024)
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def arch(self) -> str:
+        return runtime.current_arch() or "cpu"
+
+    @property
+    def extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame bounds (metres) of the grid: (min corner, max corner)."""
+        return self._glo * self.resolution, self._ghi * self.resolution
+
+    def cell_index(self, points: Any) -> np.ndarray:
+        """Cell indices ``floor(x / resolution)`` (int64) of world points (N, 3)."""
+        return np.floor(_as_points(points) / self.resolution).astype(np.int64)
+
+    def cell_center(self, index: Any) -> np.ndarray:
+        """World centres of cells (N, 3) from integer indices."""
+        return (np.asarray(index, np.float64) + 0.5) * self.resolution
+
+    # ------------------------------------------------------------------ updates
+
+    def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
+        ``T_world_sensor`` (4, 4) mapping sensor-frame points into the world.
+
+        NaN/Inf points, points outside [min_range, max_range] and points outside the grid
+        are dropped and counted in the returned report. A call that raises leaves the map
+        unchanged.
+        """
+        t0 = time.perf_counter()
+        pts = _as_points(points)
+        T = as_pose(T_world_sensor)
+        cfg = self.config
+        res = self.resolution
+        rep = ScanReport(points_in=len(pts))
+
+        origin = np.ascontiguousarray(T[:3, 3])
+        ocell = np.floor(origin / res).astype(np.int64)
+        if ((ocell < self._glo) | (ocell >= self._ghi)).any():
+            lo, hi = self.extent
+            raise ValueError(
+                f"sensor origin {origin.tolist()} is outside the map grid "
+                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
+            )
+
+        finite = np.isfinite(pts).all(axis=1)
+        rep.dropped_nonfinite = int(len(pts) - finite.sum())
+        rng = np.full(len(pts), np.inf)
+        rng[finite] = np.sqrt(np.einsum("ij,ij->i", pts[finite], pts[finite]))
+        hit = finite & (rng >= cfg.min_range) & (rng <= cfg.max_range)
+        free = np.zeros_like(hit)
+        if cfg.max_range_mode == "free":
+            free = finite & (rng > cfg.max_range)
+        rep.dropped_range = int(finite.sum() - hit.sum() - free.sum())
+
+        local = pts[hit]
+        if free.any():
+            local = np.concatenate([local, pts[free] * (cfg.max_range / rng[free])[:, None]])
+        world = local @ T[:3, :3].T + origin
+        cells = np.floor(world / res)
+        inside = ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
+        n_hit_all = int(hit.sum())
+        rep.dropped_outside_grid = int(len(inside) - inside.sum())
+        n_hit = int(inside[:n_hit_all].sum())
+        if rep.dropped_outside_grid:
+            world = world[inside]
+            cells = cells[inside]
+        world = np.ascontiguousarray(world)
+        cells = np.ascontiguousarray(cells.astype(np.int32))
+        n = len(world)
+        rep.points_used = n_hit
+        rep.free_rays = n - n_hit
+
+        self._reserve(self._scan_bound(cells, n_hit, ocell))
+
+        k, ctr, fs, slot = self._k, self._ctr, self._st, self._slot
+        ctr[:] = 0
+        hitlist = np.empty((max(n_hit, 1), 3), np.int32)
+        nh = 0
+        if n_hit:
+            k.hits_count(slot, cells, n_hit, hitlist, ctr, fs.gidx_regions, fs.leaf_count)
+            nh = int(ctr[C_HIT_CELLS])
+            acc = np.zeros((nh, 9), np.float64)
+            k.hits_sum(slot, world, cells, n_hit, acc, res)
+            if self._nrec + nh > len(self._rec_n):
+                self._alloc_records(max(2 * len(self._rec_n), self._nrec + nh))
+            ctr[C_RECORDS] = self._nrec
+            k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
+            self._nrec = int(ctr[C_RECORDS])
+        lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
+        if self.occupancy_enabled and n:
+            k.rays(
+                slot, world, cells, n_hit, n, origin, ocell.astype(np.int32), res,
+                self._touched, len(self._touched), ctr, fs.occ_regions, fs.leaf_count,
+            )  # fmt: skip
+            nt = int(ctr[C_TOUCHED])
+            if nt <= len(self._touched):
+                k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr)
+            else:
+                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
+                self._touched = np.empty((2 * nt, 3), np.int32)
+            rep.cells_passed = nt
+        if nh:
+            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count)
+        fs.note_usage()
+        rep.cells_hit = nh
+        rep.ray_cell_visits = int(ctr[C_VISITS])
+        rep.gaussians_erased = int(ctr[C_ERASED])
+        self.scans_inserted += 1
+        self.points_inserted += n_hit
+        rep.seconds = time.perf_counter() - t0
+        return rep
+
+    # ------------------------------------------------------------------ memory
+
+    def _alloc_records(self, capacity: int) -> None:
+        old = getattr(self, "_rec_n", None)
+        n_ = np.zeros(capacity, np.int32)
+        cell = np.zeros((capacity, 3), np.int32)
+        mean = np.zeros((capacity, 3), np.float64)
+        scat = np.zeros((capacity, 6), np.float64)
+        if old is not None:
+            k = self._nrec
+            n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
+        self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat = n_, cell, mean, scat
+
+    def _scan_bound(self, cells: np.ndarray, n_hit: int, ocell: np.ndarray) -> np.ndarray:
+        """Upper bound of the nodes a scan can add, per node type (occupancy regions,
+        occupancy leaves, index regions, index leaves). A ray adds at most one node per
+        node boundary it crosses; all rays together at most the nodes of their box."""
+        out = np.zeros(4, np.int64)
+        if len(cells) == 0:
+            return out
+        L = self.layout
+        c = cells.astype(np.int64)
+
+        def nodes(size: int, pts: np.ndarray, with_rays: bool) -> int:
+            q = pts // size
+            qmin, qmax = q.min(axis=0), q.max(axis=0)
+            if with_rays:
+                o = ocell // size
+                qmin, qmax = np.minimum(qmin, o), np.maximum(qmax, o)
+                per_ray = int((np.abs(q - o).sum(axis=1) + 1).sum())
+            else:
+                per_ray = len(pts)
+            return min(per_ray, int(np.prod(qmax - qmin + 1)))
+
+        rays = self.occupancy_enabled
+        occ_pts = c if rays else c[:n_hit]
+        if len(occ_pts):
+            out[0], out[1] = nodes(L.region, occ_pts, rays), nodes(L.leaf, occ_pts, rays)
+        if n_hit:
+            out[2], out[3] = nodes(L.region, c[:n_hit], False), nodes(L.leaf, c[:n_hit], False)
+        return out
+
+    def _reserve(self, extra_nodes: np.ndarray) -> None:
+        """Refuse, before any kernel runs, work that could take Taichi's memory pool past
+        the budget (runtime.pool_limit)."""
+        limit = runtime.pool_limit()
+        need = self._st.pool_bytes(extra_nodes)
+        if need > limit:
+            raise MapMemoryError(
+                f"this update could take Taichi's memory pool to {need / 2**20:.0f} MiB, past the "
+                f"{limit / 2**20:.0f} MiB budget (this map holds {self._st.slot_bytes(self._slot) / 2**20:.0f} MiB "
+                f"of nodes; all maps {self._st.pool_bytes() / 2**20:.0f} MiB of pool). Use a coarser "
+                f"resolution or a smaller max_range, delete other maps, or use CUDA "
+                f"(ndtom_ti.init(arch='cuda', device_memory_GB=...)). The map is unchanged."
+            )
+
+    def memory_bytes(self) -> int:
+        """Bytes this map holds: nodes of its sparse trees (counted exactly by the
+        kernels) plus its Gaussian records."""
+        return self._st.slot_bytes(self._slot) + len(self._rec_n) * RECORD_BYTES
+
+    def memory_report(self) -> dict:
+        """Memory held, by part, with bytes per known cell and per Gaussian."""
+        nodes = self._st.nodes(self._slot)
+        known = len(self.known_cells()["index"])
+        gauss = len(self)
+        total = self.memory_bytes()
+        return {
+            "total_bytes": total,
+            "node_bytes": self._st.slot_bytes(self._slot),
+            "record_bytes": len(self._rec_n) * RECORD_BYTES,
+            "occupancy_regions": int(nodes[0]),
+            "occupancy_leaves": int(nodes[1]),
+            "index_regions": int(nodes[2]),
+            "index_leaves": int(nodes[3]),
+            "known_cells": known,
+            "gaussians": gauss,
+            "bytes_per_known_cell": total / known if known else float("nan"),
+            "bytes_per_gaussian": total / gauss if gauss else float("nan"),
+            "process_pool_bytes": self._st.pool_bytes(),
+            "process_pool_budget_bytes": runtime.pool_limit(),
+        }
+
+    # ------------------------------------------------------------------ queries
+
+    def _raw_gaussians(self) -> dict:
+        """Every record that holds points, sorted by cell index, with its log-odds."""
+        k = self._nrec
+        keep = self._rec_n[:k] > 0
+        idx = self._rec_cell[:k][keep]
+        order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+        idx = np.ascontiguousarray(idx[order])
+        lo = np.zeros(len(idx), np.float32)
+        if len(idx):
+            self._k.query(self._slot, idx, len(idx), lo)
+        return {
+            "index": idx,
+            "n": self._rec_n[:k][keep][order],
+            "mean_rel": self._rec_mean[:k][keep][order],
+            "scatter": self._rec_scat[:k][keep][order],
+            "logodds": lo,
+        }
+
+    def gaussians(self, min_points: int | None = None, min_probability: float = 0.5) -> dict:
+        """The map's Gaussians, sorted by cell index.
+
+        Returns a dict of numpy arrays: ``index`` (K, 3) int64 cell indices, ``mean``
+        (K, 3) float64 world frame, ``cov`` (K, 3, 3) float64 sample covariance (divided
+        by N - 1), ``n`` (K,) int64, ``p_occ`` (K,) float64 occupancy probability,
+        ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's
+        min_points) and ``p_occ > min_probability``; ``min_probability=0`` also returns
+        Gaussians of cells not (yet) occupied.
+        """
+        if min_points is None:
+            min_points = self.config.min_points
+        raw = self._raw_gaussians()
+        keep = raw["n"] >= max(int(min_points), 1)
+        lo = raw["logodds"].astype(np.float64)
+        p = 1.0 - 1.0 / (1.0 + np.exp(lo))
+        if min_probability > 0.0:
+            keep &= p > min_probability
+        idx = raw["index"][keep].astype(np.int64)
+        n = raw["n"][keep].astype(np.int64)
+        s = raw["scatter"][keep]
+        cov = np.empty((len(n), 3, 3))
+        for (a, b), col in zip(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), range(6)):
+            cov[:, a, b] = s[:, col]
+            cov[:, b, a] = s[:, col]
+        denom = np.maximum(n - 1, 1).astype(np.float64)
+        cov /= denom[:, None, None]
+        cov[n < 2] = 0.0
+        return {
+            "index": idx,
+            "mean": self.cell_center(idx) + raw["mean_rel"][keep],
+            "cov": cov,
+            "n": n,
+            "p_occ": p[keep],
+            "logodds": lo[keep],
+        }
+
+    def known_cells(self) -> dict:
+        """Every cell with a non-zero log-odds (occupied and free), sorted by index:
+        ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
+        ctr = self._ctr
+        ctr[:] = 0
+        self._k.count_known(self._slot, ctr)
+        K = int(ctr[C_EXPORT])
+        idx = np.empty((K, 3), np.int32)
+        val = np.empty(K, np.float32)
+        if K:
+            ctr[:] = 0
+            self._k.export_known(self._slot, idx, val, ctr)
+        order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+        lo = val[order].astype(np.float64)
+        return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
+
+    def occupancy(self, points: Any, *, return_known: bool = False):
+        """Occupancy probability of the cells holding world ``points`` (N, 3).
+
+        Unknown cells (never touched, or outside the grid) read 0.5, the prior; pass
+        ``return_known=True`` to also get a boolean mask of the cells that are known.
+        """
+        pts = _as_points(points)
+        out = np.full(len(pts), 0.5)
+        known = np.zeros(len(pts), bool)
+        ok = np.isfinite(pts).all(axis=1)
+        cells = np.zeros((len(pts), 3))
+        cells[ok] = np.floor(pts[ok] / self.resolution)
+        ok &= ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
+        if ok.any():
+            c = np.ascontiguousarray(cells[ok].astype(np.int32))
+            lo = np.empty(len(c), np.float32)
+            self._k.query(self._slot, c, len(c), lo)
+            lo64 = lo.astype(np.float64)
+            out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo64))
+            known[ok] = lo != 0.0
+        return (out, known) if return_known else out
+
+    def __len__(self) -> int:
+        """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
+        return int((self._raw_gaussians_cheap()).sum())
+
+    def _raw_gaussians_cheap(self) -> np.ndarray:
+        k = self._nrec
+        cand = np.flatnonzero(self._rec_n[:k] >= self.config.min_points)
+        if len(cand) == 0:
+            return np.zeros(0, bool)
+        lo = np.zeros(len(cand), np.float32)
+        self._k.query(self._slot, np.ascontiguousarray(self._rec_cell[cand]), len(cand), lo)
+        return lo > 0.0
+
+    def __repr__(self) -> str:
+        return (
+            f"NdtOmMap(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
+            f"scans={self.scans_inserted}, gaussians={len(self)}, arch={self.arch!r}, "
+            f"memory={self.memory_bytes() / 2**20:.1f} MiB)"
+        )
+
+    # ------------------------------------------------------------------ state in/out
+
+    def state(self) -> dict:
+        """All cell state as numpy arrays (what ``save`` writes)."""
+        g = self._raw_gaussians()
+        k = self.known_cells()
+        return {
+            "occ_index": k["index"].astype(np.int32),
+            "occ_logodds": k["logodds"].astype(np.float32),
+            "g_index": g["index"],
+            "g_n": g["n"],
+            "g_mean_rel": g["mean_rel"],
+            "g_scatter": g["scatter"],
+        }
+
+    def _load_state(self, st: dict) -> None:
+        """Write cell state into this (empty) map."""
+        occ_idx = np.ascontiguousarray(st["occ_index"], np.int32)
+        g_idx = np.ascontiguousarray(st["g_index"], np.int32)
+        for name, idx in (("occupancy", occ_idx), ("Gaussian", g_idx)):
+            if len(idx) and (((idx < self._glo) | (idx >= self._ghi)).any()):
+                raise ValueError(f"{name} cell indices lie outside this map's grid {self.layout.cells}")
+        self._reserve(self._load_bound(occ_idx, g_idx))
+        fs = self._st
+        if len(occ_idx):
+            occ_lo = np.ascontiguousarray(st["occ_logodds"], np.float32)
+            self._k.load_known(self._slot, occ_idx, occ_lo, len(occ_idx), fs.occ_regions, fs.leaf_count)
+        if len(g_idx):
+            self._alloc_records(max(1024, len(g_idx)))
+            self._rec_n[: len(g_idx)] = st["g_n"]
+            self._rec_cell[: len(g_idx)] = g_idx
+            self._rec_mean[: len(g_idx)] = st["g_mean_rel"]
+            self._rec_scat[: len(g_idx)] = st["g_scatter"]
+            self._nrec = len(g_idx)
+            self._k.load_slots(self._slot, g_idx, len(g_idx), fs.gidx_regions, fs.leaf_count)
+        fs.note_usage()
+
+    def _load_bound(self, occ_idx: np.ndarray, g_idx: np.ndarray) -> np.ndarray:
+        L = self.layout
+
+        def distinct(idx: np.ndarray, size: int) -> int:
+            return 0 if len(idx) == 0 else len(np.unique(idx.astype(np.int64) // size, axis=0))
+
+        return np.array(
+            [distinct(occ_idx, L.region), distinct(occ_idx, L.leaf), distinct(g_idx, L.region), distinct(g_idx, L.leaf)],
+            np.int64,
+        )
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map to one versioned file, atomically (see ``ndtom_ti.mapfile``)."""
+        from .mapfile import save_map
+
+        return save_map(self, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> NdtOmMap:
+        """Read a map written by ``save``; broken or foreign files raise MapFileError."""
+        from .mapfile import load_map
+
+        return load_map(path)
+
+    def coarsen(self, factor: int) -> NdtOmMap:
+        """A new map at ``factor * resolution`` (method.md sec. 4).
+
+        Every cell's (N, mean, scatter) is merged with the RCU into its parent
+        ``floor(index / factor)``: the Gaussian part equals a map built directly at the
+        coarse resolution from the same points. A parent's log-odds is the maximum of its
+        known children's (an occupied child makes the parent occupied: safe for planning).
+        """
+        if isinstance(factor, bool) or int(factor) != factor or factor < 2:
+            raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
+        from .multires import coarsen_state
+
+        f = int(factor)
+        out = NdtOmMap(
+            self.resolution * f,
+            occupancy=self.occupancy_enabled,
+            config=self.config,
+            layout=self.layout,
+            metadata={**self.metadata, "coarsened_from": self.resolution, "factor": f},
+        )
+        out._load_state(coarsen_state(self.state(), self.resolution, f, self.config.n_max))
+        out.scans_inserted = self.scans_inserted
+        out.points_inserted = self.points_inserted
+        return out

@@ -1,0 +1,56 @@
+"""Merging cells into coarser ones (method.md sec. 4), on exported cell state."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _group(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique rows of an int (K, 3) array and, per row, its group number."""
+    uniq, inv = np.unique(index, axis=0, return_inverse=True)
+    return uniq, inv.reshape(-1)
+
+
+def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> dict:
+    """Cell state (as ``NdtOmMap.state()``) of the map at ``factor * resolution``."""
+    out: dict = {}
+
+    occ_parent = np.floor_divide(st["occ_index"].astype(np.int64), factor)
+    if len(occ_parent):
+        uniq, inv = _group(occ_parent)
+        lo = np.full(len(uniq), -np.inf, np.float32)
+        np.maximum.at(lo, inv, st["occ_logodds"].astype(np.float32))
+        out["occ_index"], out["occ_logodds"] = uniq.astype(np.int32), lo
+    else:
+        out["occ_index"], out["occ_logodds"] = np.zeros((0, 3), np.int32), np.zeros(0, np.float32)
+
+    idx = st["g_index"].astype(np.int64)
+    if len(idx) == 0:
+        out.update(
+            g_index=np.zeros((0, 3), np.int32),
+            g_n=np.zeros(0, np.int32),
+            g_mean_rel=np.zeros((0, 3)),
+            g_scatter=np.zeros((0, 6)),
+        )
+        return out
+    parent = np.floor_divide(idx, factor)
+    uniq, inv = _group(parent)
+    n = st["g_n"].astype(np.float64)
+    # Child means relative to the parent's centre, so sums stay well conditioned.
+    q = (idx + 0.5) * resolution + st["g_mean_rel"] - (parent + 0.5) * (resolution * factor)
+    G = len(uniq)
+    ntot = np.bincount(inv, weights=n, minlength=G)
+    mean = np.stack([np.bincount(inv, weights=n * q[:, a], minlength=G) for a in range(3)], axis=1) / ntot[:, None]
+    d = q - mean[inv]
+    scat = np.empty((G, 6))
+    for col, (a, b) in enumerate(_PAIRS):
+        scat[:, col] = np.bincount(inv, weights=st["g_scatter"][:, col] + n * d[:, a] * d[:, b], minlength=G)
+    n_int = ntot.astype(np.int64)
+    if n_max:
+        over = n_int > n_max
+        scat[over] *= ((n_max - 1) / (n_int[over] - 1))[:, None]
+        n_int[over] = n_max
+    out.update(g_index=uniq.astype(np.int32), g_n=n_int.astype(np.int32), g_mean_rel=mean, g_scatter=scat)
+    return out

@@ -1,0 +1,52 @@
+"""Shared fixtures: one Taichi init per session (arch from NDTOM_ARCH, default cpu)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+SHARED = Path(os.environ.get("NDTOM_SHARED", ROOT.parent / "shared"))
+DATA = SHARED / "data"
+SIMWORLD = SHARED / "tools" / "simworld.py"
+
+sys.path.insert(0, str(TESTS))
+
+
+def pytest_configure(config):
+    import ndtom_ti
+
+    ndtom_ti.init(os.environ.get("NDTOM_ARCH", "cpu"))
+
+
+@pytest.fixture(scope="session")
+def arch():
+    import ndtom_ti
+
+    return ndtom_ti.current_arch()
+
+
+def _simworld(out: Path, *args: str) -> Path:
+    subprocess.run([sys.executable, str(SIMWORLD), *args, "--out", str(out)], check=True, capture_output=True)
+    return out
+
+
+@pytest.fixture(scope="session")
+def sim_hall_dynamic(tmp_path_factory):
+    """Synthetic hall, 24 scans 1 s apart, with moving and vanishing objects (npz only)."""
+    if not SIMWORLD.exists():
+        pytest.skip(f"simworld not found at {SIMWORLD}")
+    out = _simworld(tmp_path_factory.mktemp("hall"), "--scans", "24", "--stride", "10", "--no-bags")
+    sys.path.insert(0, str(SIMWORLD.parent))
+    import simworld
+
+    return simworld.SimDataset(out / "hall.npz")
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

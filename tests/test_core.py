@@ -1,0 +1,289 @@
+"""The map's updates against float64 references: RCU exactness, DDA, eq. (12), erasure."""
+
+import math
+
+import numpy as np
+import pytest
+from reference import batch_stats, eq12_logodds, ray_cells
+
+from ndtom_ti import MapConfig, NdtOmMap
+
+WIDE = dict(logodds_min=-1e6, logodds_max=1e6)  # clamps out of the way
+
+
+def random_pose(rng, t):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    T = np.eye(4)
+    T[:3, :3] = q
+    T[:3, 3] = t
+    return T
+
+
+def to_world(pts, T):
+    return np.asarray(pts, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def assert_matches_batch(m, world, cov_rtol=1e-5, mean_atol=1e-6):
+    """Every cell's N, mean and covariance equal the batch estimate of all its points."""
+    g = m.gaussians(min_points=1, min_probability=0.0)
+    ref = batch_stats(world, m.resolution)
+    assert np.array_equal(g["index"], ref["index"])
+    assert np.array_equal(g["n"], ref["n"])
+    np.testing.assert_allclose(g["mean"], ref["mean"], rtol=0, atol=mean_atol)
+    scale = np.maximum(np.abs(ref["cov"]).max(axis=(1, 2)), 1e-12)
+    err = np.abs(g["cov"] - ref["cov"]).max(axis=(1, 2)) / scale
+    assert err.max() <= cov_rtol, f"worst relative covariance error {err.max():.2e}"
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1000.0, -1000.0, 20.0)])
+@pytest.mark.parametrize("res", [0.2, 0.5])
+def test_rcu_equals_batch_random_scans(rng, offset, res):
+    m = NdtOmMap(res, occupancy=False)
+    world = []
+    for k in range(6):
+        T = random_pose(rng, np.asarray(offset) + rng.normal(size=3))
+        # Clustered points so cells receive points from several scans.
+        pts = (rng.normal(size=(4000, 3)) * [2.0, 2.0, 0.5] + rng.normal(size=3)).astype(np.float32)
+        rep = m.insert_scan(pts, T)
+        assert rep.points_used == len(pts)
+        world.append(to_world(pts, T))
+        assert_matches_batch(m, np.concatenate(world))
+
+
+def test_rcu_equals_batch_on_lidar_scans(sim_hall_scans):
+    """Real-shaped lidar scans (thin walls, 57k points each), far from the origin too."""
+    scans = sim_hall_scans
+    m = NdtOmMap(0.4, occupancy=False)
+    world = []
+    for pts, T in scans:
+        m.insert_scan(pts, T)
+        world.append(to_world(pts, T))
+    assert_matches_batch(m, np.concatenate(world))
+
+
+@pytest.fixture(scope="module")
+def sim_hall_scans(sim_hall_dynamic):
+    d = sim_hall_dynamic
+    return [(d.scan(i), d.poses[i]) for i in range(0, 6, 2)]
+
+
+def test_n_is_an_integer_count_past_float32_range():
+    """N counts exactly where a float32 counter would stall (2^24)."""
+    m = NdtOmMap(1.0, occupancy=False)
+    pts = np.full((1 << 20, 3), 0.5, np.float32)
+    pts[:, 0] += np.linspace(-0.4, 0.4, len(pts), dtype=np.float32)
+    for _ in range(17):
+        m.insert_scan(pts, np.eye(4))
+    g = m.gaussians()
+    assert g["n"].tolist() == [17 << 20]
+
+
+# --------------------------------------------------------------------------- DDA
+
+
+def single_scan_logodds(res, origin, endpoints):
+    """Insert one scan of world ``endpoints`` seen from ``origin``; return the map, its
+    log-odds per cell, and the world endpoints exactly as the map computed them."""
+    T = np.eye(4)
+    T[:3, 3] = origin
+    m = NdtOmMap(res, config=MapConfig(**WIDE))
+    local = np.asarray(endpoints, np.float64) - origin
+    m.insert_scan(local, T)
+    k = m.known_cells()
+    return m, {tuple(c): v for c, v in zip(k["index"].tolist(), k["logodds"])}, to_world(local, T)
+
+
+def assert_logodds_equal(got, ref):
+    assert set(got) == set(ref), f"cells differ: missing {list(set(ref) - set(got))[:5]}, extra {list(set(got) - set(ref))[:5]}"
+    for c, v in ref.items():
+        assert got[c] == pytest.approx(v, rel=1e-5, abs=1e-6), c
+
+
+def test_dda_matches_reference_on_thousands_of_random_rays(rng):
+    res = 0.2
+    for origin in ([0.1, 0.2, 0.3], [-3.37, 5.01, -0.77]):
+        origin = np.asarray(origin)
+        ends = origin + rng.normal(size=(3000, 3)) * 4.0
+        _, got, world = single_scan_logodds(res, origin, ends)
+        assert_logodds_equal(got, eq12_logodds([(origin, world)], res, **WIDE_REF))
+
+
+WIDE_REF = dict(l_min=-1e6, l_max=1e6)
+
+
+def test_dda_visits_exactly_the_reference_cells_per_ray(rng):
+    """One ray per map, compared cell for cell, including degenerate rays."""
+    r = 0.25
+    rays = [
+        ([0.1, 0.1, 0.1], [3.1, 0.1, 0.1]),  # axis-aligned +x
+        ([0.1, 0.1, 0.1], [0.1, -3.1, 0.1]),  # axis-aligned -y
+        ([0.1, 0.1, 0.1], [0.1, 0.1, 2.9]),  # axis-aligned +z
+        ([0.1, 0.5, 0.3], [2.9, 0.5, 1.7]),  # along the face y = 2 r
+        ([0.3, 0.5, 0.75], [-2.9, 0.5, 0.75]),  # along the edge y = 2 r, z = 3 r
+        ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]),  # diagonal through cell corners
+        ([0.5, 1.5, 0.5], [1.5, 0.5, 0.5]),  # +x -y through a corner
+        ([1.5, 0.5, 0.5], [0.5, 1.5, 0.5]),  # -x +y through a corner
+        ([-1.3, -2.7, -0.2], [-4.4, -0.3, -3.3]),  # negative coordinates
+        ([0.7, 0.7, 0.7], [0.7, 0.7, 0.7]),  # zero length
+        ([0.7, 0.7, 0.7], [0.71, 0.69, 0.72]),  # inside one cell
+        ([0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]),  # origin on a face, going down
+    ]
+    for _ in range(40):
+        o = rng.uniform(-3, 3, 3)
+        rays.append((o, o + rng.normal(size=3) * rng.uniform(0.1, 6.0)))
+    for o, e in rays:
+        o, e = np.asarray(o, float), np.asarray(e, float)
+        _, got, world = single_scan_logodds(r, o, [e])
+        cells = ray_cells(o, world[0], r)
+        passes = {tuple(c) for c in cells[:-1].tolist()}
+        le = math.log(0.49 / 0.51)
+        lo = math.log(0.6 / 0.4)
+        expect = {c: le for c in passes}
+        expect[tuple(cells[-1].tolist())] = lo
+        assert_logodds_equal(got, expect)
+
+
+def test_dda_free_rays_count_their_last_cell():
+    """max_range_mode='free': rays past max_range carve free space up to max_range."""
+    cfg = MapConfig(max_range=2.0, max_range_mode="free", **WIDE)
+    m = NdtOmMap(0.5, config=cfg)
+    rep = m.insert_scan(np.array([[10.0, 0.1, 0.1], [1.2, 0.1, 0.1]]), np.eye(4))
+    assert (rep.points_used, rep.free_rays) == (1, 1)
+    far = np.array([10.0, 0.1, 0.1])
+    ends = np.array([far * (2.0 / np.sqrt(far @ far)), [1.2, 0.1, 0.1]])
+    ref = eq12_logodds([(np.zeros(3), ends, np.array([False, True]))], 0.5, **WIDE_REF)
+    k = m.known_cells()
+    got = {tuple(c): v for c, v in zip(k["index"].tolist(), k["logodds"])}
+    assert_logodds_equal(got, ref)
+
+
+# --------------------------------------------------------------------------- eq. (12)
+
+
+def test_occupancy_hand_computed_with_clamps():
+    lo = math.log(0.6 / 0.4)
+    le = math.log(0.49 / 0.51)
+    m = NdtOmMap(1.0)  # clamp [-2, 2]
+    origin = np.array([0.5, 0.5, 0.5])
+    T = np.eye(4)
+    T[:3, 3] = origin
+    ends = np.array([[5.5, 0.5, 0.5], [5.2, 0.7, 0.1], [5.9, 0.1, 0.9]]) - origin
+    for s in range(1, 21):
+        m.insert_scan(ends, T)
+        p = m.occupancy(np.array([[5.5, 0.5, 0.5], [2.5, 0.5, 0.5], [0.5, 0.5, 0.5]]))
+        l_hit = min(3 * lo * s, 2.0)
+        l_pass = max(3 * le * s, -2.0)
+        expect = [1 - 1 / (1 + math.exp(v)) for v in (l_hit, l_pass, l_pass)]
+        np.testing.assert_allclose(p, expect, rtol=1e-5)
+    k = m.known_cells()
+    assert len(k["index"]) == 6
+    assert sorted(k["logodds"].round(5).tolist()) == [-2.0] * 5 + [2.0]
+
+
+def test_cell_both_hit_and_passed_takes_the_hit_update():
+    lo = math.log(0.6 / 0.4)
+    le = math.log(0.49 / 0.51)
+    m = NdtOmMap(1.0)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.5, 0.5]
+    # Ray A ends in cell (2,0,0); ray B passes it and ends in (5,0,0).
+    m.insert_scan(np.array([[2.0, 0.0, 0.0], [5.0, 0.0, 0.0]]), T)
+    k = m.known_cells()
+    got = {tuple(c): v for c, v in zip(k["index"].tolist(), k["logodds"])}
+    assert got[(2, 0, 0)] == pytest.approx(lo, rel=1e-6)
+    assert got[(5, 0, 0)] == pytest.approx(lo, rel=1e-6)
+    assert got[(1, 0, 0)] == pytest.approx(2 * le, rel=1e-6)
+    assert got[(3, 0, 0)] == pytest.approx(le, rel=1e-6)
+
+
+def test_occupancy_of_unknown_cells_is_prior_and_flagged():
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.array([[3.0, 0.2, 0.2]]), np.eye(4))
+    p, known = m.occupancy(np.array([[3.1, 0.1, 0.1], [1.0, 0.1, 0.1], [50.0, 50.0, 50.0], [np.nan, 0, 0]]), return_known=True)
+    assert known.tolist() == [True, True, False, False]
+    assert p[0] > 0.5 and p[1] < 0.5 and p[2] == 0.5 and p[3] == 0.5
+
+
+def test_multi_scan_logodds_match_reference(rng):
+    """Several scans from different origins, clamps active: eq. (12) per scan exactly."""
+    res = 0.3
+    scans = []
+    cfg = MapConfig(logodds_min=-0.5, logodds_max=1.0)
+    m = NdtOmMap(res, config=cfg)
+    for k in range(5):
+        o = rng.uniform(-1, 1, 3)
+        ends = rng.normal(size=(600, 3)) * 2.0 + [3.0, 0.0, 0.0]
+        T = np.eye(4)
+        T[:3, 3] = o
+        m.insert_scan(ends - o, T)
+        scans.append((o, to_world(ends - o, T)))
+    ref = eq12_logodds(scans, res, l_min=-0.5, l_max=1.0)
+    k = m.known_cells()
+    got = {tuple(c): v for c, v in zip(k["index"].tolist(), k["logodds"])}
+    assert_logodds_equal(got, ref)
+
+
+# --------------------------------------------------------------------------- erasure
+
+
+def test_gaussian_reset_when_logodds_falls_to_zero():
+    m = NdtOmMap(1.0)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.5, 0.5]
+    wall = np.array([[5.5, 0.5, 0.5], [5.2, 0.6, 0.4], [5.7, 0.3, 0.6], [5.4, 0.4, 0.5]]) - T[:3, 3]
+    m.insert_scan(wall, T)
+    assert m.gaussians()["index"].tolist() == [[5, 0, 0]]
+    # The object leaves: rays now pass cell 5 and end in cell 9.
+    far = np.array([[9.5, 0.5, 0.5]] * 10) - T[:3, 3]
+    erased = 0
+    scans = 0
+    while m.gaussians(min_probability=0.0, min_points=1)["index"].tolist().count([5, 0, 0]):
+        erased += m.insert_scan(far, T).gaussians_erased
+        scans += 1
+        assert scans < 20
+    # l = 4 * 0.405 = 1.62; each scan subtracts 10 * 0.04 = 0.40 -> l <= 0 after 5 scans.
+    assert scans == 5 and erased == 1
+    assert m.occupancy(np.array([[5.5, 0.5, 0.5]]))[0] < 0.5
+    # New points start a fresh Gaussian.
+    m.insert_scan(np.array([[5.5, 0.5, 0.5]] * 3) - T[:3, 3] + [[0.1, 0, 0], [0.2, 0, 0], [0.3, 0, 0]], T)
+    g = m.gaussians(min_probability=0.0)
+    i = g["index"].tolist().index([5, 0, 0])
+    assert g["n"][i] == 3
+    np.testing.assert_allclose(g["mean"][i], [5.7, 0.5, 0.5], atol=1e-9)
+
+
+def _in_box(pts, lo, hi, pad):
+    return ((pts >= lo - pad) & (pts <= hi + pad)).all(axis=1)
+
+
+def test_dynamic_object_erased_static_surfaces_kept(sim_hall_dynamic):
+    d = sim_hall_dynamic
+    names = [str(n) for n in d.dyn_names]
+    j = names.index("pallet_removed")
+    gone = int(np.argmin(d.dyn_present[:, j]))  # first scan without the pallet
+    assert 0 < gone < d.n_scans - 6
+    lo_b, hi_b = d.dyn_lo[0][j], d.dyn_hi[0][j]
+    res = 0.2
+    m = NdtOmMap(res)
+    counts = []
+    for i in range(d.n_scans):
+        m.insert_scan(d.scan(i), d.poses[i])
+        g = m.gaussians()
+        # The floor under the pallet becomes visible once it is gone: not the pallet's.
+        inb = _in_box(g["mean"], lo_b, hi_b, 0.05) & (g["mean"][:, 2] > 0.2)
+        counts.append(int(inb.sum()))
+    assert counts[gone - 1] >= 50, counts
+    assert counts[gone + 4] <= 0.05 * counts[gone - 1], counts
+    assert max(counts[gone + 5 :]) == 0, counts
+    # Static structure keeps its Gaussians: walls, pillars and racks seen in the last
+    # scans still hold Gaussians where their points fall.
+    static = np.concatenate([d.scan(i, "world")[d.scan_labels(i) < d.n_static] for i in range(d.n_scans - 3, d.n_scans)])
+    cells, n = np.unique(np.floor(static / res).astype(np.int64), axis=0, return_counts=True)
+    cells = cells[n >= 5]  # well observed: sparse far cells may hold fewer than 3 points
+    g = m.gaussians()
+    have = {tuple(c) for c in g["index"].tolist()}
+    kept = np.mean([tuple(c) in have for c in cells.tolist()])
+    assert kept > 0.95, kept
