@@ -43,10 +43,10 @@ class ScanReport:
 
 def _as_points(points: Any) -> np.ndarray:
     arr = np.asarray(points)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise TypeError(f"points must be a real numeric (N, 3) array in metres, got dtype {arr.dtype}")
-    if np.issubdtype(arr.dtype, np.bool_):
+    if arr.dtype == np.bool_:
         raise TypeError("points must be a real numeric (N, 3) array in metres, got booleans")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise TypeError(f"points must be a real numeric (N, 3) array in metres, got dtype {arr.dtype}")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {arr.shape}")
     return np.ascontiguousarray(arr, dtype=np.float64)

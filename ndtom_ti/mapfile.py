@@ -46,6 +46,9 @@ class MapFileError(ValueError):
 
 def save_map(m: NdtOmMap, path: str | Path) -> Path:
     path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise FileNotFoundError(f"cannot write {path}: folder {directory} does not exist")
     st = m.state()
     table, offset = [], 0
     blobs = []
@@ -56,7 +59,7 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
         offset += a.nbytes
     sha = hashlib.sha256()
     for a in blobs:
-        sha.update(memoryview(a).cast("B"))
+        sha.update(_bytes(a))
     header = {
         "format": "ndtom_ti map",
         "version": VERSION,
@@ -72,17 +75,13 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
         "payload_sha256": sha.hexdigest(),
     }
     hbytes = json.dumps(header, default=_json_default).encode("utf-8")
-
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise FileNotFoundError(f"cannot write {path}: folder {directory} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
             fh.write(hbytes)
             for a in blobs:
-                fh.write(memoryview(a).cast("B"))
+                fh.write(_bytes(a))
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -93,6 +92,10 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
             pass
         raise
     return path
+
+
+def _bytes(a: np.ndarray) -> memoryview:
+    return memoryview(a.reshape(-1).view(np.uint8))
 
 
 def _json_default(o):
