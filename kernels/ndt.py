@@ -40,6 +40,7 @@ f64_1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
 f32_1d = ti.types.ndarray(dtype=ti.f32, ndim=1)
 i8_4d = ti.types.ndarray(dtype=ti.i8, ndim=4)
 i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
+i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)
 
 
 def make_kernels(f: Storage) -> SimpleNamespace:
@@ -170,75 +171,128 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             rec_n[r] = tot_i
 
     @ti.func
-    def visit(slot, c, touched: ti.template(), cap, ctr: ti.template(), regions: ti.template(), leaves: ti.template()):
-        note_leaf(olm, slot, c, regions, leaves, 0)
+    def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()):
         if ti.atomic_add(ne[at(slot, c)], 1) == 0:
             t = ti.atomic_add(ctr[C_TOUCHED], 1)
             if t < cap:
                 for a in ti.static(range(3)):
                     touched[t, a] = c[a]
 
-    @ti.kernel
-    def rays(
-        slot: ti.i32,
-        pts: f64_2d,  # [N, 3] world endpoints
-        cells: i32_2d,  # [N, 3] endpoint cells
-        n_hit: ti.i32,  # rays [0, n_hit) end in a hit; the rest are free rays
-        n: ti.i32,
-        origin: f64_1d,  # [3] world sensor origin
-        ocell: i32_1d,  # [3] its cell
-        res: ti.f64,
-        touched: i32_2d,  # [cap, 3] out: cells touched for the first time this scan
-        cap: ti.i64,
-        ctr: i64_1d,  # [COUNTERS]
-        regions: i8_4d,  # [L1] occupancy-tree regions in use
-        leaves: i64_2d,  # [2]
-    ):
-        o = ti.Vector([origin[0], origin[1], origin[2]])
-        co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
-        for i in range(n):
-            ce = row(cells, i)
-            d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
-            cur = co
-            step = ti.Vector([0, 0, 0], dt=ti.i32)
-            rem = ti.Vector([0, 0, 0], dt=ti.i32)
-            tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
-            for a in ti.static(range(3)):
-                diff = ce[a] - co[a]
-                if diff > 0:
-                    step[a] = 1
-                    rem[a] = diff
-                    tmax[a] = (ti.cast(co[a] + 1, ti.f64) * res - o[a]) / d[a]
-                elif diff < 0:
-                    step[a] = -1
-                    rem[a] = -diff
-                    tmax[a] = (ti.cast(co[a], ti.f64) * res - o[a]) / d[a]
-            visits = 0
-            # Each pass steps at least one axis towards the endpoint cell, so the loop
-            # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
-            while rem[0] + rem[1] + rem[2] > 0:
-                visit(slot, cur, touched, cap, ctr, regions, leaves)
-                visits += 1
-                tmin = ti.min(tmax[0], tmax[1], tmax[2])
-                # Ties (the segment crosses an edge or corner): axes stepping up move first,
-                # so the cell holding the crossing point itself (floor semantics) is visited.
-                up = False
+    def make_rays(full: bool):
+        # full=False is the benchmark floor: the same traversal and layout, one integer
+        # atomic per visited cell and nothing else.
+        @ti.kernel
+        def rays(
+            slot: ti.i32,
+            pts: f64_2d,  # [N, 3] world endpoints
+            cells: i32_2d,  # [N, 3] endpoint cells
+            n_hit: ti.i32,  # rays [0, n_hit) end in a hit; the rest are free rays
+            n: ti.i32,
+            origin: f64_1d,  # [3] world sensor origin
+            ocell: i32_1d,  # [3] its cell
+            res: ti.f64,
+            touched: i32_2d,  # [cap, 3] out: cells touched for the first time this scan
+            cap: ti.i64,
+            ctr: i64_1d,  # [COUNTERS]
+            regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
+            leaves: i64_2d,  # [slots, 2]
+            block: i32_3d,  # [B, B, B] dense ray counts around the sensor (full only)
+            base: i32_1d,  # [3] cell index of block[0, 0, 0]
+            use_block: ti.i32,
+        ):
+            o = ti.Vector([origin[0], origin[1], origin[2]])
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            bsize = block.shape[0] if use_block != 0 else 0
+            co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+            for i in range(n):
+                ce = row(cells, i)
+                d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
+                cur = co
+                step = ti.Vector([0, 0, 0], dt=ti.i32)
+                rem = ti.Vector([0, 0, 0], dt=ti.i32)
+                tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
                 for a in ti.static(range(3)):
-                    if rem[a] > 0 and tmax[a] == tmin and step[a] > 0:
-                        up = True
-                for a in ti.static(range(3)):
-                    if rem[a] > 0 and tmax[a] == tmin and (step[a] > 0) == up:
-                        cur[a] += step[a]
-                        rem[a] -= 1
-                        if rem[a] > 0:
-                            face = cur[a] + 1 if step[a] > 0 else cur[a]
-                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                    diff = ce[a] - co[a]
+                    if diff != 0:
+                        step[a] = 1 if diff > 0 else -1
+                        rem[a] = ti.abs(diff)
+                        face = co[a] + 1 if diff > 0 else co[a]
+                        tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                visits = 0
+                last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
+                # Each pass steps at least one axis towards the endpoint cell, so the loop
+                # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+                while rem[0] + rem[1] + rem[2] > 0:
+                    rel = cur - b0
+                    if ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
+                        # Near the sensor every ray passes: count in the dense block,
+                        # merged into the tree once per cell by block_merge.
+                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                    else:
+                        lf = cur // leaf
+                        if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
+                            note_leaf(olm, slot, cur, regions, leaves, 0)
+                            last_leaf = lf
+                        if ti.static(full):
+                            visit(slot, cur, touched, cap, ctr)
                         else:
-                            tmax[a] = BIG
-            if i >= n_hit:
-                visit(slot, ce, touched, cap, ctr, regions, leaves)
-                visits += 1
-            ti.atomic_add(ctr[C_VISITS], visits)
+                            ti.atomic_add(ne[at(slot, cur)], 1)
+                    visits += 1
+                    tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                    # Ties (the segment crosses an edge or corner): axes stepping up move
+                    # first, so the cell holding the crossing point itself is visited.
+                    up = False
+                    for a in ti.static(range(3)):
+                        if tmax[a] == tmin and step[a] > 0:
+                            up = True
+                    for a in ti.static(range(3)):
+                        if tmax[a] == tmin and (step[a] > 0) == up:
+                            cur[a] += step[a]
+                            rem[a] -= 1
+                            # Recomputed, not accumulated: exact ties stay exact.
+                            face = cur[a] + 1 if step[a] > 0 else cur[a]
+                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a] if rem[a] > 0 else BIG
+                if ti.static(full):
+                    if i >= n_hit:
+                        note_leaf(olm, slot, ce, regions, leaves, 0)
+                        visit(slot, ce, touched, cap, ctr)
+                        visits += 1
+                ti.atomic_add(ctr[C_VISITS], visits)
+
+        return rays
+
+    rays = make_rays(True)
+    rays_floor = make_rays(False)
+
+    @ti.kernel
+    def block_merge(
+        slot: ti.i32,
+        block: i32_3d,  # [B, B, B], zeroed here
+        base: i32_1d,  # [3]
+        touched: i32_2d,
+        cap: ti.i64,
+        ctr: i64_1d,
+        regions: i8_4d,
+        leaves: i64_2d,
+    ):
+        nb = block.shape[0] // leaf
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        for bi, bj, bk in ti.ndrange(nb, nb, nb):
+            first = True
+            for li, lj, lk in ti.ndrange(leaf, leaf, leaf):
+                r = ti.Vector([bi * leaf + li, bj * leaf + lj, bk * leaf + lk])
+                v = block[r[0], r[1], r[2]]
+                if v != 0:
+                    c = b0 + r
+                    if first:  # the block is leaf-aligned: one leaf per (bi, bj, bk)
+                        note_leaf(olm, slot, c, regions, leaves, 0)
+                        first = False
+                    block[r[0], r[1], r[2]] = 0
+                    if ti.atomic_add(ne[at(slot, c)], v) == 0:
+                        t = ti.atomic_add(ctr[C_TOUCHED], 1)
+                        if t < cap:
+                            for a in ti.static(range(3)):
+                                touched[t, a] = c[a]
 
     @ti.func
     def free_update(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
@@ -275,6 +329,27 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] > 0:
                 free_update(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
+
+    @ti.kernel
+    def count_new_leaves(slot: ti.i32, keys: i32_2d, n: ti.i32, out: i64_1d):
+        # Leaves (by leaf index) not allocated yet in each tree; reading never allocates.
+        for k in range(n):
+            b = at(slot, row(keys, k))
+            if olm[b] == 0:
+                ti.atomic_add(out[0], 1)
+            if glm[b] == 0:
+                ti.atomic_add(out[1], 1)
+
+    @ti.kernel
+    def reset_rays(slot: ti.i32, touched: i32_2d, nt: ti.i32):
+        for t in range(nt):
+            ne[at(slot, row(touched, t))] = 0
+
+    @ti.kernel
+    def reset_rays_all(slot: ti.i32):
+        for I in ti.grouped(ne):
+            if I[0] == slot:
+                ne[I] = 0
 
     @ti.kernel
     def apply_hits(
@@ -355,9 +430,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         hits_sum=hits_sum,
         merge=merge,
         rays=rays,
+        rays_floor=rays_floor,
+        block_merge=block_merge,
         apply_free=apply_free,
         apply_free_all=apply_free_all,
         apply_hits=apply_hits,
+        reset_rays=reset_rays,
+        count_new_leaves=count_new_leaves,
+        reset_rays_all=reset_rays_all,
         query=query,
         count_known=count_known,
         export_known=export_known,

@@ -19,6 +19,7 @@ from .kernels.ndt import C_ERASED, C_EXPORT, C_HIT_CELLS, C_RECORDS, C_TOUCHED, 
 from .runtime import MapMemoryError
 
 _TOUCHED_START = 1 << 20
+_BLOCK = 128  # cells per side of the dense ray-count block around the sensor (8 MiB)
 
 
 @dataclass
@@ -120,6 +121,7 @@ class NdtOmMap:
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
+        self._block = np.zeros((_BLOCK, _BLOCK, _BLOCK), np.int32)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -147,15 +149,9 @@ class NdtOmMap:
 
     # ------------------------------------------------------------------ updates
 
-    def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
-        """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
-        ``T_world_sensor`` (4, 4) mapping sensor-frame points into the world.
-
-        NaN/Inf points, points outside [min_range, max_range] and points outside the grid
-        are dropped and counted in the returned report. A call that raises leaves the map
-        unchanged.
-        """
-        t0 = time.perf_counter()
+    def _prepare(self, points: Any, T_world_sensor: Any):
+        """Validate a scan and turn it into world endpoints and their cells (hits first,
+        then free rays), reserving the pool memory the update may need."""
         pts = _as_points(points)
         T = as_pose(T_world_sensor)
         cfg = self.config
@@ -195,14 +191,102 @@ class NdtOmMap:
             cells = cells[inside]
         world = np.ascontiguousarray(world)
         cells = np.ascontiguousarray(cells.astype(np.int32))
-        n = len(world)
         rep.points_used = n_hit
-        rep.free_rays = n - n_hit
+        rep.free_rays = len(world) - n_hit
 
-        self._reserve(self._scan_bound(cells, n_hit, ocell))
+        # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
+        # fit and the rays are traced in batches, each checked against exact counts.
+        limit = runtime.pool_limit()
+        one_pass = self._st.pool_bytes(self._scan_bound(cells, n_hit, ocell)) <= limit
+        if not one_pass:
+            self._reserve(self._new_hit_nodes(cells[:n_hit]))
+        return world, cells, n_hit, origin, ocell, rep, one_pass
 
+    def _new_hit_nodes(self, hit_cells: np.ndarray) -> np.ndarray:
+        """Exact number of nodes per type that writing these hit cells allocates."""
+        out = np.zeros(4, np.int64)
+        if len(hit_cells) == 0:
+            return out
+        L, st = self.layout, self._st
+        leaves = np.ascontiguousarray(np.unique(hit_cells // L.leaf, axis=0).astype(np.int32))
+        new = np.zeros(2, np.int64)
+        self._k.count_new_leaves(self._slot, leaves, len(leaves), new)
+        regions = np.unique((hit_cells.astype(np.int64) - self._glo) // L.region, axis=0)
+        r = (self._slot, regions[:, 0], regions[:, 1], regions[:, 2])
+        out[:] = [np.count_nonzero(st.occ_regions[r] == 0), new[0], np.count_nonzero(st.gidx_regions[r] == 0), new[1]]
+        return out
+
+    def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """Benchmark floor: the scan's rays traversed through the same sparse layout with
+        one integer atomic per visited cell and nothing else. It leaves ray counters set:
+        use a map made for this purpose only."""
+        t0 = time.perf_counter()
+        world, cells, n_hit, origin, ocell, rep, one_pass = self._prepare(points, T_world_sensor)
+        self._ctr[:] = 0
+        if len(world):
+            self._trace(self._k.rays_floor, world, cells, n_hit, origin, ocell, one_pass)
+        rep.ray_cell_visits = int(self._ctr[C_VISITS])
+        rep.seconds = time.perf_counter() - t0
+        return rep
+
+    def _trace(self, kernel, world, cells, n_hit, origin, ocell, one_pass: bool) -> None:
+        """Run a ray kernel over all rays, in batches when memory is tight."""
+        st, slot = self._st, self._slot
+        B = len(self._block)
+        # Leaf-aligned block centred on the sensor, kept inside the grid.
+        base = (ocell // self.layout.leaf - B // (2 * self.layout.leaf)) * self.layout.leaf
+        base = np.clip(base, self._glo, self._ghi - B).astype(np.int32)
+        args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
+                st.occ_regions, st.leaf_count, self._block, base)  # fmt: skip
+        n = len(world)
+        if one_pass:
+            kernel(slot, world, cells, n_hit, n, *args, 1)
+            if kernel is self._k.rays:
+                self._k.block_merge(slot, self._block, base, *args[3:8])
+            st.note_usage()
+            return
+        # Hits first, then free rays, each by azimuth: batches stay spatially compact.
+        d = world - origin
+        az = np.arctan2(d[:, 1], d[:, 0])
+        order = np.concatenate([np.argsort(az[:n_hit]), n_hit + np.argsort(az[n_hit:])])
+        ws, cs = world[order], cells[order]
+        limit = runtime.pool_limit()
+        pending = [(0, n)]
+        while pending:
+            a, b = pending.pop()
+            bound = self._scan_bound(cs[a:b], 0, ocell, tight=True, rays=True)
+            if st.pool_bytes(bound) <= limit:
+                # No dense block here: its merge would allocate outside this batch's bound.
+                kernel(slot, np.ascontiguousarray(ws[a:b]), np.ascontiguousarray(cs[a:b]), max(0, min(n_hit - a, b - a)), b - a, *args, 0)
+                st.note_usage()
+            elif b - a > 1:
+                mid = (a + b) // 2
+                pending += [(mid, b), (a, mid)]
+            else:
+                nt = int(self._ctr[C_TOUCHED])
+                if nt <= len(self._touched):
+                    self._k.reset_rays(slot, self._touched, nt)
+                else:
+                    self._k.reset_rays_all(slot)
+                self._reserve(bound)  # raises: nothing of this scan is kept
+
+    def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
+        ``T_world_sensor`` (4, 4) mapping sensor-frame points into the world.
+
+        NaN/Inf points, points outside [min_range, max_range] and points outside the grid
+        are dropped and counted in the returned report. A call that raises leaves the map
+        unchanged.
+        """
+        t0 = time.perf_counter()
+        world, cells, n_hit, origin, ocell, rep, one_pass = self._prepare(points, T_world_sensor)
+        n = len(world)
+        cfg, res = self.config, self.resolution
         k, ctr, fs, slot = self._k, self._ctr, self._st, self._slot
         ctr[:] = 0
+        lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
+        if self.occupancy_enabled and n:
+            self._trace(k.rays, world, cells, n_hit, origin, ocell, one_pass)  # may refuse
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         if n_hit:
@@ -215,12 +299,7 @@ class NdtOmMap:
             ctr[C_RECORDS] = self._nrec
             k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
             self._nrec = int(ctr[C_RECORDS])
-        lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
         if self.occupancy_enabled and n:
-            k.rays(
-                slot, world, cells, n_hit, n, origin, ocell.astype(np.int32), res,
-                self._touched, len(self._touched), ctr, fs.occ_regions, fs.leaf_count,
-            )  # fmt: skip
             nt = int(ctr[C_TOUCHED])
             if nt <= len(self._touched):
                 k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr)
@@ -252,33 +331,34 @@ class NdtOmMap:
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
         self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat = n_, cell, mean, scat
 
-    def _scan_bound(self, cells: np.ndarray, n_hit: int, ocell: np.ndarray) -> np.ndarray:
+    def _scan_bound(
+        self, cells: np.ndarray, n_hit: int, ocell: np.ndarray, tight: bool = False, rays: bool | None = None
+    ) -> np.ndarray:
         """Upper bound of the nodes a scan can add, per node type (occupancy regions,
-        occupancy leaves, index regions, index leaves). A ray adds at most one node per
-        node boundary it crosses; all rays together at most the nodes of their box."""
+        occupancy leaves, index regions, index leaves): the nodes of the scan's bounding
+        box, or with ``tight`` also at most one node per node boundary each ray crosses."""
         out = np.zeros(4, np.int64)
         if len(cells) == 0:
             return out
         L = self.layout
-        c = cells.astype(np.int64)
+        rays = self.occupancy_enabled if rays is None else rays
 
-        def nodes(size: int, pts: np.ndarray, with_rays: bool) -> int:
-            q = pts // size
-            qmin, qmax = q.min(axis=0), q.max(axis=0)
+        def nodes(size: int, c: np.ndarray, with_rays: bool) -> int:
+            lo, hi = c.min(axis=0).astype(np.int64), c.max(axis=0).astype(np.int64)
             if with_rays:
-                o = ocell // size
-                qmin, qmax = np.minimum(qmin, o), np.maximum(qmax, o)
-                per_ray = int((np.abs(q - o).sum(axis=1) + 1).sum())
-            else:
-                per_ray = len(pts)
-            return min(per_ray, int(np.prod(qmax - qmin + 1)))
+                lo, hi = np.minimum(lo, ocell), np.maximum(hi, ocell)
+            box = int(np.prod(hi // size - lo // size + 1))
+            if not tight:
+                return box
+            q = c.astype(np.int64) // size
+            per_ray = int((np.abs(q - ocell // size).sum(axis=1) + 1).sum()) if with_rays else len(c)
+            return min(box, per_ray)
 
-        rays = self.occupancy_enabled
-        occ_pts = c if rays else c[:n_hit]
-        if len(occ_pts):
-            out[0], out[1] = nodes(L.region, occ_pts, rays), nodes(L.leaf, occ_pts, rays)
+        occ = cells if rays else cells[:n_hit]
+        if len(occ):
+            out[0], out[1] = nodes(L.region, occ, rays), nodes(L.leaf, occ, rays)
         if n_hit:
-            out[2], out[3] = nodes(L.region, c[:n_hit], False), nodes(L.leaf, c[:n_hit], False)
+            out[2], out[3] = nodes(L.region, cells[:n_hit], False), nodes(L.leaf, cells[:n_hit], False)
         return out
 
     def _reserve(self, extra_nodes: np.ndarray) -> None:

@@ -426,3 +426,30 @@ def test_rcu_exact_on_real_lidar_scans():
         world.append(to_world(p, s.T_world_sensor))
     assert_matches_batch(m, np.concatenate(world))
     assert len(batch_stats(np.concatenate(world), 0.3)["n"]) > 10000
+
+
+def test_batched_tracing_under_memory_pressure_gives_the_same_map(rng):
+    """Near the budget, rays are traced in batches without the dense sensor block; the
+    map must equal the one-pass map exactly (log-odds, N)."""
+    scans = scene_scans(rng, scans=3)
+    a = build(0.1, scans)
+    st = runtime.storage(ndtom_ti.Layout())
+    old = runtime.pool_limit()
+    b = NdtOmMap(0.1, metadata={"source": "test"})
+    calls = []
+    orig_trace, orig_bound = b._trace, b._scan_bound
+    b._trace = lambda *args: calls.append(args[-1]) or orig_trace(*args)
+    # The one-pass (bounding box) bound never fits; batch bounds are the real ones.
+    b._scan_bound = lambda *a, tight=False, **k: orig_bound(*a, tight=tight, **k) * (1 if tight else 10**9)
+    try:
+        runtime._state.pool_limit = st.pool_bytes(st.nodes(a._slot))
+        for pts, T in scans:
+            b.insert_scan(pts, T)
+    finally:
+        runtime._state.pool_limit = old
+    assert calls == [False, False, False]
+    ka, kb = a.known_cells(), b.known_cells()
+    assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
+    ga, gb = a.gaussians(min_points=1, min_probability=0), b.gaussians(min_points=1, min_probability=0)
+    assert np.array_equal(ga["index"], gb["index"]) and np.array_equal(ga["n"], gb["n"])
+    np.testing.assert_allclose(ga["cov"], gb["cov"], rtol=1e-9, atol=1e-15)

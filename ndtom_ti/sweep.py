@@ -1,0 +1,207 @@
+"""Resolution sweeps: time per scan of NDT-OM against resolution, beside its floor and
+OctoMap on the same world-frame points and origins (the paper's Fig. 5)."""
+
+from __future__ import annotations
+
+import csv
+import gc
+import math
+import platform
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .map import NdtOmMap, as_pose
+
+Scan = tuple[np.ndarray, np.ndarray]  # (points (N,3) sensor frame, T_world_sensor (4,4))
+
+
+@dataclass
+class SweepRow:
+    mapper: str  # "ndtom", "ndtom-floor" or "octomap"
+    resolution: float
+    scans: int
+    points_per_scan: float
+    ms_median: float
+    ms_p95: float
+    points_per_s: float
+    visits_per_s: float  # ray-cell visits per second (NaN for OctoMap)
+    known_cells: int
+    gaussians: int
+    memory_bytes: int
+    ratio_to_ndtom: float = math.nan  # this mapper's median / NDT-OM's median
+
+
+def _sync() -> None:
+    import taichi as ti
+
+    ti.sync()
+
+
+def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[Scan]) -> tuple[list[float], list]:
+    times, reports = [], []
+    for pts, T in scans:
+        _sync()
+        t0 = time.perf_counter()
+        rep = fn(pts, T)
+        _sync()
+        times.append(time.perf_counter() - t0)
+        reports.append(rep)
+    return times, reports
+
+
+def _row(mapper: str, res: float, scans: Sequence[Scan], times: list[float], visits: int, known: int, gauss: int, mem: int) -> SweepRow:
+    t = np.asarray(times)
+    pts = sum(len(p) for p, _ in scans)
+    return SweepRow(
+        mapper=mapper,
+        resolution=res,
+        scans=len(scans),
+        points_per_scan=pts / len(scans),
+        ms_median=float(np.median(t) * 1e3),
+        ms_p95=float(np.percentile(t, 95) * 1e3),
+        points_per_s=pts / float(t.sum()),
+        visits_per_s=visits / float(t.sum()) if visits else math.nan,
+        known_cells=known,
+        gaussians=gauss,
+        memory_bytes=mem,
+    )
+
+
+def octomap_available() -> bool:
+    try:
+        import pyoctomap  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def run_sweep(
+    scans: Sequence[Scan],
+    resolutions: Sequence[float],
+    *,
+    floor: bool = True,
+    baseline: str | None = None,
+    warmup: int = 2,
+    max_range: float = -1.0,
+    progress: Callable[[str], None] | None = None,
+) -> list[SweepRow]:
+    """Time every resolution on the same scans. Before timing, ``warmup`` scans go into
+    a throwaway map so that kernels are compiled. Returns one row per mapper and
+    resolution; ``ratio_to_ndtom`` compares medians within this run."""
+    if not scans:
+        raise ValueError("a sweep needs at least one scan")
+    if baseline not in (None, "octomap"):
+        raise ValueError(f"unknown baseline {baseline!r}; the supported baseline is 'octomap'")
+    if baseline == "octomap" and not octomap_available():
+        raise RuntimeError("the OctoMap baseline needs pyoctomap: pip install 'ndtom_ti[bench]'")
+    scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in scans]
+    say = progress or (lambda s: None)
+    rows: list[SweepRow] = []
+    for res in resolutions:
+        say(f"{res:g} m: warm-up")
+        w = NdtOmMap(res)
+        for pts, T in scans[:warmup]:
+            w.insert_scan(pts, T)
+            w.traverse_only(pts, T)
+        del w
+        gc.collect()
+
+        say(f"{res:g} m: NDT-OM")
+        m = NdtOmMap(res)
+        times, reps = _time_scans(m.insert_scan, scans)
+        visits = sum(r.ray_cell_visits for r in reps)
+        full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
+        rows.append(full)
+        del m
+        gc.collect()
+        if floor:
+            say(f"{res:g} m: floor")
+            f = NdtOmMap(res)
+            times, reps = _time_scans(f.traverse_only, scans)
+            r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), 0, 0, f.memory_bytes())
+            r.ratio_to_ndtom = r.ms_median / full.ms_median
+            rows.append(r)
+            del f
+            gc.collect()
+        if baseline == "octomap":
+            say(f"{res:g} m: OctoMap")
+            rows.append(_octomap_row(scans, res, full, max_range))
+    return rows
+
+
+def _octomap_row(scans: Sequence[Scan], res: float, full: SweepRow, max_range: float) -> SweepRow:
+    import pyoctomap
+
+    tree = pyoctomap.OcTree(res)
+    world = []
+    for pts, T in scans:
+        ok = np.isfinite(pts).all(axis=1)
+        world.append((np.ascontiguousarray(pts[ok].astype(np.float64) @ T[:3, :3].T + T[:3, 3]), np.ascontiguousarray(T[:3, 3])))
+    times = []
+    for w, o in world:
+        t0 = time.perf_counter()
+        tree.insertPointCloud(w, o, max_range)
+        times.append(time.perf_counter() - t0)
+    row = _row("octomap", res, scans, times, 0, int(tree.getNumLeafNodes()), 0, int(tree.memoryUsage()))
+    row.ratio_to_ndtom = row.ms_median / full.ms_median
+    return row
+
+
+def machine_tags(arch: str) -> dict:
+    import taichi as ti
+
+    tags = {
+        "machine": platform.node(),
+        "cpu": platform.processor() or platform.machine(),
+        "cores": __import__("os").cpu_count(),
+        "arch": arch,
+        "python": platform.python_version(),
+        "taichi": ".".join(str(v) for v in ti.__version__),
+        "numpy": np.__version__,
+    }
+    try:
+        import pyoctomap
+
+        tags["pyoctomap"] = getattr(pyoctomap, "__version__", "?")
+    except ImportError:
+        pass
+    return tags
+
+
+def write_csv(rows: Sequence[SweepRow], path: Path, tags: dict) -> Path:
+    names = [f.name for f in fields(SweepRow)] + sorted(tags)
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=names)
+        w.writeheader()
+        for r in rows:
+            w.writerow({**asdict(r), **tags})
+    return path
+
+
+def plot(rows: Sequence[SweepRow], path: Path, title: str) -> Path:
+    """Time per scan against resolution, every mapper, with the 100 ms real-time line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for mapper, style in (("ndtom", "o-"), ("ndtom-floor", "s--"), ("octomap", "^-")):
+        rs = sorted((r for r in rows if r.mapper == mapper), key=lambda r: r.resolution)
+        if rs:
+            ax.plot([r.resolution for r in rs], [r.ms_median for r in rs], style, label=mapper)
+    ax.axhline(100.0, color="red", lw=1, ls=":", label="100 ms (10 Hz)")
+    ax.set_xlabel("resolution (m)")
+    ax.set_ylabel("time per scan, median (ms)")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
