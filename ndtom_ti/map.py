@@ -295,7 +295,7 @@ class NdtOmMap:
             acc = np.zeros((nh, 9), np.float64)
             k.hits_sum(slot, world, cells, n_hit, acc, res)
             if self._nrec + nh > len(self._rec_n):
-                self._alloc_records(max(2 * len(self._rec_n), self._nrec + nh))
+                self._alloc_records(max(len(self._rec_n) * 5 // 4, self._nrec + nh))
             ctr[C_RECORDS] = self._nrec
             k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
             self._nrec = int(ctr[C_RECORDS])
@@ -343,22 +343,25 @@ class NdtOmMap:
         L = self.layout
         rays = self.occupancy_enabled if rays is None else rays
 
-        def nodes(size: int, c: np.ndarray, with_rays: bool) -> int:
-            lo, hi = c.min(axis=0).astype(np.int64), c.max(axis=0).astype(np.int64)
-            if with_rays:
-                lo, hi = np.minimum(lo, ocell), np.maximum(hi, ocell)
-            box = int(np.prod(hi // size - lo // size + 1))
+        def nodes(size: int, c: np.ndarray, box: tuple, with_rays: bool) -> int:
+            lo, hi = box
+            n_box = int(np.prod(hi // size - lo // size + 1))  # floor division is monotone
             if not tight:
-                return box
+                return n_box
             q = c.astype(np.int64) // size
             per_ray = int((np.abs(q - ocell // size).sum(axis=1) + 1).sum()) if with_rays else len(c)
-            return min(box, per_ray)
+            return min(n_box, per_ray)
 
         occ = cells if rays else cells[:n_hit]
         if len(occ):
-            out[0], out[1] = nodes(L.region, occ, rays), nodes(L.leaf, occ, rays)
+            box = (occ.min(axis=0).astype(np.int64), occ.max(axis=0).astype(np.int64))
+            if rays:
+                box = (np.minimum(box[0], ocell), np.maximum(box[1], ocell))
+            out[0], out[1] = nodes(L.region, occ, box, rays), nodes(L.leaf, occ, box, rays)
         if n_hit:
-            out[2], out[3] = nodes(L.region, cells[:n_hit], False), nodes(L.leaf, cells[:n_hit], False)
+            h = cells[:n_hit]
+            box = (h.min(axis=0).astype(np.int64), h.max(axis=0).astype(np.int64))
+            out[2], out[3] = nodes(L.region, h, box, False), nodes(L.leaf, h, box, False)
         return out
 
     def _reserve(self, extra_nodes: np.ndarray) -> None:

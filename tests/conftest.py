@@ -31,17 +31,19 @@ def arch():
 
 
 def _simworld(out: Path, *args: str) -> Path:
+    """Run shared/tools/simworld.py into ``out`` and make the module importable."""
+    if not SIMWORLD.exists():
+        pytest.skip(f"simworld not found at {SIMWORLD}")
     subprocess.run([sys.executable, str(SIMWORLD), *args, "--out", str(out)], check=True, capture_output=True)
+    if str(SIMWORLD.parent) not in sys.path:
+        sys.path.insert(0, str(SIMWORLD.parent))
     return out
 
 
 @pytest.fixture(scope="session")
 def sim_hall_dynamic(tmp_path_factory):
     """Synthetic hall, 24 scans 1 s apart, with moving and vanishing objects (npz only)."""
-    if not SIMWORLD.exists():
-        pytest.skip(f"simworld not found at {SIMWORLD}")
     out = _simworld(tmp_path_factory.mktemp("hall"), "--scans", "24", "--stride", "10", "--no-bags")
-    sys.path.insert(0, str(SIMWORLD.parent))
     import simworld
 
     return simworld.SimDataset(out / "hall.npz")
