@@ -39,6 +39,7 @@ f64_2d = ti.types.ndarray(dtype=ti.f64, ndim=2)
 f64_1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
 f32_1d = ti.types.ndarray(dtype=ti.f32, ndim=1)
 i8_4d = ti.types.ndarray(dtype=ti.i8, ndim=4)
+i8_3d = ti.types.ndarray(dtype=ti.i8, ndim=3)
 i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
 i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)
 
@@ -197,6 +198,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
             leaves: i64_2d,  # [slots, 2]
             block: i32_3d,  # [B, B, B] dense ray counts around the sensor (full only)
+            bflag: i8_3d,  # [B/leaf, B/leaf, B/leaf] leaves of the block that rays entered
             base: i32_1d,  # [3] cell index of block[0, 0, 0]
             use_block: ti.i32,
         ):
@@ -228,6 +230,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         # Near the sensor every ray passes: count in the dense block,
                         # merged into the tree once per cell by block_merge.
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                        lb = rel // leaf
+                        if (lb != last_leaf).any():
+                            bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
+                            last_leaf = lb
                     else:
                         lf = cur // leaf
                         if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
@@ -268,6 +274,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     def block_merge(
         slot: ti.i32,
         block: i32_3d,  # [B, B, B], zeroed here
+        bflag: i8_3d,  # [B/leaf]^3, zeroed here
         base: i32_1d,  # [3]
         touched: i32_2d,
         cap: ti.i64,
@@ -278,6 +285,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         nb = block.shape[0] // leaf
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         for bi, bj, bk in ti.ndrange(nb, nb, nb):
+            if bflag[bi, bj, bk] == 0:
+                continue
+            bflag[bi, bj, bk] = ti.i8(0)
             first = True
             for li, lj, lk in ti.ndrange(leaf, leaf, leaf):
                 r = ti.Vector([bi * leaf + li, bj * leaf + lj, bk * leaf + lk])

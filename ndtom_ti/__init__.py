@@ -3,6 +3,11 @@
 No Taichi field or kernel is created at import time: ``init`` (or the first map) does it.
 """
 
+import os as _os
+
+# Taichi prints a version banner on import; a mapping library should not.
+_os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+
 from . import metrics as metrics
 from .config import MapConfig as MapConfig
 from .kernels.layout import Layout as Layout

@@ -121,7 +121,8 @@ class NdtOmMap:
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
-        self._block = np.zeros((_BLOCK, _BLOCK, _BLOCK), np.int32)
+        self._block_cells = _BLOCK
+        self._blocks: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -232,17 +233,18 @@ class NdtOmMap:
     def _trace(self, kernel, world, cells, n_hit, origin, ocell, one_pass: bool) -> None:
         """Run a ray kernel over all rays, in batches when memory is tight."""
         st, slot = self._st, self._slot
-        B = len(self._block)
+        block, bflag = self._block_for(cells, ocell)
+        B = len(block)
         # Leaf-aligned block centred on the sensor, kept inside the grid.
         base = (ocell // self.layout.leaf - B // (2 * self.layout.leaf)) * self.layout.leaf
         base = np.clip(base, self._glo, self._ghi - B).astype(np.int32)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
-                st.occ_regions, st.leaf_count, self._block, base)  # fmt: skip
+                st.occ_regions, st.leaf_count, block, bflag, base)  # fmt: skip
         n = len(world)
         if one_pass:
             kernel(slot, world, cells, n_hit, n, *args, 1)
             if kernel is self._k.rays:
-                self._k.block_merge(slot, self._block, base, *args[3:8])
+                self._k.block_merge(slot, block, bflag, base, *args[3:8])
             st.note_usage()
             return
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
@@ -269,6 +271,21 @@ class NdtOmMap:
                 else:
                     self._k.reset_rays_all(slot)
                 self._reserve(bound)  # raises: nothing of this scan is kept
+
+    def _block_for(self, cells: np.ndarray, ocell: np.ndarray) -> np.ndarray:
+        """The smallest dense ray-count block (8 to 128 cells a side) that holds the
+        scan's reach around the sensor: block_merge reads every cell of it."""
+        if self._block_cells == 0:
+            return self._blocks.setdefault(0, (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
+        reach = int(np.abs(cells - ocell.astype(np.int32)).max()) if len(cells) else 0
+        B = 8
+        while B < min(2 * reach + 16, self._block_cells):
+            B *= 2
+        B = min(B, self._block_cells)
+        if B not in self._blocks:
+            nb = B // self.layout.leaf
+            self._blocks[B] = (np.zeros((B, B, B), np.int32), np.zeros((nb, nb, nb), np.int8))
+        return self._blocks[B]
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import struct
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .atomic import atomic_write
 from .config import MapConfig
 
 if TYPE_CHECKING:
@@ -46,9 +45,8 @@ class MapFileError(ValueError):
 
 def save_map(m: NdtOmMap, path: str | Path) -> Path:
     path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise FileNotFoundError(f"cannot write {path}: folder {directory} does not exist")
+    if not (path.parent if str(path.parent) else Path(".")).is_dir():
+        raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
     st = m.state()
     table, offset = [], 0
     blobs = []
@@ -75,22 +73,13 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
         "payload_sha256": sha.hexdigest(),
     }
     hbytes = json.dumps(header, default=_json_default).encode("utf-8")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
-            fh.write(hbytes)
-            for a in blobs:
-                fh.write(_bytes(a))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    def write(fh) -> None:
+        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
+        fh.write(hbytes)
+        for a in blobs:
+            fh.write(_bytes(a))
+
+    atomic_write(path, write)
     return path
 
 

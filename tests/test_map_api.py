@@ -112,7 +112,7 @@ def test_save_is_atomic_and_keeps_the_old_file_on_failure(rng, tmp_path, monkeyp
     def boom(fd):
         raise OSError("disk full")
 
-    monkeypatch.setattr("ndtom_ti.mapfile.os.fsync", boom)
+    monkeypatch.setattr("ndtom_ti.atomic.os.fsync", boom)
     with pytest.raises(OSError, match="disk full"):
         m.save(path)
     assert path.read_bytes() == good
@@ -474,3 +474,9 @@ def test_memory_follows_the_place_not_the_run(tmp_path):
             mem[i + 1] = m.memory_bytes()
     a, b = mem[2 * lap], mem[3 * lap - 1]
     assert b <= 1.05 * a, (a, b)
+
+
+def test_import_creates_no_taichi_program():
+    code = "import ndtom_ti, taichi as ti; print(ti.lang.impl.get_runtime().prog is None)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "True", out.stderr[-500:]

@@ -1,0 +1,697 @@
+"""``ndtom``: map ROS bags into NDT Occupancy Maps, inspect them, export the maps.
+
+Commands: ``info`` (what is in a recording or a map file), ``map`` (recording -> map
+file), ``demo`` (a built-in synthetic scene -> map file), ``export`` (map file -> PLY,
+npz or CSV). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.export`;
+this module parses options, shows progress and tables, and turns errors into one red
+line and a hint.
+
+Exit codes: 0 done; 1 failed (the memory budget stopped mapping: what was mapped is
+saved; or the map could not be written; or an internal error); 2 bad input or usage
+(unreadable recording, missing topic or poses, bad option or config file, output path
+that cannot be written); 130 interrupted by Ctrl-C (what was mapped is saved).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import tempfile
+import time
+from collections.abc import Iterator
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
+from rich.tree import Tree
+
+from . import __version__
+from .io import RecordingError
+from .mapfile import MapFileError
+from .runtime import MapMemoryError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+MAP_SUFFIX = ".ndtom"
+_MAGIC = b"NDTOMTI\n"
+
+app = typer.Typer(
+    name="ndtom",
+    help="Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+class Arch(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+class Format(str, Enum):
+    ply = "ply"
+    npz = "npz"
+    csv = "csv"
+
+
+# ---------------------------------------------------------------------------- output helpers
+def _out() -> Console:
+    return Console(highlight=False)
+
+
+def _err() -> Console:
+    return Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def _fail(message: str, hint: str | None = None, code: int = EXIT_USAGE) -> NoReturn:
+    err = _err()
+    err.print(Text.assemble(("Error: ", "bold red"), (message, "red")))
+    if hint:
+        err.print(Text.assemble(("Hint: ", "bold"), hint))
+    raise typer.Exit(code)
+
+
+_MEMORY_HINT = ("use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
+                "or a CUDA device (--arch cuda)")
+
+
+@contextlib.contextmanager
+def _user_errors(*, recording: str | None = None, map_file: str | None = None) -> Iterator[None]:
+    """Turn the errors a user can cause into one red line + hint and an exit code."""
+    try:
+        yield
+    except (typer.Exit, typer.Abort, SystemExit):
+        raise
+    except RecordingError as exc:
+        _fail(str(exc), recording or "`ndtom info BAG` shows the topics, TF frames and pose sources of a recording")
+    except MapFileError as exc:
+        _fail(str(exc), map_file or "give a map file written by `ndtom map` or `ndtom demo`")
+    except MapMemoryError as exc:
+        _fail(str(exc), _MEMORY_HINT, EXIT_FAILURE)
+    except FileNotFoundError as exc:
+        _fail(str(exc), map_file or "check the path")
+    except OSError as exc:
+        _fail(f"{exc}", "check the path and its permissions", EXIT_FAILURE)
+    except (ValueError, TypeError) as exc:
+        _fail(str(exc), "`ndtom COMMAND --help` lists the options and their ranges")
+    except KeyboardInterrupt:
+        _fail("interrupted (Ctrl-C)", None, EXIT_INTERRUPTED)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback for users
+        if os.environ.get("NDTOM_DEBUG"):
+            raise
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        text = lines[0] if len(lines) == 1 else (f"{lines[0]} ... {lines[-1]}" if lines else "")
+        _fail(f"internal error: {type(exc).__name__}: {text}",
+              "set NDTOM_DEBUG=1 to see the traceback, and please report it", EXIT_FAILURE)
+
+
+def _init(arch: Arch) -> str:
+    """Initialise Taichi once (its start-up line is not shown); a wrong arch is a usage error."""
+    import ndtom_ti
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        try:
+            return ndtom_ti.init(arch.value)
+        except RuntimeError as exc:
+            _fail(str(exc), "use --arch cpu (or auto)")
+
+
+def _check_writable(path: Path, what: str = "output") -> Path:
+    """Fail now (before any mapping) when ``path`` cannot be written."""
+    path = path.expanduser()
+    if path.is_dir():
+        _fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        _fail(f"cannot write the {what} {path}: folder {folder} does not exist", "create the folder first or choose "
+              "another path with -o")
+    if not folder.is_dir():
+        _fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=folder)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        _fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o")
+    if path.exists() and not path.is_file():
+        _fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
+    return path
+
+
+def _mib(b: float) -> str:
+    return f"{b / 2**20:.1f} MiB"
+
+
+def _count(n: int) -> str:
+    return f"{n:,}"
+
+
+def _secs(ns: int | None, start_ns: int | None = None) -> str:
+    """Seconds; relative to the bag start (record time) when ``start_ns`` is given and near."""
+    if ns is None:
+        return "-"
+    if start_ns is not None and abs(ns - start_ns) < 86_400 * 10**9:
+        return f"{(ns - start_ns) / 1e9:.3f}"
+    return f"{ns / 1e9:.3f} (absolute)"
+
+
+def _table(title: str, *columns: str, header: bool = True) -> Table:
+    t = Table(title=title, show_header=header, title_justify="left")
+    for i, col in enumerate(columns):
+        t.add_column(col, overflow="fold", style="bold" if (not header and i == 0) else None,
+                     justify="right" if col in ("messages", "poses") else "left")
+    return t
+
+
+# ---------------------------------------------------------------------------- version
+def _version(value: bool) -> None:
+    if value:
+        print(f"ndtom_ti {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Show the version and exit.")] = False,
+) -> None:
+    """Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).
+
+    Exit codes: 0 ok, 1 failed (e.g. memory budget; what was mapped is saved), 2 bad
+    input or usage, 130 interrupted (what was mapped is saved).
+    """
+
+
+# ---------------------------------------------------------------------------- info
+def _info_map(path: Path) -> None:
+    from .mapfile import read_header
+
+    h = read_header(path)
+    out = _out()
+    t = _table(f"Map file {path}", "", "", header=False)
+    md = h.get("metadata") or {}
+    t.add_row("format version", str(h.get("version")))
+    t.add_row("resolution", f"{h.get('resolution')} m")
+    t.add_row("occupancy", str(h.get("occupancy")))
+    t.add_row("scans inserted", _count(int(h.get("scans_inserted", 0))))
+    t.add_row("points inserted", _count(int(h.get("points_inserted", 0))))
+    arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
+    if "g_index" in arrays:
+        t.add_row("Gaussian records", _count(arrays["g_index"][0]))
+    if "occ_index" in arrays:
+        t.add_row("known cells", _count(arrays["occ_index"][0]))
+    for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
+        if key in md:
+            t.add_row(key.replace("_", " "), escape(str(md[key])))
+    t.add_row("config", escape(", ".join(f"{k}={v}" for k, v in (h.get("config") or {}).items())))
+    out.print(t)
+
+
+def _info_recording(path: Path) -> None:
+    from .io import open_recording
+
+    with open_recording(path) as rec:
+        info = rec.info()
+    out = _out()
+    head = _table(f"Recording {info.path}", "", "", header=False)
+    head.add_row("format", f"{info.format.upper()} ({info.storage})")
+    head.add_row("messages", _count(info.message_count))
+    head.add_row("duration", f"{info.duration_s:.3f} s")
+    head.add_row("start / end", f"{info.start_ns / 1e9:.3f} / {info.end_ns / 1e9:.3f} s (record time; times "
+                 "below are seconds from the start)")
+    out.print(head)
+
+    pose_topics = {s.name for s in info.pose_sources if s.kind == "topic"}
+    topics = _table("Topics", "topic", "type", "messages", "rate", "use")
+    for ts in info.topics:
+        if ts.name in info.cloud_frames:
+            use = f"mappable (frame {info.cloud_frames[ts.name]})"
+        elif ts.name in info.mappable_topics:
+            use = "mappable"
+        elif ts.msgtype in ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"):
+            use = "TF"
+        elif ts.name in pose_topics:
+            use = "poses"
+        else:
+            use = ""
+        rate = f"{(ts.count - 1) / info.duration_s:.1f} Hz" if ts.count > 1 and info.duration_s > 0 else "-"
+        topics.add_row(escape(ts.name), ts.msgtype, _count(ts.count), rate, escape(use))
+    if not info.topics:
+        topics.add_row("(none: the recording is empty)", "", "", "", "")
+    out.print(topics)
+
+    if info.tf_frames:
+        edges = {e.child: e for e in info.tf_edges}
+        children: dict[str, list[str]] = {}
+        for child, parent in info.tf_tree.items():
+            children.setdefault(parent, []).append(child)
+        roots = [f for f in info.tf_frames if f not in info.tf_tree]
+        tree = Tree(f"TF frames ({len(info.tf_frames)})")
+
+        def add(node: Tree, frame: str) -> None:
+            for child in sorted(children.get(frame, [])):
+                e = edges.get(child)
+                if e is None:
+                    label = child
+                elif e.static:
+                    label = f"{child}  [static]"
+                else:
+                    label = (f"{child}  [{e.count} transforms, {_secs(e.first_ns, info.start_ns)} .. "
+                             f"{_secs(e.last_ns, info.start_ns)} s]")
+                add(node.add(escape(label)), child)
+
+        for root in roots:
+            add(tree.add(escape(root)), root)
+        out.print(tree)
+    else:
+        out.print("TF frames: none (no /tf or /tf_static)")
+
+    ps = _table("Pose sources", "kind", "source", "parent -> child", "poses", "time span (s)", "note")
+    for s in info.pose_sources:
+        span = ("static" if s.first_ns is None else
+                f"{_secs(s.first_ns, info.start_ns)} .. {_secs(s.last_ns, info.start_ns)}")
+        note = "constant (not a trajectory)" if s.constant and s.count > 1 else ""
+        ps.add_row(s.kind, escape(s.name), escape(f"{s.parent_frame} -> {s.child_frame or '?'}"),
+                   _count(s.count), span, note)
+    if not info.pose_sources:
+        ps.add_row("-", "(none)", "", "", "", "")
+    out.print(ps)
+
+    m = _table("Mapping", "", "", header=False)
+    m.add_row("mappable topics", escape(", ".join(info.mappable_topics) or "(none)"))
+    if info.default_cloud_topic:
+        m.add_row("cloud topic", escape(info.default_cloud_topic))
+    if info.pose_source:
+        m.add_row("poses", escape(info.pose_source))
+    out.print(m)
+    if info.pose_error:
+        out.print(Text.assemble(("Cannot map with the defaults: ", "bold yellow"), (info.pose_error, "yellow")),
+                  soft_wrap=True)
+    elif info.default_cloud_topic:
+        out.print(Text(f"Ready: ndtom map {path} -r 0.2", style="green"), soft_wrap=True)
+    for note in info.notes:
+        out.print(Text(f"note: {note}", style="dim"), soft_wrap=True)
+
+
+@app.command()
+def info(
+    path: Annotated[Path, typer.Argument(metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.",
+                                         show_default=False)],
+) -> None:
+    """Show what is in a recording: topics, types, counts, duration, the TF tree, which
+    topics can be mapped and which pose sources exist. Given a map file, show its header."""
+    with _user_errors():
+        if path.is_file():
+            with path.open("rb") as fh:
+                is_map = fh.read(len(_MAGIC)) == _MAGIC
+            if is_map:
+                _info_map(path)
+                return
+        _info_recording(path)
+
+
+# ---------------------------------------------------------------------------- map
+def default_output(bag: Path) -> Path:
+    """The map path used without -o: the recording's name with .ndtom, in the current folder."""
+    name = bag.expanduser().resolve().name if bag.name in ("", ".", "..") else bag.name
+    stem = name[: -len(".bag")] if name.endswith(".bag") else name
+    return Path.cwd() / (stem + MAP_SUFFIX)
+
+
+class _Bar:
+    """Progress callback for the pipeline: a rich progress bar on stderr (scans, points/s)."""
+
+    def __init__(self, arch: Arch, show: bool) -> None:
+        self.arch = arch
+        self.show = show
+        self.progress: Progress | None = None
+        self.task: Any = None
+        self.arch_used = ""
+
+    def __call__(self, summary: Any, report: Any) -> None:
+        if report is None:  # the recording is fine: start Taichi and the bar
+            self.arch_used = _init(self.arch)
+            err = _err()
+            err.print(Text(f"Mapping {summary.cloud_topic or summary.source} at {summary.resolution:g} m on "
+                           f"{self.arch_used}; poses: {summary.pose_source or '-'}", style="cyan"))
+            if self.show:
+                self.progress = Progress(
+                    TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("scans"), TextColumn("{task.fields[rate]}"), TimeElapsedColumn(),
+                    console=Console(stderr=True), transient=False,
+                )
+                self.task = self.progress.add_task("mapping", total=summary.scans_expected, rate="")
+                self.progress.start()
+            return
+        if self.progress is not None:
+            rate = f"{summary.points_per_second / 1e6:.2f} M points/s"
+            total = summary.scans_expected
+            if total is not None and summary.scans_used > total:
+                total = summary.scans_used
+            self.progress.update(self.task, completed=summary.scans_used, total=total, rate=rate)
+
+    def stop(self, summary: Any | None = None) -> None:
+        if self.progress is not None:
+            if summary is not None:
+                self.progress.update(self.task, completed=summary.scans_used, total=summary.scans_used
+                                     if summary.complete else self.progress.tasks[0].total)
+            self.progress.stop()
+            self.progress = None
+
+
+def _summary_table(summary: Any, output: Path | None) -> Table:
+    t = _table("Mapping summary", "", "", header=False)
+    t.add_row("source", escape(summary.source))
+    if summary.cloud_topic:
+        t.add_row("cloud topic", escape(f"{summary.cloud_topic} (frame {summary.frame_id})"))
+    if summary.pose_source:
+        t.add_row("poses", escape(summary.pose_source))
+        t.add_row("map frame", escape(str(summary.fixed_frame)))
+    t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
+    t.add_row("scans used", f"{_count(summary.scans_used)} of {_count(summary.clouds_seen)} clouds read")
+    skipped = ", ".join(f"{_count(n)} {reason}" for reason, n in summary.skipped.items()) or "none"
+    t.add_row("scans skipped", escape(skipped))
+    t.add_row("points", f"{_count(summary.points_in)} in, {_count(summary.points_used)} inserted"
+              + (f", {_count(summary.free_rays)} free rays" if summary.free_rays else ""))
+    d = summary.dropped
+    t.add_row("points dropped", f"{_count(d['nonfinite'])} not finite, {_count(d['range'])} out of range, "
+              f"{_count(d['outside_grid'])} outside the grid")
+    t.add_row("Gaussians", _count(summary.gaussians))
+    t.add_row("known cells", _count(summary.known_cells))
+    t.add_row("memory", f"{_mib(summary.memory_bytes)} map; Taichi pool {_mib(summary.pool_bytes)} of "
+              f"{_mib(summary.pool_budget_bytes)}")
+    if summary.scan_seconds:
+        t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms")
+    t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s)")
+    if output is not None:
+        t.add_row("map file", escape(str(output)))
+    return t
+
+
+def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: list | None = None) -> int:
+    """Print the summary, write the map (also after Ctrl-C or a memory stop), return the exit code."""
+    bar.stop(summary)
+    out, err = _out(), _err()
+    wrote: Path | None = None
+    if summary.scans_used:
+        m.metadata.setdefault("options", {})["arch"] = bar.arch_used
+        try:
+            wrote = m.save(output)
+        except OSError as exc:
+            out.print(_summary_table(summary, None))
+            _fail(f"cannot write the map to {output}: {exc}", "choose another path with -o", EXIT_FAILURE)
+    out.print(_summary_table(summary, wrote))
+    for row in extra_rows or []:
+        out.print(row)
+    for note in summary.skip_notes:
+        err.print(Text(f"note: {note}", style="dim"))
+    if summary.stopped == "interrupted":
+        msg = (f"Interrupted: saved the {summary.scans_used} scans mapped so far to {wrote}" if wrote
+               else "Interrupted before any scan was mapped; no map written")
+        err.print(Text(msg, style="bold yellow"))
+        return EXIT_INTERRUPTED
+    if summary.stopped == "memory":
+        err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "memory budget reached", "red")))
+        saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote}." if wrote
+                 else "Nothing was mapped; no map written.")
+        err.print(Text.assemble(("Hint: ", "bold"), f"{saved} To map it all, {_MEMORY_HINT}."))
+        return EXIT_FAILURE
+    if not summary.scans_used:
+        why = ", ".join(f"{n} {r}" for r, n in summary.skipped.items()) or "the selection is empty"
+        _fail(f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
+              "check --start/--end/--every and the pose source (`ndtom info BAG`)")
+    out.print(Text(f"Map written to {wrote} ({_mib(wrote.stat().st_size)})", style="green"), soft_wrap=True)
+    return EXIT_OK
+
+
+@app.command("map")
+def map_(
+    bag: Annotated[Path, typer.Argument(metavar="BAG", help="A ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap).",
+                                        show_default=False)],
+    resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.",
+                                              show_default=False)],
+    output: Annotated[Path | None, typer.Option(
+        "-o", "--output", help="Map file to write (atomically). Default: the recording's name with .ndtom, "
+        "in the current folder (site.bag -> ./site.ndtom).", show_default=False)] = None,
+    cloud_topic: Annotated[str | None, typer.Option(
+        help="PointCloud2 (or depth image) topic; needed only when the recording has several.")] = None,
+    fixed_frame: Annotated[str | None, typer.Option(
+        help="Frame of the map; default: the root of the cloud frame's TF tree.")] = None,
+    poses: Annotated[Path | None, typer.Option(
+        help="Pose file (TUM: t tx ty tz qx qy qz qw, or KITTI 3x4 rows) giving T_world_sensor.")] = None,
+    pose_topic: Annotated[str | None, typer.Option(
+        help="Pose topic (Odometry, PoseStamped, ...) to use instead of TF.")] = None,
+    sensor_frame: Annotated[bool, typer.Option(
+        "--sensor-frame", help="No poses: map every scan in the sensor frame (identity poses).")] = False,
+    every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
+    every_distance: Annotated[float | None, typer.Option(
+        min=0.0, help="Keep a cloud once the sensor moved this far (m) from the last kept one.")] = None,
+    start: Annotated[float | None, typer.Option(help="Skip clouds before this time (s from the bag start).")] = None,
+    end: Annotated[float | None, typer.Option(help="Skip clouds after this time (s from the bag start).")] = None,
+    max_scans: Annotated[int | None, typer.Option(min=1, help="Stop after this many scans.")] = None,
+    max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (m).")] = None,
+    min_range: Annotated[float | None, typer.Option(help="Drop points closer than this (m).")] = None,
+    occupancy: Annotated[bool, typer.Option(
+        "--occupancy/--no-occupancy", help="Ray-trace free space (NDT-OM); --no-occupancy: Gaussians only.")] = True,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    config: Annotated[Path | None, typer.Option(
+        help="JSON or TOML file of MapConfig options (p_occupied, p_empty, logodds_min, logodds_max, "
+        "min_points, min_range, max_range, max_range_mode, n_max); -r, --min-range, --max-range win.")] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Map a recording into an NDT Occupancy Map file.
+
+    Prints a progress bar, then a summary (scans used and skipped and why, points,
+    Gaussians, memory, time per scan). Ctrl-C stops after the current scan and saves
+    what was mapped (exit 130).
+    """
+    from .pipeline import load_config_file, map_recording
+
+    code = EXIT_OK
+    with _user_errors():
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
+        given = [n for n, v in (("--poses", poses), ("--pose-topic", pose_topic), ("--sensor-frame", sensor_frame))
+                 if v]
+        if len(given) > 1:
+            raise ValueError(f"give one pose source, not {' and '.join(given)}")
+        if every > 1 and every_distance is not None:
+            raise ValueError("give --every or --every-distance, not both")
+        if start is not None and end is not None and end < start:
+            raise ValueError(f"--end ({end}) is before --start ({start})")
+        cfg = load_config_file(config) if config is not None else None
+        from .pipeline import config_with_ranges
+
+        mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range)
+        out_path = _check_writable(output if output is not None else default_output(bag), "map file")
+
+        bar = _Bar(arch, progress)
+        try:
+            m, summary = map_recording(
+                bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
+                poses_file=poses, sensor_frame_only=sensor_frame, every=every, every_distance=every_distance,
+                t_start=start, t_end=end, max_scans=max_scans, occupancy=occupancy, config=mapcfg,
+                metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
+                progress=bar,
+            )  # fmt: skip
+        except BaseException:
+            bar.stop()
+            raise
+        code = _finish_mapping(m, summary, out_path, bar)
+        del m
+    raise typer.Exit(code)
+
+
+# ---------------------------------------------------------------------------- demo
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Folder for the map (created if missing).")] = Path("ndtom_demo"),
+    resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.")] = 0.2,
+    scans: Annotated[int, typer.Option(min=2, max=1000, help="Number of scans.")] = 20,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
+    halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
+    from . import demo as demo_scene
+    from .pipeline import map_scans
+
+    code = EXIT_OK
+    with _user_errors():
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
+        out = out.expanduser()
+        if out.exists() and not out.is_dir():
+            _fail(f"--out {out} is a file, not a folder", "give a folder for the demo's output")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            _fail(f"cannot create the folder {out}: {exc.strerror or exc}", "choose another folder with --out")
+        out_path = _check_writable(out / ("demo" + MAP_SUFFIX), "map file")
+        scene = demo_scene.Scene()
+        t0 = time.perf_counter()
+        data = demo_scene.make_scans(scans, scene=scene)
+        _err().print(Text(f"Demo scene: a 12 x 8 m room, {len(scene.boxes)} boxes (one taken away after scan "
+                          f"{scene.vanishing[0].present_until}), {len(data)} lidar scans of about "
+                          f"{sum(len(s.points) for s in data) // len(data):,} points, made in "
+                          f"{time.perf_counter() - t0:.1f} s", style="cyan"))
+        bar = _Bar(arch, progress)
+        try:
+            m, summary = map_scans(
+                data, resolution, source="ndtom demo (synthetic room)", scans_expected=len(data),
+                pose_source="exact (synthetic)", fixed_frame="world",
+                metadata={"command": "ndtom demo", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                progress=bar,
+            )
+        except BaseException:
+            bar.stop()
+            raise
+        check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
+        m.metadata["ground_truth_check"] = check
+        gt = _table("Against the ground truth", "", "", header=False)
+        gt.add_row("Gaussians on a true surface", f"{check['on_surface'] * 100:.1f}% (mean within "
+                   f"{resolution / 4:g} m)")
+        gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
+        gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
+        code = _finish_mapping(m, summary, out_path, bar, [gt])
+        del m
+        if code == EXIT_OK:
+            _out().print(f"Next: ndtom export {out_path} --format ply", soft_wrap=True, markup=False)
+    raise typer.Exit(code)
+
+
+# ---------------------------------------------------------------------------- sweep
+@app.command()
+def sweep(
+    bag: Annotated[Path | None, typer.Argument(metavar="[BAG]", help="A recording (omit with --synthetic).",
+                                               show_default=False)] = None,
+    synthetic: Annotated[bool, typer.Option(
+        "--synthetic", help="Use the built-in synthetic room (HDL-32-like rings) instead of a recording.")] = False,
+    resolutions: Annotated[str, typer.Option(help="Comma-separated cell sizes in metres.")] = "0.1,0.2,0.4,0.8",
+    scans: Annotated[int, typer.Option(min=1, help="Scans to time at each resolution.")] = 20,
+    baseline: Annotated[str | None, typer.Option(
+        help="Also time OctoMap (pyoctomap, `pip install ndtom_ti[bench]`) on the same points: octomap.",
+        show_default=False)] = None,
+    floor: Annotated[bool, typer.Option(
+        "--floor/--no-floor", help="Also time the floor mode (traversal and one atomic per cell).")] = True,
+    every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud of the recording.")] = 1,
+    sensor_frame: Annotated[bool, typer.Option(
+        "--sensor-frame", help="Identity poses (recordings without usable poses).")] = False,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    out: Annotated[Path, typer.Option("--out", help="Folder for sweep.csv and sweep.png.")] = Path("ndtom_sweep"),
+) -> None:
+    """Time per scan against resolution (the paper's Fig. 5): NDT-OM, its floor mode and
+    optionally OctoMap on the same scans, after a warm-up. Writes CSV, PNG and a table."""
+    from . import sweep as sw
+
+    with _user_errors(recording="`ndtom info BAG` shows what a recording holds"):
+        try:
+            res = [float(x) for x in resolutions.split(",") if x.strip()]
+        except ValueError:
+            raise ValueError(f"--resolutions must be numbers separated by commas, got {resolutions!r}") from None
+        if not res or any(not (math.isfinite(r) and r > 0) for r in res):
+            raise ValueError(f"--resolutions must be positive numbers of metres, got {resolutions!r}")
+        if (bag is None) == (not synthetic):
+            _fail("give either a recording BAG or --synthetic", "e.g. `ndtom sweep --synthetic --scans 10`")
+        if baseline not in (None, "octomap"):
+            _fail(f"unknown baseline {baseline!r}", "the supported baseline is `--baseline octomap`")
+        if baseline == "octomap" and not sw.octomap_available():
+            _fail("the OctoMap baseline needs pyoctomap", "pip install 'ndtom_ti[bench]'")
+        out = out.expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        _check_writable(out / "sweep.csv", "CSV file")
+        used = _init(arch)
+        if synthetic:
+            from . import demo as demo_scene
+
+            data = [(s.points, s.T_world_sensor) for s in demo_scene.make_scans(scans, per_ring=1800)]
+            name = "synthetic room"
+        else:
+            from .io import open_recording
+
+            with open_recording(bag) as rec:
+                data = [(s.points, s.T_world_sensor)
+                        for s in rec.scans(max_scans=scans, every=every, sensor_frame_only=sensor_frame)]
+            name = bag.name
+            if not data:
+                _fail(f"no scans with poses in {bag}", "`ndtom info BAG` shows the pose sources")
+        rows = sw.run_sweep(data, res, floor=floor, baseline=baseline,
+                            progress=lambda msg: _err().print(Text(msg, style="cyan")))
+        tags = {**sw.machine_tags(used), "data": name, "scans": len(data)}
+        csv_path = sw.write_csv(rows, out / "sweep.csv", tags)
+        png_path = sw.plot(rows, out / "sweep.png", f"{name}: {len(data)} scans, {used}, {tags['cores']} cores")
+        t = _table(f"Sweep: {name}, {len(data)} scans of {sum(len(p) for p, _ in data) // len(data):,} points, "
+                   f"{used}", "mapper", "res (m)", "median ms", "p95 ms", "Mpoints/s", "Mvisits/s",
+                   "x NDT-OM", "Gaussians", "memory")
+        for r in rows:
+            t.add_row(r.mapper, f"{r.resolution:g}", f"{r.ms_median:.1f}", f"{r.ms_p95:.1f}",
+                      f"{r.points_per_s / 1e6:.2f}", "-" if math.isnan(r.visits_per_s) else f"{r.visits_per_s / 1e6:.0f}",
+                      "-" if math.isnan(r.ratio_to_ndtom) else f"{r.ratio_to_ndtom:.2f}", _count(r.gaussians),
+                      _mib(r.memory_bytes))
+        _out().print(t)
+        _out().print(f"Wrote {csv_path} and {png_path}", soft_wrap=True, markup=False)
+
+
+# ---------------------------------------------------------------------------- export
+@app.command()
+def export(
+    map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
+                                             show_default=False)],
+    fmt: Annotated[Format | None, typer.Option(
+        "-f", "--format", help="ply (occupied cells as points), npz (all arrays) or csv (one row per Gaussian). "
+        "Default: from the -o suffix, else ply.", show_default=False)] = None,
+    output: Annotated[Path | None, typer.Option(
+        "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False)] = None,
+    min_probability: Annotated[float, typer.Option(
+        help="Export Gaussians with occupancy probability above this (0: all Gaussians).")] = 0.5,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+) -> None:
+    """Export a map's Gaussians (means, covariances, point counts, occupancy)."""
+    from .export import FORMATS, export_map
+
+    with _user_errors(map_file="give a map file written by `ndtom map` or `ndtom demo`"):
+        if fmt is None:
+            suffix = output.suffix.lstrip(".").lower() if output is not None else ""
+            fmt = Format(suffix) if suffix in FORMATS else Format.ply
+        if not (0.0 <= min_probability < 1.0):
+            raise ValueError(f"--min-probability must be in [0, 1), got {min_probability}")
+        if not map_file.exists():
+            _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
+        out_path = _check_writable(output if output is not None else map_file.with_suffix("." + fmt.value),
+                                   f"{fmt.value} file")
+        if out_path.resolve() == map_file.resolve():
+            _fail(f"the output {out_path} is the map file itself", "choose another path with -o")
+        _init(arch)
+        from .map import NdtOmMap
+
+        m = NdtOmMap.load(map_file)
+        try:
+            path, k = export_map(m, out_path, fmt.value, min_probability=min_probability)
+        finally:
+            del m
+        _out().print(Text(f"Exported {k:,} Gaussians (p_occ > {min_probability:g}) to {path} ({fmt.value}, "
+                          f"{_mib(path.stat().st_size)})", style="green"), soft_wrap=True)
+
+
+def main() -> None:
+    """Entry point of the ``ndtom`` command."""
+    app(prog_name="ndtom")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

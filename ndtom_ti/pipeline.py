@@ -1,0 +1,434 @@
+"""The mapping loop: scans of a recording (or any scan source) -> NdtOmMap + summary.
+
+Like kiss-icp's pipeline: the core (:class:`~ndtom_ti.NdtOmMap`) knows only points and
+poses; this module reads the recording, runs the loop, times it, counts what was used
+and skipped, and records the settings in the map's ``metadata``. The CLI
+(``ndtom map``) is a thin layer over :func:`map_recording`.
+
+Stopping early is not an error here: Ctrl-C (SIGINT) finishes the scan being inserted
+and stops; a scan that would take the map past its memory budget
+(:class:`~ndtom_ti.MapMemoryError`) is refused (the map is unchanged) and the loop
+stops. Both return the map built so far, with ``summary.stopped`` set
+('interrupted' or 'memory') and ``summary.error`` saying why; check
+``summary.complete`` before trusting a map to cover the whole recording. Bad input
+(:class:`~ndtom_ti.io.RecordingError`, ``ValueError``) raises, and no map is returned.
+
+Example::
+
+    import ndtom_ti
+    from ndtom_ti.pipeline import map_recording
+
+    m, summary = map_recording("site.bag", 0.3, every=2)
+    print(summary.scans_used, len(m))
+    m.save("site.ndtom")
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import MapConfig
+from .map import NdtOmMap, ScanReport
+from .runtime import MapMemoryError
+
+__all__ = ["MappingSummary", "config_with_ranges", "load_config_file", "map_recording", "map_scans", "version"]
+
+#: Called once before the map is made (report None; the recording's topic and pose source
+#: are known by then) and after every inserted scan.
+ProgressFn = Callable[["MappingSummary", "ScanReport | None"], None]
+
+
+def version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+@dataclass
+class MappingSummary:
+    """What a mapping run did. Live while mapping (the progress callback sees it grow)."""
+
+    source: str = ""  # recording path, or a description of the scan source
+    cloud_topic: str | None = None
+    frame_id: str | None = None  # frame of the clouds
+    fixed_frame: str | None = None  # frame of the map
+    pose_source: str | None = None  # where the poses came from, in words
+    resolution: float = 0.0
+    occupancy: bool = True
+    config: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)  # selection options (every, start, ...)
+    scans_expected: int | None = None  # estimate for a progress bar (None: unknown)
+    clouds_seen: int = 0  # clouds of the topic considered (used + skipped)
+    scans_used: int = 0  # scans inserted into the map
+    skipped: dict = field(default_factory=dict)  # reason -> clouds not used
+    skip_notes: list = field(default_factory=list)  # first detail per skip reason
+    points_in: int = 0
+    points_used: int = 0  # endpoints inserted as hits
+    free_rays: int = 0
+    dropped: dict = field(default_factory=lambda: {"nonfinite": 0, "range": 0, "outside_grid": 0})
+    gaussians: int = 0
+    known_cells: int = 0
+    memory_bytes: int = 0  # this map
+    pool_bytes: int = 0  # Taichi's pool, all maps of the process
+    pool_budget_bytes: int = 0
+    scan_seconds: list = field(default_factory=list, repr=False)  # insert_scan time per scan
+    wall_seconds: float = 0.0  # the whole loop: reading, decoding, inserting
+    stopped: str | None = None  # None (ran to the end), 'interrupted' or 'memory'
+    error: str | None = None  # why it stopped early
+
+    @property
+    def complete(self) -> bool:
+        """True when every selected scan was inserted (no Ctrl-C, no memory stop)."""
+        return self.stopped is None
+
+    @property
+    def skipped_total(self) -> int:
+        return int(sum(self.skipped.values()))
+
+    @property
+    def ms_per_scan_median(self) -> float:
+        return float(np.median(self.scan_seconds) * 1e3) if self.scan_seconds else float("nan")
+
+    @property
+    def ms_per_scan_p95(self) -> float:
+        return float(np.percentile(self.scan_seconds, 95) * 1e3) if self.scan_seconds else float("nan")
+
+    @property
+    def points_per_second(self) -> float:
+        return self.points_in / self.wall_seconds if self.wall_seconds > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able dict (no per-scan times; their median and p95 instead)."""
+        d = asdict(self)
+        d.pop("scan_seconds")
+        d["complete"] = self.complete
+        for k in ("ms_per_scan_median", "ms_per_scan_p95"):
+            v = getattr(self, k)
+            d[k] = None if math.isnan(v) else round(v, 3)
+        d["wall_seconds"] = round(self.wall_seconds, 3)
+        return d
+
+
+# ---------------------------------------------------------------------------- configuration
+def load_config_file(path: str | Path) -> dict:
+    """MapConfig keys from a JSON or TOML file (a top-level table, or a [map] table).
+
+    Raises ValueError with the file name for a missing, unreadable or malformed file
+    and for keys that are not MapConfig options.
+    """
+    import json
+    import tomllib
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"config file {p} does not exist" if not p.exists() else f"config file {p} is not a file")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"config file {p} cannot be read: {exc}") from None
+    try:
+        if p.suffix.lower() == ".json" or (p.suffix.lower() != ".toml" and text.lstrip().startswith("{")):
+            data = json.loads(text)
+        else:
+            data = tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        kind = "JSON" if isinstance(exc, json.JSONDecodeError) else "TOML"
+        raise ValueError(f"config file {p} is not valid {kind}: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"config file {p} must hold a table of MapConfig options, got {type(data).__name__}")
+    if set(data) == {"map"} and isinstance(data["map"], dict):
+        data = data["map"]
+    try:
+        MapConfig.from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"config file {p}: {exc}") from None
+    return data
+
+
+def config_with_ranges(
+    config: MapConfig | dict | None, *, min_range: float | None = None, max_range: float | None = None
+) -> MapConfig:
+    """A MapConfig from ``config`` with ``min_range``/``max_range`` overriding it."""
+    if config is None:
+        base = MapConfig()
+    elif isinstance(config, MapConfig):
+        base = config
+    else:
+        base = MapConfig.from_dict(config)
+    changes: dict[str, Any] = {}
+    if min_range is not None:
+        changes["min_range"] = float(min_range)
+    if max_range is not None:
+        changes["max_range"] = float(max_range)
+    return replace(base, **changes) if changes else base
+
+
+# ---------------------------------------------------------------------------- Ctrl-C
+class _Interrupts:
+    """SIGINT while mapping: the first Ctrl-C asks the loop to stop after the current scan
+    (an insert is never cut in half); another one while reading (not inserting) stops at once."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.inserting = False
+
+    def handler(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        if self.count > 1 and not self.inserting:
+            raise KeyboardInterrupt
+
+
+@contextmanager
+def _deferred_sigint() -> Iterator[_Interrupts]:
+    state = _Interrupts()
+    if threading.current_thread() is not threading.main_thread():
+        yield state  # signals reach the main thread only; nothing to install
+        return
+    try:
+        old = signal.signal(signal.SIGINT, state.handler)
+    except (ValueError, OSError):  # pragma: no cover - embedded interpreters
+        yield state
+        return
+    try:
+        yield state
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+# ---------------------------------------------------------------------------- the loop
+def _finish(m: NdtOmMap, summary: MappingSummary) -> None:
+    rep = m.memory_report()
+    summary.gaussians = int(rep["gaussians"])
+    summary.known_cells = int(rep["known_cells"])
+    summary.memory_bytes = int(rep["total_bytes"])
+    summary.pool_bytes = int(rep["process_pool_bytes"])
+    summary.pool_budget_bytes = int(rep["process_pool_budget_bytes"])
+
+
+def _run(
+    m: NdtOmMap,
+    scans: Iterable[Any],
+    summary: MappingSummary,
+    progress: ProgressFn | None,
+    after_loop: Callable[[], None] | None = None,
+) -> None:
+    """Insert every (points, T_world_sensor) of ``scans`` into ``m``, filling ``summary``."""
+    t0 = time.perf_counter()
+    with _deferred_sigint() as sig:
+        try:
+            for scan in scans:
+                if sig.count:
+                    break
+                points, T = (scan.points, scan.T_world_sensor) if hasattr(scan, "points") else scan
+                sig.inserting = True
+                try:
+                    rep = m.insert_scan(points, T)
+                finally:
+                    sig.inserting = False
+                summary.scans_used += 1
+                summary.points_in += rep.points_in
+                summary.points_used += rep.points_used
+                summary.free_rays += rep.free_rays
+                summary.dropped["nonfinite"] += rep.dropped_nonfinite
+                summary.dropped["range"] += rep.dropped_range
+                summary.dropped["outside_grid"] += rep.dropped_outside_grid
+                summary.scan_seconds.append(rep.seconds)
+                summary.wall_seconds = time.perf_counter() - t0
+                if progress is not None:
+                    progress(summary, rep)
+                if sig.count:
+                    break
+        except KeyboardInterrupt:
+            sig.count += 1
+        except MapMemoryError as exc:
+            summary.stopped = "memory"
+            summary.error = (
+                f"scan {summary.scans_used + 1} was refused: {exc} "
+                f"The map holds the {summary.scans_used} scans before it."
+            )
+        if sig.count and summary.stopped is None:
+            summary.stopped = "interrupted"
+            summary.error = f"interrupted (Ctrl-C) after {summary.scans_used} scans"
+    summary.wall_seconds = time.perf_counter() - t0
+    if after_loop is not None:
+        after_loop()
+    _finish(m, summary)
+
+
+def _base_metadata(summary: MappingSummary, extra: dict | None) -> dict:
+    import datetime
+
+    md = {
+        "ndtom_ti_version": version(),
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "source": summary.source,
+        "cloud_topic": summary.cloud_topic,
+        "frame_id": summary.frame_id,
+        "fixed_frame": summary.fixed_frame,
+        "pose_source": summary.pose_source,
+        "resolution": summary.resolution,
+        "occupancy": summary.occupancy,
+        "config": summary.config,
+        "options": summary.options,
+    }
+    md.update(extra or {})
+    return md
+
+
+def _record_result(m: NdtOmMap, summary: MappingSummary) -> None:
+    d = summary.to_dict()
+    m.metadata["complete"] = summary.complete
+    m.metadata["summary"] = {
+        k: d[k]
+        for k in (
+            "clouds_seen", "scans_used", "skipped", "points_in", "points_used", "free_rays", "dropped",
+            "gaussians", "known_cells", "memory_bytes", "ms_per_scan_median", "ms_per_scan_p95",
+            "wall_seconds", "stopped", "error",
+        )
+    }  # fmt: skip
+
+
+def map_scans(
+    scans: Iterable[Any],
+    resolution: float,
+    *,
+    occupancy: bool = True,
+    config: MapConfig | dict | None = None,
+    min_range: float | None = None,
+    max_range: float | None = None,
+    source: str = "scans",
+    pose_source: str | None = None,
+    fixed_frame: str | None = None,
+    scans_expected: int | None = None,
+    metadata: dict | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[NdtOmMap, MappingSummary]:
+    """Map any scan source: an iterable of objects with ``points`` (N, 3) sensor frame and
+    ``T_world_sensor`` (4, 4), or of ``(points, T_world_sensor)`` pairs."""
+    cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)
+    summary = MappingSummary(
+        source=source, pose_source=pose_source, fixed_frame=fixed_frame, resolution=float(resolution),
+        occupancy=bool(occupancy), config=cfg.to_dict(), scans_expected=scans_expected,
+    )  # fmt: skip
+    if progress is not None:
+        progress(summary, None)
+    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, metadata))
+    try:
+        _run(m, scans, summary, progress)
+    except BaseException:
+        del m  # free the map's slot now, not when the traceback goes
+        raise
+    summary.clouds_seen = summary.scans_used
+    _record_result(m, summary)
+    return m, summary
+
+
+def _expected_scans(rec: Any, topic: str, every: int, t_start: float | None, t_end: float | None,
+                    max_scans: int | None) -> int | None:
+    count = next((c for n, _, c in rec.topics() if n == topic), None)
+    if not count:
+        return None
+    if t_start is not None or t_end is not None:
+        dur = rec.duration_ns / 1e9
+        if dur > 0:
+            lo = max(0.0, t_start or 0.0)
+            hi = min(dur, dur if t_end is None else t_end)
+            count = max(0, round(count * max(0.0, hi - lo) / dur)) + 1
+    count = math.ceil(count / every)
+    if max_scans is not None:
+        count = min(count, max_scans)
+    return count
+
+
+def map_recording(
+    path: str | Path,
+    resolution: float,
+    *,
+    cloud_topic: str | None = None,
+    fixed_frame: str | None = None,
+    pose_topic: str | None = None,
+    poses_file: str | Path | None = None,
+    sensor_frame_only: bool = False,
+    every: int = 1,
+    every_distance: float | None = None,
+    t_start: float | None = None,
+    t_end: float | None = None,
+    max_scans: int | None = None,
+    occupancy: bool = True,
+    config: MapConfig | dict | None = None,
+    min_range: float | None = None,
+    max_range: float | None = None,
+    metadata: dict | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[NdtOmMap, MappingSummary]:
+    """Map a ROS1 bag or ROS2 bag folder at ``resolution`` metres.
+
+    The options are those of :meth:`ndtom_ti.io.Recording.scans` (cloud topic, pose
+    source, scan selection; ``t_start``/``t_end`` in seconds from the bag start) and of
+    the map (``occupancy``, ``config``; ``min_range``/``max_range`` override the
+    config's). ``progress(summary, report)`` is called before the first scan (report
+    None) and after each one.
+
+    Returns ``(map, summary)``; the map's ``metadata`` records the recording, topic,
+    pose source, options, settings, the ndtom_ti version and the summary. Raises
+    RecordingError for a recording that cannot be mapped and ValueError for bad
+    options; the recording is checked (topic, poses) before the map is made. A run
+    stopped by Ctrl-C or by the memory budget returns the map so far (see
+    ``summary.stopped``).
+    """
+    from .io import open_recording
+
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, float)) or not (
+        math.isfinite(resolution) and resolution > 0
+    ):
+        raise ValueError(f"resolution must be a positive number of metres, got {resolution!r}")
+    if every_distance is not None and every > 1:
+        raise ValueError("give either every (keep every N-th cloud) or every_distance, not both")
+    cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)
+    options = {
+        "cloud_topic": cloud_topic, "fixed_frame": fixed_frame, "pose_topic": pose_topic,
+        "poses_file": str(Path(poses_file).resolve()) if poses_file is not None else None,
+        "sensor_frame_only": sensor_frame_only, "every": every, "every_distance": every_distance,
+        "start": t_start, "end": t_end, "max_scans": max_scans,
+    }  # fmt: skip
+    with open_recording(path) as rec:
+        stream = rec.scans(
+            cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic, poses_file=poses_file,
+            sensor_frame_only=sensor_frame_only, every=every, every_distance=every_distance,
+            t_start=t_start, t_end=t_end, max_scans=max_scans,
+        )  # fmt: skip
+        summary = MappingSummary(
+            source=str(Path(path).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
+            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
+            occupancy=bool(occupancy), config=cfg.to_dict(), options=options,
+            scans_expected=_expected_scans(rec, stream.cloud_topic, every, t_start, t_end, max_scans),
+        )  # fmt: skip
+        extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
+        extra.update(metadata or {})
+        if progress is not None:
+            progress(summary, None)  # before the map (and Taichi) is made: the recording is fine
+        m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, extra))
+
+        def counts() -> None:
+            summary.clouds_seen = stream.total_seen
+            summary.skipped = dict(Counter(stream.skipped).most_common())
+            summary.skip_notes = list(stream.notes)
+
+        try:
+            _run(m, stream, summary, progress, after_loop=counts)
+        except BaseException:
+            del m  # free the map's slot now, not when the traceback goes
+            raise
+    _record_result(m, summary)
+    return m, summary

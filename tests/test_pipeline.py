@@ -1,0 +1,226 @@
+"""ndtom_ti.pipeline: recordings -> map + summary, with known answers."""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import test_pipeline_bags as pb  # noqa: E402
+
+import ndtom_ti  # noqa: E402
+from ndtom_ti import MapConfig, MapMemoryError, NdtOmMap  # noqa: E402
+from ndtom_ti import demo as demo_scene  # noqa: E402
+from ndtom_ti.io import RecordingError  # noqa: E402
+from ndtom_ti.pipeline import config_with_ranges, load_config_file, map_recording, map_scans  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _free_maps():
+    yield
+    gc.collect()  # maps share 8 slots: release the ones a test left behind
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "sqlite3", "mcap"])
+def test_plane_recording_maps_to_the_plane(tmp_path: Path, fmt: str) -> None:
+    bag = pb.write_plane_bag(tmp_path, fmt, early_cloud=True)
+    seen = []
+    m, s = map_recording(bag, pb.RES, progress=lambda summ, rep: seen.append(rep))
+    assert s.complete and s.stopped is None
+    assert s.cloud_topic == "/points" and s.frame_id == "lidar" and s.fixed_frame == "map"
+    assert s.pose_source == "tf: map -> base -> lidar"
+    # the cloud before the first transform is skipped and counted, with the reason
+    assert s.scans_used == pb.N_CLOUDS and s.clouds_seen == pb.N_CLOUDS + 1
+    assert s.skipped == {"no pose at stamp": 1}
+    assert any(n.startswith("no pose at stamp: cloud #0") for n in s.skip_notes)
+    assert seen[0] is None and len(seen) == pb.N_CLOUDS + 1
+    assert s.points_in == sum(r.points_in for r in seen[1:]) == s.points_used
+    assert s.gaussians == len(m) and s.known_cells > s.gaussians and s.memory_bytes == m.memory_bytes()
+    assert len(s.scan_seconds) == pb.N_CLOUDS and 0 < s.ms_per_scan_median <= s.ms_per_scan_p95
+    pb.check_plane_map(m)
+
+    md = m.metadata
+    assert md["source"] == str(bag.resolve()) and md["cloud_topic"] == "/points"
+    assert md["pose_source"] == s.pose_source and md["ndtom_ti_version"] == ndtom_ti.__version__
+    assert md["recording"]["format"] == ("ros1" if fmt == "ros1" else "ros2")
+    assert md["complete"] is True and md["summary"]["scans_used"] == pb.N_CLOUDS
+    out = m.save(tmp_path / "plane.ndtom")
+    del m
+    back = NdtOmMap.load(out)
+    assert back.metadata["options"]["every"] == 1 and back.metadata["resolution"] == pb.RES
+    assert back.metadata["summary"]["skipped"] == {"no pose at stamp": 1}
+    pb.check_plane_map(back)
+
+
+def test_options_select_scans_and_ranges(tmp_path: Path) -> None:
+    bag = pb.write_plane_bag(tmp_path)
+    m, s = map_recording(bag, pb.RES, every=2)
+    assert s.scans_used == 3 and s.skipped == {"every": 2} and s.scans_expected == 3
+    del m
+    m, s = map_recording(bag, pb.RES, max_scans=2, max_range=4.0, occupancy=False)
+    assert s.scans_used == 2 and s.dropped["range"] > 0 and not s.occupancy and not m.occupancy_enabled
+    assert m.config.max_range == 4.0 and m.metadata["options"]["max_scans"] == 2
+    del m
+    # the bag starts with /tf_static 0.9 s before the first cloud; clouds come every 0.2 s
+    m, s = map_recording(bag, pb.RES, t_start=1.0, t_end=1.35)
+    assert s.scans_used == 2 and s.skipped == {"outside time window": 3}
+    del m
+    m, s = map_recording(bag, pb.RES, every_distance=0.8)  # the base moves 0.41 m per cloud
+    assert s.scans_used == 3 and s.skipped == {"every_distance": 2}
+    del m
+    with pytest.raises(ValueError, match="every_distance"):
+        map_recording(bag, pb.RES, every=2, every_distance=1.0)
+    with pytest.raises(ValueError, match="resolution"):
+        map_recording(bag, -1.0)
+
+
+def test_bad_recordings_raise_before_a_map_is_made(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match="no usable poses"):
+        map_recording(pb.write_plane_bag(tmp_path, name="notf", with_tf=False), pb.RES)
+    with pytest.raises(RecordingError, match="/points_front"):
+        map_recording(pb.write_plane_bag(tmp_path, name="two", second_topic=True), pb.RES)
+    with pytest.raises(RecordingError, match="fields present"):
+        map_recording(pb.write_plane_bag(tmp_path, name="abc", bad_fields=True), pb.RES)
+
+
+def test_poses_from_a_file_and_sensor_frame(tmp_path: Path) -> None:
+    """A TUM pose file with T_map_lidar gives the same map as TF; --sensor-frame maps
+    each cloud at identity (the floor is then tilted in the map)."""
+    bag = pb.write_plane_bag(tmp_path)
+    from ndtom_ti.io import rot_to_quat
+
+    lines = []
+    for k, t in enumerate(pb.STAMPS):
+        T = pb.T_map_lidar(k)
+        q = rot_to_quat(T[:3, :3])  # x y z w
+        lines.append(f"{t / 1e9:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {q[0]} {q[1]} {q[2]} {q[3]}")
+    poses = tmp_path / "poses.txt"
+    poses.write_text("\n".join(lines) + "\n")
+    m, s = map_recording(bag, pb.RES, poses_file=poses)
+    assert s.pose_source.startswith("poses file") and s.scans_used == pb.N_CLOUDS
+    pb.check_plane_map(m)
+    del m
+    m, s = map_recording(bag, pb.RES, sensor_frame_only=True, max_scans=1)
+    assert s.fixed_frame == "lidar" and "identity" in s.pose_source
+    g = m.gaussians()
+    assert np.abs(np.abs(pb.eig_normals(g["cov"])[1][:, 2]) - 1).max() > 0.05  # tilted 15 degrees
+    del m
+
+
+def test_ctrl_c_stops_after_the_current_scan(tmp_path: Path) -> None:
+    bag = pb.write_plane_bag(tmp_path)
+    calls = []
+
+    def progress(summary, report):
+        calls.append(report)
+        if summary.scans_used == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C sends
+
+    m, s = map_recording(bag, pb.RES, progress=progress)
+    assert s.stopped == "interrupted" and not s.complete and s.scans_used == 2
+    assert m.scans_inserted == 2 and m.metadata["complete"] is False
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    del m
+
+
+def test_keyboard_interrupt_while_reading_keeps_the_map(tmp_path: Path) -> None:
+    def scans():
+        for k in range(3):
+            yield pb.sensor_points(k, np.random.default_rng(k)), pb.T_map_lidar(k)
+        raise KeyboardInterrupt
+
+    m, s = map_scans(scans(), pb.RES)
+    assert s.stopped == "interrupted" and s.scans_used == 3 and len(m) > 0
+    del m
+
+
+def test_memory_budget_stops_and_keeps_the_scans_before(tmp_path: Path, monkeypatch) -> None:
+    bag = pb.write_plane_bag(tmp_path)
+    orig = NdtOmMap.insert_scan
+    n = {"calls": 0}
+
+    def insert(self, points, T):
+        n["calls"] += 1
+        if n["calls"] == 3:
+            raise MapMemoryError("this update could take Taichi's memory pool past the budget (test)")
+        return orig(self, points, T)
+
+    monkeypatch.setattr(NdtOmMap, "insert_scan", insert)
+    m, s = map_recording(bag, pb.RES)
+    assert s.stopped == "memory" and s.scans_used == 2 and m.scans_inserted == 2
+    assert "scan 3 was refused" in s.error and "holds the 2 scans" in s.error
+    assert m.metadata["summary"]["stopped"] == "memory"
+    del m
+
+
+def test_map_scans_accepts_pairs_and_objects() -> None:
+    rng = np.random.default_rng(1)
+    pairs = [(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(3)]
+    m, s = map_scans(pairs, pb.RES, source="test", metadata={"note": "x"})
+    assert s.scans_used == 3 and s.clouds_seen == 3 and m.metadata["note"] == "x" and m.metadata["source"] == "test"
+    pb.check_plane_map(m)
+    del m
+
+
+def test_config_files(tmp_path: Path) -> None:
+    j = tmp_path / "c.json"
+    j.write_text(json.dumps({"p_occupied": 0.7, "max_range": 30.0}))
+    assert load_config_file(j) == {"p_occupied": 0.7, "max_range": 30.0}
+    t = tmp_path / "c.toml"
+    t.write_text("[map]\nmin_points = 5\nmax_range_mode = 'drop'\n")
+    assert load_config_file(t) == {"min_points": 5, "max_range_mode": "drop"}
+    cfg = config_with_ranges(load_config_file(j), max_range=10.0, min_range=0.5)
+    assert cfg == MapConfig(p_occupied=0.7, max_range=10.0, min_range=0.5)
+    for text, suffix, msg in (("{nope", ".json", "not valid JSON"), ("a = [", ".toml", "not valid TOML"),
+                              ('{"resolution": 0.1}', ".json", "unknown options"),
+                              ('p_empty = 0.7', ".toml", "p_empty must be in")):
+        f = tmp_path / f"bad{suffix}"
+        f.write_text(text)
+        with pytest.raises(ValueError, match=msg):
+            load_config_file(f)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_config_file(tmp_path / "missing.toml")
+    with pytest.raises(ValueError, match="max_range must be > min_range"):
+        config_with_ranges(None, min_range=5.0, max_range=2.0)
+
+
+# ---------------------------------------------------------------------------- the demo scene
+def test_demo_ray_caster_is_exact() -> None:
+    scene = demo_scene.Scene()
+    scans = demo_scene.make_scans(20, scene=scene, noise=0.0)
+    assert len(scans) == 20 and all(10_000 <= len(s.points) <= 20_000 for s in scans)
+    for s in (scans[0], scans[15]):
+        w = s.points.astype(np.float64) @ s.T_world_sensor[:3, :3].T + s.T_world_sensor[:3, 3]
+        d = scene.surface_distance(w, s.index)
+        assert d.max() < 1e-4  # float32 points: every return lies on a surface
+    box = scene.vanishing[0]
+    seen = []
+    for s in scans:  # returns from the box's sides and top (its bottom face is the floor)
+        w = s.points.astype(np.float64) @ s.T_world_sensor[:3, :3].T + s.T_world_sensor[:3, 3]
+        seen.append((box.distance(w) < 1e-4) & (w[:, 2] > 0.01))
+    assert all(v.sum() > 50 for v in seen[:10]) and not any(v.any() for v in seen[10:])
+    # a ray straight down from the sensor hits the floor at exactly its height
+    o = scans[0].T_world_sensor[:3, 3]
+    assert scene.cast(o, np.array([[0.0, 0.0, -1.0]]), 0)[0] == pytest.approx(o[2])
+    assert np.isinf(scene.cast(o, np.array([[0.0, 0.0, 1.0]]), 0)[0])  # no ceiling
+
+
+def test_demo_map_matches_the_ground_truth() -> None:
+    scans = demo_scene.make_scans(20)
+    m, s = map_scans(scans[:10], 0.2)
+    before = demo_scene.ground_truth_check(m.gaussians(), 0.2)
+    del m
+    m, s = map_scans(scans, 0.2)
+    after = demo_scene.ground_truth_check(m.gaussians(), 0.2)
+    del m
+    assert before["left_in_vanished"] > 30  # the box was mapped while it stood there
+    assert after["left_in_vanished"] == 0  # and erased by the rays once it was gone
+    assert after["on_surface"] > 0.98 and after["median_distance"] < 0.01
+    assert s.scans_used == 20 and s.gaussians > 5000

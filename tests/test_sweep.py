@@ -1,0 +1,61 @@
+"""`ndtom sweep` and the sweep module on tiny inputs."""
+
+import csv
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ndtom_ti import sweep
+from ndtom_ti.cli import app
+
+
+def test_run_sweep_rows_and_floor(rng):
+    scans = []
+    for k in range(3):
+        T = np.eye(4)
+        T[:3, 3] = [0.2 * k, 0.0, 0.0]
+        d = rng.normal(size=(3000, 3))
+        scans.append((d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0, T))
+    rows = sweep.run_sweep(scans, [0.5, 1.0], warmup=1)
+    assert [(r.mapper, r.resolution) for r in rows] == [
+        ("ndtom", 0.5), ("ndtom-floor", 0.5), ("ndtom", 1.0), ("ndtom-floor", 1.0)
+    ]  # fmt: skip
+    for r in rows:
+        assert r.scans == 3 and r.ms_median > 0 and r.ms_p95 >= r.ms_median and r.visits_per_s > 0
+    full, fl = rows[0], rows[1]
+    assert full.gaussians > 0 and full.memory_bytes > 0
+    assert fl.ratio_to_ndtom == pytest.approx(fl.ms_median / full.ms_median)
+
+
+def test_run_sweep_rejects_bad_input():
+    with pytest.raises(ValueError, match="at least one scan"):
+        sweep.run_sweep([], [0.5])
+    with pytest.raises(ValueError, match="baseline"):
+        sweep.run_sweep([(np.ones((3, 3)), np.eye(4))], [0.5], baseline="voxblox")
+
+
+@pytest.mark.skipif(not sweep.octomap_available(), reason="pyoctomap not installed")
+def test_cli_sweep_synthetic_with_octomap(tmp_path):
+    res = CliRunner().invoke(app, ["sweep", "--synthetic", "--scans", "2", "--resolutions", "0.5",
+                                   "--baseline", "octomap", "--out", str(tmp_path / "sw")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    rows = list(csv.DictReader(open(tmp_path / "sw" / "sweep.csv")))
+    assert [r["mapper"] for r in rows] == ["ndtom", "ndtom-floor", "octomap"]
+    assert all(r["arch"] and r["taichi"] and r["machine"] for r in rows)
+    assert float(rows[2]["ratio_to_ndtom"]) > 0
+    assert (tmp_path / "sw" / "sweep.png").stat().st_size > 5000
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--resolutions", "0.5"], "either a recording BAG or --synthetic"),
+        (["--synthetic", "--resolutions", "a,b"], "numbers separated by commas"),
+        (["--synthetic", "--resolutions", "-1"], "positive"),
+        (["--synthetic", "--baseline", "voxblox"], "unknown baseline"),
+    ],
+)
+def test_cli_sweep_bad_options(tmp_path, args, message):
+    res = CliRunner().invoke(app, ["sweep", *args, "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and message in res.output, res.output
