@@ -473,6 +473,10 @@ def map_(
         help="JSON or TOML file of MapConfig options (p_occupied, p_empty, logodds_min, logodds_max, "
         "min_points, min_range, max_range, max_range_mode, n_max); -r, --min-range, --max-range win.")] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+    view: Annotated[bool, typer.Option(
+        "--view", help="Map live in the browser viewer (play/pause/step); the map is saved on Ctrl-C.")] = False,
+    host: Annotated[str, typer.Option(help="Viewer host (with --view).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
 ) -> None:
     """Map a recording into an NDT Occupancy Map file.
 
@@ -499,6 +503,18 @@ def map_(
 
         mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range)
         out_path = _check_writable(output if output is not None else default_output(bag), "map file")
+        if view:
+            from .io import open_recording
+            from .viewer.cli import live_command
+
+            _init(arch)
+            with open_recording(bag) as rec:
+                stream = rec.scans(
+                    cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic, poses_file=poses,
+                    sensor_frame_only=sensor_frame, every=every, every_distance=every_distance, t_start=start,
+                    t_end=end, max_scans=max_scans,
+                )  # fmt: skip
+                raise typer.Exit(live_command(stream, resolution, host, port, config=mapcfg, save=out_path))
 
         bar = _Bar(arch, progress)
         try:
@@ -525,6 +541,8 @@ def demo(
     scans: Annotated[int, typer.Option(min=2, max=1000, help="Number of scans.")] = 20,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+    view: Annotated[bool, typer.Option("--view", help="Map the room live in the browser viewer instead.")] = False,
+    port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
 ) -> None:
     """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
     halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
@@ -535,6 +553,11 @@ def demo(
     with _user_errors():
         if not (math.isfinite(resolution) and resolution > 0):
             raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
+        if view:
+            from .viewer.cli import live_demo_command
+
+            _init(arch)
+            raise typer.Exit(live_demo_command("127.0.0.1", port, resolution=resolution, n_scans=scans))
         out = out.expanduser()
         if out.exists() and not out.is_dir():
             _fail(f"--out {out} is a file, not a folder", "give a folder for the demo's output")
@@ -645,6 +668,76 @@ def sweep(
                       _mib(r.memory_bytes))
         _out().print(t)
         _out().print(f"Wrote {csv_path} and {png_path}", soft_wrap=True, markup=False)
+
+
+# ---------------------------------------------------------------------------- experiments
+@app.command()
+def experiments(
+    source: Annotated[str, typer.Argument(
+        metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (needs "
+        "../shared/tools/simworld.py).", show_default=False)],
+    resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.",
+                                              show_default=False)],
+    out: Annotated[Path, typer.Option("--out", help="Folder for CSVs, PNGs and summary.json.")] = Path(
+        "ndtom_experiments"),
+    every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
+    max_scans: Annotated[int | None, typer.Option(min=1, help="Stop after this many scans.")] = None,
+    sensor_frame: Annotated[bool, typer.Option("--sensor-frame", help="Identity poses.")] = False,
+    coarsen: Annotated[int, typer.Option(min=2, help="Factor of the coarser map (Fig. 4d).")] = 3,
+    sweep_res: Annotated[str | None, typer.Option(
+        "--sweep", help="Also time these resolutions beside OctoMap (Fig. 5), e.g. 0.2,0.3,0.4.",
+        show_default=False)] = None,
+    sim_scans: Annotated[int, typer.Option(min=2, help="Scans of a sim: source.")] = 30,
+    sim_stride: Annotated[int, typer.Option(min=1, help="Stride of a sim: source.")] = 10,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = True,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+) -> None:
+    """Reproduce the paper's evaluation (Figs. 1-5): Recursive NDT, NDT-OM and an online
+    error-refinement baseline on the same scans, against the batch map."""
+    from . import experiments as ex
+
+    with _user_errors(recording="`ndtom info BAG` shows what a recording holds"):
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
+        sweep_list = None
+        if sweep_res:
+            try:
+                sweep_list = [float(x) for x in sweep_res.split(",") if x.strip()]
+            except ValueError:
+                raise ValueError(f"--sweep must be numbers separated by commas, got {sweep_res!r}") from None
+        out = out.expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        _check_writable(out / "summary.json", "summary file")
+        _init(arch)
+        summary = ex.run_experiments(
+            source, resolution, out, every=every, max_scans=max_scans, sensor_frame_only=sensor_frame,
+            coarsen=coarsen, sweep=sweep_list, sim_scans=sim_scans, sim_stride=sim_stride, plots=plots,
+            progress=lambda msg: _err().print(Text(msg, style="cyan")),
+        )
+        _out().print(ex.format_summary(summary), soft_wrap=True, markup=False, highlight=False)
+        _out().print(f"Wrote {out / 'summary.json'} and the figures in {out}", soft_wrap=True, markup=False)
+
+
+# ---------------------------------------------------------------------------- view
+@app.command()
+def view(
+    map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
+                                             show_default=False)],
+    host: Annotated[str, typer.Option(help="Address to serve on (default: this machine only).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Port (the next free one if taken; the URL says which).")] = 8080,
+    html: Annotated[Path | None, typer.Option(
+        help="Write a standalone HTML snapshot of the scene and exit.", show_default=False)] = None,
+    compare: Annotated[Path | None, typer.Option(
+        help="A Recursive NDT map (ndtom map --no-occupancy) of the same data: highlights conflicting cells.",
+        show_default=False)] = None,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+) -> None:
+    """Look at a map in the browser: Gaussians as ellipsoids or splats, occupied and free
+    cells, coarser levels, occupancy threshold. Prints the URL; Ctrl-C stops."""
+    from .viewer.cli import view_command
+
+    _init(arch)
+    raise typer.Exit(view_command(map_file, host, port, html, compare=compare))
 
 
 # ---------------------------------------------------------------------------- export

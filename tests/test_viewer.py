@@ -1,0 +1,502 @@
+"""The viewer without a browser: geometry, GUI logic (setting a control's ``.value`` fires
+its callback as a click would), live mapping, and bad input of ``view_command``.
+
+Maps are tiny: the demo room (``ndtom_ti.demo``: walls, floor, boxes, one box taken away
+after scan 10) at 0.5 m, 12 scans of 5.7k points: about 1,600 Gaussians.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from ndtom_ti.viewer import geometry as geo
+
+from ndtom_ti import NdtOmMap
+from ndtom_ti.demo import make_scans
+
+RES = 0.5
+
+
+@pytest.fixture(scope="module")
+def scans():
+    return make_scans(12, rings=16, per_ring=360)
+
+
+@pytest.fixture(scope="module")
+def maps(scans):
+    """(NDT-OM map, Recursive NDT map) of the same scans."""
+    m = NdtOmMap(RES)
+    r = NdtOmMap(RES, occupancy=False)
+    for s in scans:
+        m.insert_scan(s.points, s.T_world_sensor)
+        r.insert_scan(s.points, s.T_world_sensor)
+    yield m, r
+    del m, r
+
+
+@pytest.fixture
+def make_viewer():
+    pytest.importorskip("viser", reason="the viewer needs viser: pip install ndtom_ti[viewer]")
+    from ndtom_ti.viewer import MapViewer
+
+    made = []
+
+    def make(*args, **kwargs):
+        kwargs.setdefault("verbose", False)
+        kwargs.setdefault("environment_map", False)
+        v = MapViewer(*args, **kwargs)
+        made.append(v)
+        return v
+
+    yield make
+    for v in made:
+        v.close()
+
+
+def _keys(index):
+    return set(map(tuple, np.asarray(index).tolist()))
+
+
+# ---------------------------------------------------------------------------- geometry
+
+
+def test_ellipsoids_reproduce_the_covariances(rng):
+    A = rng.normal(size=(200, 3, 3))
+    cov = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)
+    wxyz, scales = geo.ellipsoid_instances(cov)
+    assert wxyz.shape == (200, 4) and scales.shape == (200, 3)
+    assert wxyz.dtype == np.float32 and scales.dtype == np.float32
+    w, x, y, z = wxyz.astype(np.float64).T
+    R = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)  # fmt: skip
+    assert np.allclose(np.linalg.det(R), 1.0, atol=1e-5)  # proper rotations (det<0 flipped)
+    rebuilt = R @ (scales.astype(np.float64)[:, :, None] ** 2 * np.swapaxes(R, 1, 2))
+    assert np.allclose(rebuilt, cov, rtol=1e-4, atol=1e-5)
+    # a flat Gaussian (a wall) keeps a visible thickness
+    _, s = geo.ellipsoid_instances(np.diag([1.0, 1.0, 0.0])[None], min_sigma=0.01)
+    assert np.isclose(s.min(), 0.01)
+
+
+def test_icosphere_is_closed_unit_and_outward():
+    V, F = geo.icosphere(1)
+    assert V.shape == (42, 3) and F.shape == (80, 3)
+    assert np.allclose(np.linalg.norm(V, axis=1), 1.0, atol=1e-6)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    normals = np.cross(b - a, c - a)
+    assert (np.einsum("ij,ij->i", normals, a + b + c) > 0).all()
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()  # closed surface
+
+
+def test_colour_maps_and_caps():
+    c = geo.occupancy_colors(np.array([0.0, 0.5, 1.0])).astype(int)
+    assert c[0, 2] > c[0, 0]  # free: blue
+    assert c[1, 1] > max(c[1, 0], c[1, 2])  # unknown: green
+    assert c[2, 0] > 2 * max(c[2, 1], c[2, 2])  # occupied: red
+    t = geo.turbo(np.array([0.1, 0.9])).astype(int)
+    assert t[0, 2] > t[0, 0] and t[1, 0] > t[1, 2]  # blue low, red high
+    assert len(geo.cap_rows(10, 50)) == 10
+    rows = geo.cap_rows(1000, 50)
+    assert len(rows) == 50 and rows[0] == 0 and rows[-1] == 999
+    idx = np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [5, -7, 3]])
+    assert len(np.unique(geo.cell_keys(idx))) == 5
+
+
+# ---------------------------------------------------------------------------- GUI logic
+
+
+def test_viewer_draws_the_maps_gaussians_as_ellipsoids(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    g = m.gaussians(min_probability=0.5)
+    assert v.drawn["gaussians"] == len(g["n"]) > 500
+    assert v.drawn["geometry"] == "ellipsoids"
+    h = v._handles["gaussians"]
+    assert np.allclose(h.batched_positions, g["mean"].astype(np.float32))
+    assert np.allclose(h.batched_colors, geo.occupancy_colors(g["p_occ"]))
+    assert v.layer_visible("gaussians")
+    assert v.url.startswith("http://127.0.0.1:") and v.port == v.server.get_port() > 0
+    assert "Gaussians" in v.controls.stats.content and "Level of detail" in v.controls.stats.content
+
+
+def test_threshold_slider_changes_the_number_of_gaussians(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    before = v.drawn["gaussians"]
+    v.controls.threshold.value = 0.85
+    expected = len(m.gaussians(min_probability=0.85)["n"])
+    assert v.drawn["gaussians"] == expected < before
+    assert len(v._handles["gaussians"].batched_positions) == expected
+    v.controls.threshold.value = 0.5
+    assert v.drawn["gaussians"] == before
+
+
+def test_resolution_dropdown_switches_to_coarsened_maps(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m, cache_size=2)
+    opts = v.controls.resolution.options
+    assert opts == ("0.5 m (native)", "1 m (2x)", "1.5 m (3x)", "2 m (4x)")
+    v.controls.resolution.value = opts[1]
+    assert v.level == 2 and v.drawn["resolution"] == 2 * RES
+    c2 = m.coarsen(2)
+    assert v.drawn["gaussians"] == len(c2.gaussians(min_probability=0.5)["n"]) < len(m)
+    del c2
+    for o in opts[2:]:
+        v.controls.resolution.value = o
+        assert len(v._cache) <= 2  # old levels are dropped: the process holds at most 8 maps
+    assert v.level == 4
+    v.controls.resolution.value = opts[0]
+    assert v.level == 1 and v.drawn["gaussians"] == len(m)
+
+
+def test_layer_toggles_set_visibility_and_compute_on_demand(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    boxes = v.controls.layers
+    assert "free" in v.drawn["skipped"] and not v.layer_visible("free")  # free cells: on demand
+    boxes["gaussians"].value = False
+    assert not v.layer_visible("gaussians")
+    boxes["gaussians"].value = True
+    assert v.layer_visible("gaussians")
+    boxes["free"].value = True
+    k = m.known_cells()
+    assert v.drawn["free"] == int((k["p_occ"] < 0.5).sum()) > 0 and v.layer_visible("free")
+    boxes["occupied"].value = True
+    assert v.drawn["occupied"] == int((k["p_occ"] > 0.5).sum()) and v.layer_visible("occupied")
+    boxes["free"].value = False
+    assert not v.layer_visible("free")
+
+
+def test_free_cells_are_capped_and_the_cap_is_shown(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m, max_free_cells=50)
+    v.controls.layers["free"].value = True
+    assert v.drawn["free"] == 50 < v.drawn["free_total"]
+    assert f"50 of {v.drawn['free_total']:,} drawn (cap 50)" in v.controls.stats.content
+
+
+def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
+    m, _ = maps
+    from viser import GaussianSplatHandle
+
+    v = make_viewer(m)
+    occ_colors = np.array(v._handles["gaussians"].batched_colors)
+    v.controls.color_mode.value = "height"
+    g = m.gaussians(min_probability=0.5)
+    expected = geo.height_colors(g["mean"][:, 2], v.drawn["zrange"])
+    assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
+    assert not np.array_equal(expected, occ_colors)
+    assert "height" in v.controls.legend.content
+    v.controls.geometry.value = "splats"
+    assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
+
+    # auto: splats past max_ellipsoids; a coarser level past max_splats, said on screen
+    lod = make_viewer(m, max_ellipsoids=100, max_splats=len(m) - 1)
+    assert lod.drawn["geometry"] == "splats" and lod.level >= 2
+    assert lod.drawn["gaussians"] < len(m)
+    assert "coarser level" in lod.controls.stats.content and "exceed" in lod.controls.stats.content
+
+
+def test_conflicting_cells_layer(maps, make_viewer):
+    m, r = maps
+    v = make_viewer(m, compare=r)
+    expected = _keys(r.gaussians(min_probability=0.5)["index"]) - _keys(m.gaussians(min_probability=0.5)["index"])
+    assert v.drawn["conflicts"] == len(expected) > 0  # the box taken away after scan 10
+    h = v._handles["conflicts"]
+    assert tuple(np.asarray(h.batched_colors).reshape(-1, 3)[0]) == geo.CONFLICT_RGB
+    assert f"{len(expected):,} conflicting cells" in v.controls.stats.content
+    v.controls.layers["conflicts"].value = False
+    assert not v.layer_visible("conflicts")
+    alone = make_viewer(m)
+    assert alone.drawn["conflicts"] == 0 and alone.controls.layers["conflicts"].disabled
+
+
+def test_live_mapping_pause_step_play(scans, maps, make_viewer):
+    m_ref, r_ref = maps
+    v = make_viewer()
+    lm = v.live(scans, NdtOmMap(RES), compare=True, refresh_interval=0.05)
+    c = v.controls
+    time.sleep(0.3)
+    assert lm.scans_done == 0 and not lm.playing  # starts paused
+    c.step.value = True  # a click
+    assert lm.wait_scans(1, timeout=20) and lm.scans_done == 1
+    c.play.value = True
+    assert lm.wait(timeout=60) and lm.error is None
+    assert lm.scans_done == len(scans) and len(lm.times_ms) == len(scans) == len(lm.compare_times_ms)
+    time.sleep(0.5)  # the drawing thread catches up
+    for _ in range(100):
+        if c.scan.content.endswith(f" {len(scans)} / {len(scans)}") and v.drawn.get("trajectory") == len(scans):
+            break
+        time.sleep(0.05)
+    assert c.scan.content == f"**Scans inserted**: {len(scans)} / {len(scans)}"
+    assert v.drawn["trajectory"] == len(scans) and v.drawn["scan"] > 1000
+    assert len(c.chart.data[0]) == len(scans)
+    # the same map as one built directly (known answer), and its comparison map
+    with v.map_lock:  # the drawing thread may be reading the maps
+        assert _keys(lm.map.gaussians()["index"]) == _keys(m_ref.gaussians()["index"])
+        assert _keys(lm.compare.gaussians()["index"]) == _keys(r_ref.gaussians()["index"])
+    assert v.drawn["conflicts"] > 0 and "Done" in c.live_status.content
+    lm.stop()
+
+
+def test_live_pause_stops_mapping(scans, make_viewer):
+    v = make_viewer()
+    lm = v.live(scans, NdtOmMap(RES), rate_hz=20.0)
+    lm.play()
+    assert lm.wait_scans(2, timeout=20)
+    v.controls.pause.value = True
+    time.sleep(0.2)
+    n = lm.scans_done
+    time.sleep(0.4)
+    assert lm.scans_done == n < len(scans) and not lm.finished
+    lm.stop()
+
+
+def test_slow_drawing_does_not_stall_mapping(scans, make_viewer, monkeypatch):
+    v = make_viewer()
+    drawn = []
+    real = v.refresh
+
+    def slow_refresh():
+        drawn.append(time.perf_counter())
+        time.sleep(0.6)
+        real()
+
+    monkeypatch.setattr(v, "refresh", slow_refresh)
+    lm = v.live(scans, NdtOmMap(RES), refresh_interval=0.05)
+    t0 = time.perf_counter()
+    lm.play()
+    assert lm.wait(timeout=60)
+    elapsed = time.perf_counter() - t0
+    # mapping went on while the (0.6 s) redraws ran: drawing 12 times in turn would take 7 s
+    starts = [t for t in drawn if t >= t0]
+    assert lm.scans_done == len(scans) and elapsed < 2.5 and len(starts) <= 4
+    lm.stop()
+
+
+def test_live_mapping_reports_bad_scans(make_viewer):
+    v = make_viewer()
+    good = make_scans(2, rings=4, per_ring=60)
+    lm = v.live([good[0], "not a scan", good[1]], NdtOmMap(RES), refresh_interval=0.05)
+    lm.play()
+    assert lm.wait(timeout=20)
+    assert lm.scans_done == 1 and "TypeError" in lm.error
+    time.sleep(0.3)
+    assert "Stopped" in v.controls.live_status.content
+
+
+def test_show_and_defaults_are_loopback(maps, make_viewer, capsys):
+    from ndtom_ti.viewer import MapViewer, show
+    from ndtom_ti.viewer.cli import view_command
+
+    for fn in (show, MapViewer, view_command):
+        assert inspect.signature(fn).parameters["host"].default == "127.0.0.1"
+    m, _ = maps
+    v = show(m, environment_map=False)
+    try:
+        assert v.server.get_port() == v.port > 0
+        assert v.url in capsys.readouterr().out
+        with socket.create_connection(("127.0.0.1", v.port), timeout=5):
+            pass
+    finally:
+        v.close()
+
+
+# ---------------------------------------------------------------------------- bad input
+
+
+@pytest.fixture(scope="module")
+def map_file(maps, tmp_path_factory):
+    return maps[0].save(tmp_path_factory.mktemp("viewer") / "room.ndtom")
+
+
+def test_view_missing_map_file(tmp_path, capsys):
+    from ndtom_ti.viewer.cli import view_command
+
+    assert view_command(tmp_path / "nope.ndtom", "127.0.0.1", 0, None) == 2
+    err = capsys.readouterr().err
+    assert "nope.ndtom" in err and "does not exist" in err
+    assert view_command(tmp_path, "127.0.0.1", 0, None) == 2
+    assert "folder" in capsys.readouterr().err
+
+
+def test_view_corrupt_map_file(map_file, tmp_path, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    data = map_file.read_bytes()
+    truncated = tmp_path / "truncated.ndtom"
+    truncated.write_bytes(data[: len(data) // 2])
+    garbage = tmp_path / "garbage.ndtom"
+    garbage.write_bytes(b"this is not a map file\n" * 10)
+    flipped = tmp_path / "flipped.ndtom"
+    b = bytearray(data)
+    b[-10] ^= 0xFF
+    flipped.write_bytes(bytes(b))
+    for bad in (truncated, garbage, flipped):
+        assert view_command(bad, "127.0.0.1", 0, None) == 2
+        err = capsys.readouterr().err
+        assert f"cannot read map file {bad}" in err and "Traceback" not in err
+
+
+def test_view_port_in_use_uses_the_next_and_prints_it(map_file, monkeypatch, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    port = busy.getsockname()[1]
+    seen = {}
+
+    def block(viewer):
+        seen["port"] = viewer.port
+        with socket.create_connection(("127.0.0.1", viewer.port), timeout=5):
+            seen["listening"] = True
+
+    monkeypatch.setattr(cli, "_block", block)
+    try:
+        assert cli.view_command(map_file, "127.0.0.1", port, None) == 0
+    finally:
+        busy.close()
+    out = capsys.readouterr().out
+    assert seen["listening"] and seen["port"] != port
+    assert f"port {port} is in use" in out and f"http://127.0.0.1:{seen['port']}" in out
+
+
+def test_view_host_that_cannot_be_listened_on(map_file, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    assert view_command(map_file, "192.0.2.1", 0, None) == 2  # TEST-NET-1: not this machine
+    assert "cannot listen on host '192.0.2.1'" in capsys.readouterr().err
+
+
+def test_view_html_snapshot(map_file, tmp_path, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    out = tmp_path / "snapshot.html"
+    assert view_command(map_file, "127.0.0.1", 0, out) == 0
+    text = out.read_text()
+    assert text.lstrip().lower().startswith("<!doctype html") and len(text) > 100_000
+    assert f"Wrote {out}" in capsys.readouterr().out
+    assert view_command(map_file, "127.0.0.1", 0, tmp_path / "no" / "such" / "s.html") == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_viewer_without_viser(maps, map_file, monkeypatch, capsys):
+    import ndtom_ti
+
+    monkeypatch.setattr(ndtom_ti, "viewer", sys.modules["ndtom_ti.viewer"])  # restored afterwards
+    monkeypatch.setitem(sys.modules, "viser", None)  # `import viser` raises ImportError
+    for name in [n for n in sys.modules if n == "ndtom_ti.viewer" or n.startswith("ndtom_ti.viewer.")]:
+        monkeypatch.delitem(sys.modules, name)
+    viewer = importlib.import_module("ndtom_ti.viewer")  # importing needs no viser
+    cli = importlib.import_module("ndtom_ti.viewer.cli")
+    with pytest.raises(viewer.ViewerNotInstalledError, match=r"pip install ndtom_ti\[viewer\]"):
+        viewer.MapViewer(maps[0])
+    assert cli.view_command(map_file, "127.0.0.1", 0, None) == 1
+    assert "pip install ndtom_ti[viewer]" in capsys.readouterr().err
+
+
+def test_viewer_keeps_within_the_map_limit(maps, make_viewer):
+    """Coarsened levels are dropped: many switches never exhaust the 8 map slots."""
+    m, r = maps
+    v = make_viewer(m, compare=r, cache_size=2)
+    opts = v.controls.resolution.options
+    for _ in range(3):
+        for o in opts:
+            v.controls.resolution.value = o
+    assert len(v._cache) <= 2
+    extra = [NdtOmMap(RES) for _ in range(3)]  # room is left for others
+    del extra
+
+
+def test_map_lock_serialises_concurrent_refreshes(maps, make_viewer):
+    m, r = maps
+    v = make_viewer(m, compare=r)
+    errors = []
+
+    def hammer(vals):
+        try:
+            for val in vals:
+                v.controls.threshold.value = val
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    ts = [threading.Thread(target=hammer, args=([0.5, 0.7, 0.9, 0.6] if i else [0.55, 0.8, 0.65],)) for i in range(2)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert not errors
+    v.refresh()
+    assert v.drawn["gaussians"] == len(m.gaussians(min_probability=float(v.controls.threshold.value))["n"])
+
+
+
+def test_live_mapping_in_a_fresh_process():
+    """Taichi lets only the main thread build its default field tree, at the first kernel
+    launch of a process: the viewer launches one there before mapping in a worker thread."""
+    pytest.importorskip("viser")
+    script = (
+        "import ndtom_ti, sys\n"
+        "ndtom_ti.init('cpu')\n"
+        "from ndtom_ti.demo import make_scans\n"
+        "from ndtom_ti.viewer import MapViewer\n"
+        "v = MapViewer(verbose=False, environment_map=False)\n"
+        "lm = v.live(make_scans(3, rings=4, per_ring=60), ndtom_ti.NdtOmMap(0.5), compare=True, play=True)\n"
+        "ok = lm.wait(120)\n"
+        "print('RESULT', lm.scans_done, lm.error)\n"
+        "v.close()\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=False)
+    assert "RESULT 3 None" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
+def test_no_free_map_slot_is_said_on_screen(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    hog = []
+    with pytest.raises(RuntimeError, match="maps exist already"):
+        while True:
+            hog.append(NdtOmMap(RES))
+    v.controls.resolution.value = v.controls.resolution.options[1]
+    assert v.level == 1 and v.drawn["gaussians"] == len(m)
+    assert "could not be made" in v.controls.stats.content
+    hog.clear()
+    v.refresh()  # slots free again: the level is made
+    assert v.level == 2
+
+
+def test_live_commands_map_until_stopped_and_save(monkeypatch, tmp_path, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+
+    def block(viewer):  # the person watching presses Ctrl-C once mapping is done
+        assert viewer.live_mapper.wait(timeout=60)
+
+    monkeypatch.setattr(cli, "_block", block)
+    out = tmp_path / "live.ndtom"
+    scans = make_scans(4, rings=8, per_ring=120)
+    assert cli.live_command(scans, RES, "127.0.0.1", 0, total=len(scans), save=out) == 0
+    text = capsys.readouterr().out
+    assert "NDT-OM viewer: http://127.0.0.1:" in text and f"Wrote {out} (4 scans)" in text
+    saved = NdtOmMap.load(out)
+    assert saved.scans_inserted == 4 and len(saved) > 0
+    del saved
+    monkeypatch.setattr("ndtom_ti.demo.make_scans", lambda n: make_scans(3, rings=4, per_ring=60))
+    assert cli.live_demo_command("127.0.0.1", 0, rate_hz=0.0) == 0

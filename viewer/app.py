@@ -1,0 +1,791 @@
+"""MapViewer: an NDT-OM map in the browser (viser), the way the paper's Fig. 4 shows one.
+
+Layers (scene nodes under ``/ndtom``): the Gaussians as 1-sigma ellipsoids (one batched
+mesh) or as Gaussian splats; occupied cells and, on demand, free cells (square points,
+capped); the "conflicting cells" of a comparison map built without occupancy updates
+(Recursive NDT, paper Fig. 4b); the sensor trajectory and the latest scan (live mapping).
+
+Threads: viser runs GUI callbacks in its own thread pool, live mapping inserts scans in
+a worker thread. ``map_lock`` guards every read and write of the maps (Taichi calls are
+serialised by it; coarsened maps are made and dropped under it). Layers are rebuilt
+from numpy snapshots outside that lock, one rebuild at a time, and swapped in one
+``server.atomic()`` step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import geometry as geo
+from ._deps import require_viser
+
+if TYPE_CHECKING:
+    from ndtom_ti import NdtOmMap
+
+    from .live import LiveMapper
+
+__all__ = ["MapViewer", "show"]
+
+LAYERS = {  # key -> checkbox label
+    "gaussians": "Gaussians",
+    "occupied": "Occupied cells",
+    "free": "Free cells",
+    "conflicts": "Conflicting cells",
+    "trajectory": "Trajectory",
+    "scan": "Latest scan",
+}
+_DEFAULT_ON = {"gaussians", "conflicts", "trajectory", "scan"}
+FACTORS = (1, 2, 3, 4)  # resolution selector: native and coarser levels made with coarsen()
+_LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
+COLOR_MODES = ("occupancy", "height")
+GEOMETRIES = ("auto", "ellipsoids", "splats")
+
+
+def _fmt(n: int) -> str:
+    return f"{int(n):,}"
+
+
+def check_listen(host: str, port: int) -> bool:
+    """Raise ``ValueError`` if nothing can listen on ``host``; return whether ``port`` is
+    free there (viser moves on to the next free port when it is not)."""
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise ValueError(f"cannot listen on host {host!r}: {exc.strerror or exc}") from None
+
+    def try_bind(family: int, addr: tuple, p: int) -> OSError | None:
+        s = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's servers do
+            s.bind((addr[0], p, *addr[2:]))
+            return None
+        except OSError as exc:
+            return exc
+        finally:
+            s.close()
+
+    usable = [(fam, addr) for fam, _, _, _, addr in infos if try_bind(fam, addr, 0) is None]
+    if not usable:
+        err = try_bind(infos[0][0], infos[0][4], 0)
+        raise ValueError(f"cannot listen on host {host!r}: {getattr(err, 'strerror', None) or err}")
+    return port == 0 or all(try_bind(fam, addr, port) is None for fam, addr in usable)
+
+
+def warm_up(m: NdtOmMap | None) -> None:
+    """Launch one (tiny) kernel of ``m`` on the calling thread.
+
+    Taichi builds its default field tree at the first kernel launch of a process, and
+    only the thread that initialised Taichi may do that ("Assertion failure:
+    std::this_thread::get_id() == main_thread_id_"). Viewer callbacks and live mapping
+    run kernels in other threads, so the viewer launches one here first."""
+    if m is not None:
+        m.occupancy(np.zeros((1, 3)))
+
+
+def url_for(host: str, port: int) -> str:
+    shown = "127.0.0.1" if host in ("", "0.0.0.0") else host
+    if ":" in shown and not shown.startswith("["):
+        shown = f"[{shown}]"
+    return f"http://{shown}:{port}"
+
+
+@dataclass
+class Controls:
+    """Handles of the GUI controls (set ``.value`` from Python: callbacks fire as in a browser)."""
+
+    resolution: Any = None
+    threshold: Any = None
+    color_mode: Any = None
+    geometry: Any = None
+    point_size: Any = None
+    layers: dict = field(default_factory=dict)  # layer key -> checkbox
+    legend: Any = None
+    stats: Any = None
+    # live mapping (made by ``MapViewer.live``)
+    live_folder: Any = None
+    play: Any = None
+    pause: Any = None
+    step: Any = None
+    scan: Any = None
+    rate: Any = None
+    chart: Any = None
+    live_status: Any = None
+
+
+class MapViewer:
+    """Show an :class:`~ndtom_ti.NdtOmMap` in the browser.
+
+    ``compare``: a map of the same scans built with ``occupancy=False`` (Recursive NDT);
+    enables the "Conflicting cells" layer. ``host`` defaults to loopback; ``port=0``
+    picks a free port (``viewer.port`` / ``viewer.url`` give the real one; a busy port
+    makes viser use the next free one, which is printed).
+
+    Level of detail (``geometry="auto"``): up to ``max_ellipsoids`` Gaussians are drawn
+    as ellipsoids, up to ``max_splats`` as splats, and past that the viewer draws the
+    first coarser level (2x .. 8x, made with ``coarsen``) that fits in ``max_splats``.
+    Free and occupied cells are capped at ``max_free_cells`` / ``max_occupied_cells``
+    (an even subsample); the caps are stated on screen.
+
+    Usable from a script or a notebook: the server runs in background threads; call
+    :meth:`wait` to block until Ctrl-C, :meth:`close` to stop.
+    """
+
+    def __init__(
+        self,
+        m: NdtOmMap | None = None,
+        *,
+        compare: NdtOmMap | None = None,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        label: str = "NDT-OM map",
+        threshold: float = 0.5,
+        color_mode: str = "occupancy",
+        geometry: str = "auto",
+        max_ellipsoids: int = 20_000,
+        max_splats: int = 200_000,
+        max_free_cells: int = 50_000,
+        max_occupied_cells: int = 200_000,
+        cache_size: int = 2,
+        environment_map: bool = True,
+        verbose: bool = True,
+    ):
+        viser = require_viser()
+        if color_mode not in COLOR_MODES:
+            raise ValueError(f"color_mode must be one of {COLOR_MODES}, got {color_mode!r}")
+        if geometry not in GEOMETRIES:
+            raise ValueError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
+        if not 0.5 <= float(threshold) <= 0.99:
+            raise ValueError(f"threshold must be in [0.5, 0.99], got {threshold}")
+        port = int(port)
+        if not 0 <= port <= 65535:
+            raise ValueError(f"port must be in [0, 65535], got {port}")
+        self.requested_port = port
+        port_free = check_listen(host, port)
+
+        self.max_ellipsoids = int(max_ellipsoids)
+        self.max_splats = int(max_splats)
+        self.max_free_cells = int(max_free_cells)
+        self.max_occupied_cells = int(max_occupied_cells)
+        self.cache_size = max(int(cache_size), 0)
+        self.verbose = verbose
+
+        self.map_lock = threading.RLock()  # every map access (Taichi) goes through it
+        self._scene_lock = threading.RLock()  # one layer rebuild at a time
+        self._live_lock = threading.Lock()  # trajectory / latest scan buffers
+        self._pending_lock = threading.Lock()
+        self._refreshing = False
+        self._pending = False
+        self._maps: dict[str, NdtOmMap | None] = {"ndtom": m, "rndt": compare}
+        self._cache: OrderedDict = OrderedDict()  # (kind, factor) -> (version, map)
+        self._handles: dict[str, Any] = {}
+        self._trajectory = np.zeros((0, 3), np.float64)
+        self._scan_world = np.zeros((0, 3), np.float32)
+        self._framed = False
+        self._closed = False
+        self.live_mapper: LiveMapper | None = None
+        #: what the last refresh drew: counts per layer, level, geometry, notes
+        self.drawn: dict[str, Any] = {}
+        self.last_refresh_s = 0.0
+        with self.map_lock:
+            warm_up(m)
+            warm_up(compare)
+
+        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=verbose)
+        self.host = host
+        self.port = int(self.server.get_port())
+        self.url = url_for(host, self.port)
+        self.port_note = ""
+        if port and self.port != port:
+            why = "in use" if not port_free else "not available"
+            self.port_note = f"port {port} is {why}; the viewer uses port {self.port} instead"
+        scene = self.server.scene
+        scene.configure_default_lights(enabled=True, cast_shadow=False)  # shadows of 1000s of ellipsoids: slow
+        if not environment_map:
+            # no image-based light: an even sky/ground light keeps the colours readable
+            scene.configure_environment_map(hdri=None)
+            scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255),
+                                       ground_color=(160, 160, 160), intensity=1.2)  # fmt: skip
+        if verbose:
+            if self.port_note:
+                print(f"Note: {self.port_note}", flush=True)
+            print(f"NDT-OM viewer: {self.url}", flush=True)
+
+        self.controls = Controls()
+        try:
+            self._build_gui(threshold=float(threshold), color_mode=color_mode, geometry=geometry)
+            self.refresh()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def map(self) -> NdtOmMap | None:
+        return self._maps["ndtom"]
+
+    @property
+    def compare(self) -> NdtOmMap | None:
+        return self._maps["rndt"]
+
+    def get_port(self) -> int:
+        return self.port
+
+    def set_maps(self, m: NdtOmMap | None, compare: NdtOmMap | None = None) -> None:
+        """Show other maps (the coarsened levels are dropped)."""
+        with self.map_lock:
+            warm_up(m)
+            warm_up(compare)
+            self._maps = {"ndtom": m, "rndt": compare}
+            self._cache.clear()
+        self._framed = False
+        self._update_resolution_options()
+        self.refresh()
+
+    def set_trajectory(self, positions: Any) -> None:
+        """Sensor positions (N, 3) in the world frame, drawn as a polyline."""
+        pos = np.asarray(positions, np.float64).reshape(-1, 3)
+        with self._live_lock:
+            self._trajectory = pos.copy()
+
+    def set_scan(self, points_world: Any) -> None:
+        """Points (N, 3) in the world frame, drawn as the latest scan."""
+        pts = np.asarray(points_world, np.float32).reshape(-1, 3)
+        with self._live_lock:
+            self._scan_world = pts.copy()
+
+    @property
+    def level(self) -> int:
+        """Factor of the level drawn (1: native), after the level-of-detail rule."""
+        return int(self.drawn.get("factor", 1))
+
+    def layer_visible(self, key: str) -> bool:
+        h = self._handles.get(key)
+        return bool(h is not None and h.visible)
+
+    def save_html(self, path: str | Path) -> Path:
+        """Write a standalone HTML page of the current scene (``scene.as_html()``)."""
+        path = Path(path)
+        if str(path.parent) and not path.parent.is_dir():
+            raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
+        html = self.server.scene.as_html()
+        path.write_text(html, encoding="utf-8")
+        return path
+
+    def live(
+        self,
+        scans: Any,
+        m: NdtOmMap | None = None,
+        *,
+        compare: NdtOmMap | bool = False,
+        play: bool = False,
+        total: int | None = None,
+        refresh_interval: float = 0.5,
+        max_scan_points: int = 50_000,
+        rate_hz: float = 0.0,
+    ) -> LiveMapper:
+        """Build ``m`` (default: this viewer's map) from ``scans`` in a worker thread and
+        watch it grow: Play / Pause / Step, a scan counter and a chart of time per scan.
+
+        ``scans``: an iterable of objects with ``.points`` (N, 3) sensor frame and
+        ``.T_world_sensor`` (4, 4), or of ``(points, T_world_sensor)`` pairs.
+        ``compare=True`` also builds a Recursive NDT map (``occupancy=False``, same
+        resolution and config) for the "Conflicting cells" layer; or pass such a map.
+        ``rate_hz``: at most this many scans per second (0: as fast as mapping goes).
+        """
+        from .live import LiveMapper
+
+        if self.live_mapper is not None:
+            self.live_mapper.stop()
+        lm = LiveMapper(
+            self, scans, m if m is not None else self.map, compare=compare, total=total,
+            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz,
+        )  # fmt: skip
+        self.live_mapper = lm
+        if play:
+            lm.play()
+        return lm
+
+    def wait(self) -> None:
+        """Block until Ctrl-C (then close)."""
+        try:
+            while not self._closed:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop live mapping and the server, and drop the maps (their storage slots free)."""
+        if self._closed:
+            return
+        self._closed = True
+        lm = self.live_mapper
+        if lm is not None:
+            lm.stop()
+        with self.map_lock:
+            self._cache.clear()
+            self._maps = {"ndtom": None, "rndt": None}
+            if lm is not None:  # GUI callbacks may keep it alive: let go of the maps now
+                lm.map = lm.compare = None
+        self.live_mapper = None
+        with contextlib.suppress(Exception):  # stopping twice or during interpreter teardown
+            self.server.stop()
+
+    stop = close
+
+    def __enter__(self) -> MapViewer:  # noqa: PYI034
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"MapViewer(url={self.url!r}, map={self.map!r})"
+
+    # ------------------------------------------------------------------ GUI
+
+    def _level_options(self) -> tuple[list[str], dict[str, int]]:
+        m = self.map
+        r = m.resolution if m is not None else None
+        labels, lookup = [], {}
+        for f in FACTORS:
+            if r is None:
+                lab = "native" if f == 1 else f"{f}x coarser"
+            else:
+                lab = f"{r * f:g} m (native)" if f == 1 else f"{r * f:g} m ({f}x)"
+            labels.append(lab)
+            lookup[lab] = f
+        return labels, lookup
+
+    def _update_resolution_options(self) -> None:
+        labels, lookup = self._level_options()
+        self._level_lookup = lookup
+        h = self.controls.resolution
+        if h is not None and list(h.options) != labels:
+            old = self._selected_factor()
+            h.options = labels
+            h.value = labels[FACTORS.index(old)]
+
+    def _selected_factor(self) -> int:
+        h = self.controls.resolution
+        if h is None:
+            return 1
+        return self._level_lookup.get(h.value, 1)
+
+    def _build_gui(self, *, threshold: float, color_mode: str, geometry: str) -> None:
+        gui = self.server.gui
+        c = self.controls
+        labels, self._level_lookup = self._level_options()
+        with gui.add_folder("Map"):
+            c.resolution = gui.add_dropdown(
+                "Resolution", labels, initial_value=labels[0],
+                hint="native resolution, or a coarser level made on demand (NdtOmMap.coarsen)",
+            )  # fmt: skip
+            c.threshold = gui.add_slider(
+                "Occupancy threshold", min=0.5, max=0.99, step=0.01, initial_value=threshold,
+                hint="draw Gaussians and occupied cells with occupancy probability above this",
+            )  # fmt: skip
+            c.color_mode = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=color_mode)
+            c.geometry = gui.add_dropdown(
+                "Gaussians as", GEOMETRIES, initial_value=geometry,
+                hint=f"auto: ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, splats up to "
+                f"{_fmt(self.max_splats)}, then a coarser level",
+            )  # fmt: skip
+            c.point_size = gui.add_slider("Point size", min=0.005, max=0.5, step=0.005, initial_value=0.03,
+                                          hint="size (m) of the latest scan's points")  # fmt: skip
+        with gui.add_folder("Layers"):
+            for key, lab in LAYERS.items():
+                c.layers[key] = gui.add_checkbox(lab, key in _DEFAULT_ON)
+        c.legend = gui.add_html("")
+        with gui.add_folder("Statistics"):
+            c.stats = gui.add_markdown("")
+
+        c.resolution.on_update(lambda _: self.request_refresh())
+        c.threshold.on_update(lambda _: self.request_refresh())
+        c.color_mode.on_update(lambda _: self.request_refresh())
+        c.geometry.on_update(lambda _: self.request_refresh())
+        c.point_size.on_update(lambda _: self._on_point_size())
+        for key, box in c.layers.items():
+            box.on_update(lambda _, key=key: self._on_layer(key))
+
+    def _on_layer(self, key: str) -> None:
+        on = bool(self.controls.layers[key].value)
+        h = self._handles.get(key)
+        if on and key in self.drawn.get("skipped", ()):
+            self.request_refresh()  # computed on demand
+        elif h is not None:
+            h.visible = on
+
+    def _on_point_size(self) -> None:
+        h = self._handles.get("scan")
+        if h is not None:
+            h.point_size = float(self.controls.point_size.value)
+
+    # ------------------------------------------------------------------ data (under map_lock)
+
+    def _version(self, m: NdtOmMap) -> tuple[int, int]:
+        return (m.scans_inserted, m.points_inserted)
+
+    def _map_at(self, kind: str, factor: int) -> NdtOmMap | None:
+        """The map ``kind`` at ``factor`` x its resolution (cached; call under map_lock)."""
+        base = self._maps[kind]
+        if base is None or factor == 1:
+            return base
+        key = (kind, factor)
+        entry = self._cache.pop(key, None)
+        if entry is not None and entry[0] == self._version(base):
+            self._cache[key] = entry  # most recently used last
+            return entry[1]
+        del entry  # a stale level is dropped before its replacement is made
+        while self._cache and len(self._cache) >= max(self.cache_size, 1):
+            self._cache.popitem(last=False)
+        try:
+            cm = base.coarsen(factor)
+        except RuntimeError:  # all storage slots taken: drop every cached level, try once more
+            self._cache.clear()
+            cm = base.coarsen(factor)
+        if self.cache_size:
+            self._cache[key] = (self._version(base), cm)
+        return cm
+
+    def _snapshot(self, want: dict[str, bool]) -> dict:
+        """Everything the layers need, as numpy arrays, taken under map_lock."""
+        thr = float(self.controls.threshold.value)
+        sel = self._selected_factor()
+        mode = str(self.controls.geometry.value)
+        out: dict[str, Any] = {"threshold": thr, "selected": sel, "notes": [], "skipped": []}
+        with self.map_lock:
+            base = self._maps["ndtom"]
+            if base is None:
+                out.update(factor=sel, resolution=None, g=None, skipped=["occupied", "free", "conflicts"])
+                return out
+            try:
+                m = self._map_at("ndtom", sel)
+            except (RuntimeError, MemoryError) as exc:  # no free map slot, or past the memory budget
+                out["notes"].append(f"the {sel}x level could not be made ({exc}); showing the native level")
+                m, sel = base, 1
+            g = m.gaussians(min_probability=thr)
+            factor = sel
+            n_sel = len(g["n"])
+            if mode == "auto" and n_sel > self.max_splats:
+                # Estimate each coarser level's count from the parents of the drawn cells.
+                idx = g["index"]
+                choice = None
+                for f in _LOD_FACTORS:
+                    if len(np.unique(geo.cell_keys(idx // f))) <= self.max_splats:
+                        choice = f
+                        break
+                choice = choice or _LOD_FACTORS[-1]
+                try:
+                    cm = self._map_at("ndtom", sel * choice) if sel * choice in FACTORS else base.coarsen(sel * choice)
+                    m, factor = cm, sel * choice
+                    del cm
+                    g = m.gaussians(min_probability=thr)
+                    out["notes"].append(
+                        f"{_fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {_fmt(self.max_splats)}: "
+                        f"showing the {choice}x coarser level ({m.resolution:g} m)"
+                    )
+                except (RuntimeError, MemoryError) as exc:
+                    out["notes"].append(f"a coarser level could not be made ({exc}): drawing all {_fmt(n_sel)}")
+            out.update(factor=factor, resolution=m.resolution, g=g, native_resolution=base.resolution)
+            out["stats"] = {
+                "scans": base.scans_inserted,
+                "points": base.points_inserted,
+                "memory": base.memory_bytes(),
+                "occupancy": base.occupancy_enabled,
+            }
+            need_cells = want["occupied"] or want["free"]
+            if need_cells:
+                k = m.known_cells()
+                out["known"] = len(k["p_occ"])
+                occ = k["p_occ"] > thr
+                free = k["p_occ"] < 0.5
+                out["n_occupied"], out["n_free"] = int(occ.sum()), int(free.sum())
+                for key, sel_mask, cap in (("occupied", occ, self.max_occupied_cells),
+                                           ("free", free, self.max_free_cells)):  # fmt: skip
+                    if want[key]:
+                        rows = np.flatnonzero(sel_mask)
+                        rows = rows[geo.cap_rows(len(rows), cap)]
+                        out[key] = (m.cell_center(k["index"][rows]), k["p_occ"][rows])
+                    else:
+                        out["skipped"].append(key)
+            else:
+                out["skipped"] += ["occupied", "free"]
+            cmp_base = self._maps["rndt"]
+            if cmp_base is not None:
+                out["compare_stats"] = {"gaussians": None}
+                if want["conflicts"]:
+                    try:
+                        cm = self._map_at("rndt", factor) if factor in FACTORS else cmp_base.coarsen(factor)
+                    except (RuntimeError, MemoryError) as exc:
+                        cm = None
+                        out["notes"].append(f"conflicting cells: the comparison map's level could not be made ({exc})")
+                    if cm is not None:
+                        ng = m.gaussians(min_probability=0.5) if thr != 0.5 else g
+                        cg = cm.gaussians(min_probability=0.5)
+                        conflict = ~np.isin(geo.cell_keys(cg["index"]), geo.cell_keys(ng["index"]))
+                        out["conflicts"] = {"mean": cg["mean"][conflict], "cov": cg["cov"][conflict]}
+                        out["compare_stats"] = {"gaussians": len(cg["n"]), "conflicts": int(conflict.sum())}
+                    del cm
+                else:
+                    out["skipped"].append("conflicts")
+            del m
+        return out
+
+    # ------------------------------------------------------------------ drawing
+
+    def request_refresh(self) -> None:
+        """Refresh now, or, when a refresh is running (a slider being dragged), once more
+        after it: requests that arrive meanwhile collapse into one."""
+        with self._pending_lock:
+            if self._refreshing:
+                self._pending = True
+                return
+            self._refreshing = True
+        try:
+            while True:
+                self.refresh()
+                with self._pending_lock:
+                    if not self._pending:
+                        return
+                    self._pending = False
+        finally:
+            with self._pending_lock:
+                self._refreshing = False
+
+    def refresh(self) -> None:
+        """Rebuild the layers from the maps (after a control changed, or a scan was added)."""
+        if self._closed:
+            return
+        t0 = time.perf_counter()
+        c = self.controls
+        want = {k: bool(box.value) for k, box in c.layers.items()}
+        with self._scene_lock:
+            snap = self._snapshot(want)
+            with self._live_lock:
+                traj, scan = self._trajectory, self._scan_world
+            self._draw(snap, want, traj, scan)
+        self.last_refresh_s = time.perf_counter() - t0
+
+    def _gaussian_node(self, g: dict, colors: np.ndarray, res: float, use: str, visible: bool) -> Any:
+        scene = self.server.scene
+        name = "/ndtom/gaussians"
+        if use == "splats":
+            eps = (0.02 * res) ** 2
+            cov = g["cov"] + eps * np.eye(3)[None]
+            return scene.add_gaussian_splats(
+                name, centers=g["mean"].astype(np.float32), covariances=cov.astype(np.float32),
+                rgbs=colors.astype(np.float32) / 255.0, opacities=np.full((len(cov), 1), 0.9, np.float32),
+                visible=visible,
+            )  # fmt: skip
+        V, F = geo.icosphere(1)
+        wxyz, scales = geo.ellipsoid_instances(g["cov"], min_sigma=0.02 * res)
+        return scene.add_batched_meshes_simple(
+            name, V, F, batched_wxyzs=wxyz, batched_positions=g["mean"].astype(np.float32),
+            batched_scales=scales, batched_colors=colors, lod="off", cast_shadow=False, receive_shadow=False,
+            visible=visible,
+        )  # fmt: skip
+
+    def _set(self, key: str, make: Any) -> None:
+        """Replace layer ``key`` with ``make()`` (None: remove it)."""
+        old = self._handles.pop(key, None)
+        new = make() if make is not None else None
+        if new is not None:
+            self._handles[key] = new
+        elif old is not None:
+            old.remove()
+
+    def _draw(self, snap: dict, want: dict[str, bool], traj: np.ndarray, scan: np.ndarray) -> None:
+        c = self.controls
+        scene = self.server.scene
+        color_mode = str(c.color_mode.value)
+        geometry = str(c.geometry.value)
+        g = snap.get("g")
+        res = snap.get("resolution") or 0.1
+        drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
+                                 "notes": list(snap["notes"]), "skipped": list(snap["skipped"])}  # fmt: skip
+        zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
+        zrange = geo.height_range(zsrc)
+
+        n_g = 0 if g is None else len(g["n"])
+        use = geometry
+        if geometry == "auto":
+            use = "ellipsoids" if n_g <= self.max_ellipsoids else "splats"
+        elif geometry == "ellipsoids" and n_g > self.max_ellipsoids:
+            drawn["notes"].append(f"{_fmt(n_g)} ellipsoids: past {_fmt(self.max_ellipsoids)} the view may be slow")
+        drawn["geometry"] = use
+        drawn["zrange"] = zrange
+
+        with self.server.atomic():
+            # Gaussians
+            if n_g:
+                cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange)
+                if self._handles.get("gaussians") is not None and drawn["geometry"] != self.drawn.get("geometry"):
+                    self._handles.pop("gaussians").remove()  # splats <-> ellipsoids: other node type
+                self._set("gaussians", lambda: self._gaussian_node(g, cols, res, use, want["gaussians"]))
+            else:
+                self._set("gaussians", None)
+            drawn["gaussians"] = n_g
+
+            # Occupied / free cells: square points one cell wide
+            for key in ("occupied", "free"):
+                if key in snap["skipped"]:
+                    drawn[key] = self.drawn.get(key, 0) if key in self._handles else 0
+                    if key in self._handles:
+                        self._handles[key].visible = False
+                    continue
+                centers, p = snap[key]
+                if key == "free" and color_mode == "height":
+                    cols = np.tile(np.array(geo.FREE_RGB, np.uint8), (len(p), 1))
+                else:
+                    cols = geo.colors_for(color_mode, p, centers[:, 2], zrange)
+                if len(p):
+                    self._set(key, lambda centers=centers, cols=cols, key=key: scene.add_point_cloud(
+                        f"/ndtom/{key}", centers.astype(np.float32), cols, point_size=0.9 * res,
+                        point_shape="square", precision="float32", visible=want[key]))  # fmt: skip
+                else:
+                    self._set(key, None)
+                drawn[key] = len(p)
+            for key, total, cap in (("occupied", snap.get("n_occupied"), self.max_occupied_cells),
+                                    ("free", snap.get("n_free"), self.max_free_cells)):  # fmt: skip
+                if total is not None and key not in snap["skipped"]:
+                    drawn[f"{key}_total"] = total
+                    if total > cap:
+                        drawn["notes"].append(f"{LAYERS[key]}: {_fmt(drawn[key])} of {_fmt(total)} drawn "
+                                              f"(cap {_fmt(cap)})")  # fmt: skip
+
+            # Conflicting cells: the comparison map's Gaussians where NDT-OM has none
+            conf = snap.get("conflicts")
+            if conf is not None:
+                n_c = len(conf["mean"])
+                if n_c:
+                    V, F = geo.icosphere(1)
+                    wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=0.05 * res)
+                    self._set("conflicts", lambda: scene.add_batched_meshes_simple(
+                        "/ndtom/conflicts", V, F, batched_wxyzs=wxyz,
+                        batched_positions=conf["mean"].astype(np.float32),
+                        batched_scales=scales * np.float32(1.2), batched_colors=geo.CONFLICT_RGB,
+                        lod="off", cast_shadow=False, receive_shadow=False, visible=want["conflicts"]))  # fmt: skip
+                else:
+                    self._set("conflicts", None)
+                drawn["conflicts"] = n_c
+            elif "conflicts" in snap["skipped"] and "conflicts" in self._handles:
+                self._handles["conflicts"].visible = False
+                drawn["conflicts"] = self.drawn.get("conflicts", 0)
+            else:
+                self._set("conflicts", None)
+                drawn["conflicts"] = 0
+
+            # Trajectory and latest scan
+            if len(traj) >= 2:
+                seg = np.stack([traj[:-1], traj[1:]], axis=1).astype(np.float32)
+                self._set("trajectory", lambda: scene.add_line_segments(
+                    "/ndtom/trajectory", seg, geo.TRAJECTORY_RGB, thickness=3.0, thickness_units="screen",
+                    visible=want["trajectory"]))  # fmt: skip
+            else:
+                self._set("trajectory", None)
+            drawn["trajectory"] = len(traj)
+            if len(scan):
+                self._set("scan", lambda: scene.add_point_cloud(
+                    "/ndtom/scan", scan, geo.SCAN_RGB, point_size=float(c.point_size.value),
+                    point_shape="circle", precision="float32", visible=want["scan"]))  # fmt: skip
+            else:
+                self._set("scan", None)
+            drawn["scan"] = len(scan)
+
+            c.legend.content = geo.legend_html(color_mode, threshold=snap["threshold"], zrange=zrange,
+                                               conflicts=self.compare is not None)  # fmt: skip
+            c.stats.content = self._stats_markdown(snap, drawn)
+            c.layers["conflicts"].disabled = self.compare is None
+        self.drawn = drawn
+        if not self._framed:
+            self._frame(g, traj)
+
+    def _frame(self, g: dict | None, traj: np.ndarray) -> None:
+        """Point the camera at the map once it has content."""
+        pts = g["mean"] if g is not None and len(g["n"]) else traj
+        if len(pts) == 0:
+            return
+        lo, hi = np.percentile(pts, 1.0, axis=0), np.percentile(pts, 99.0, axis=0)
+        center = (lo + hi) / 2.0
+        size = max(float(np.linalg.norm(hi - lo)), 2.0)
+        direction = np.array([-0.45, -0.75, 0.6])
+        self._view = (center + 0.8 * size * direction / np.linalg.norm(direction), center)
+        cam = self.server.initial_camera
+        cam.position, cam.look_at = (tuple(float(x) for x in v) for v in self._view)
+        self._framed = True
+        self.frame()
+
+    def frame(self) -> None:
+        """Move every connected browser's camera to the overview of the map."""
+        view = getattr(self, "_view", None)
+        if view is None:
+            return
+        for client in self.server.get_clients().values():
+            client.camera.position = tuple(float(x) for x in view[0])
+            client.camera.look_at = tuple(float(x) for x in view[1])
+
+    def _stats_markdown(self, snap: dict, drawn: dict) -> str:
+        if snap.get("g") is None:
+            return "No map loaded."
+        st = snap["stats"]
+        f = drawn["factor"]
+        lines = [
+            (
+                f"**Map**: {'NDT-OM' if st['occupancy'] else 'Recursive NDT'}, "
+                f"{snap['resolution']:g} m{' (native)' if f == 1 else f' ({f}x coarser)'}"
+            ),
+            f"**Scans**: {_fmt(st['scans'])}, {_fmt(st['points'])} points",
+            (
+                f"**Gaussians**: {_fmt(drawn['gaussians'])} with p > {snap['threshold']:.2f}, "
+                f"drawn as {drawn['geometry']}"
+            ),
+            (
+                f"**Level of detail** (auto): ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, "
+                f"splats up to {_fmt(self.max_splats)}, then a coarser level"
+            ),
+        ]
+        if "known" in snap:
+            lines.append(f"**Cells**: {_fmt(snap['known'])} known, {_fmt(snap['n_occupied'])} occupied "
+                         f"(p > {snap['threshold']:.2f}), {_fmt(snap['n_free'])} free")  # fmt: skip
+        lines.append(f"**Free cells** drawn at most {_fmt(self.max_free_cells)}, occupied cells at most "
+                     f"{_fmt(self.max_occupied_cells)}")  # fmt: skip
+        cs = snap.get("compare_stats")
+        if cs is not None:
+            if cs.get("gaussians") is None:
+                lines.append("**Recursive NDT**: loaded (turn on *Conflicting cells* to compare)")
+            else:
+                lines.append(f"**Recursive NDT**: {_fmt(cs['gaussians'])} Gaussians; "
+                             f"**{_fmt(cs['conflicts'])} conflicting cells**")  # fmt: skip
+        lines.append(f"**Memory**: {st['memory'] / 2**20:.1f} MiB")
+        for note in drawn["notes"]:
+            lines.append(f"**Note**: {note}")
+        return "  \n".join(lines)
+
+
+def show(
+    m: NdtOmMap,
+    *,
+    compare: NdtOmMap | None = None,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    block: bool = False,
+    **options: Any,
+) -> MapViewer:
+    """Open a viewer of ``m`` (prints its URL) and return it; ``viewer.server`` is the
+    viser server. ``block=True`` waits until Ctrl-C. Options as for :class:`MapViewer`."""
+    v = MapViewer(m, compare=compare, host=host, port=port, **options)
+    if block:
+        v.wait()
+    return v

@@ -1,0 +1,222 @@
+"""Pure-numpy geometry and colours for the viewer (no viser needed: unit-testable).
+
+Conventions: world frame, metres, z up; quaternions are ``wxyz`` (viser's order).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+__all__ = [
+    "CONFLICT_RGB",
+    "FREE_RGB",
+    "SCAN_RGB",
+    "TRAJECTORY_RGB",
+    "cap_rows",
+    "cell_keys",
+    "colors_for",
+    "ellipsoid_instances",
+    "height_colors",
+    "icosphere",
+    "legend_html",
+    "occupancy_colors",
+    "rotation_to_wxyz",
+    "turbo",
+]
+
+# Fixed colours of the layers that are not colour-mapped.
+CONFLICT_RGB = (230, 0, 230)  # magenta: in neither colour map
+FREE_RGB = (110, 170, 230)  # light blue (free cells in "height" mode)
+SCAN_RGB = (0, 170, 190)  # teal: the latest scan's points
+TRAJECTORY_RGB = (40, 40, 40)
+
+# Occupancy colour map: stops (p, r, g, b). Distinct hues so a test (or a person) can
+# tell the occupancy from a pixel: blue (free) -> green (unknown, 0.5) -> orange -> red.
+_OCC_STOPS = np.array(
+    [
+        [0.00, 49, 110, 200],
+        [0.50, 60, 170, 80],
+        [0.75, 250, 160, 40],
+        [1.00, 200, 20, 30],
+    ],
+    np.float64,
+)
+
+
+@functools.cache
+def icosphere(subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Unit icosphere: vertices (V, 3) float32 on the unit sphere, faces (F, 3) uint32
+    (counter-clockwise seen from outside). ``subdivisions=1``: 42 vertices, 80 faces."""
+    t = (1.0 + math.sqrt(5.0)) / 2.0
+    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]  # fmt: skip
+    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]  # fmt: skip
+    verts = [np.array(p, np.float64) / np.linalg.norm(p) for p in v]
+    faces = [tuple(x) for x in f]
+
+    def midpoint(mid: dict[tuple[int, int], int], a: int, b: int) -> int:
+        key = (min(a, b), max(a, b))
+        if key not in mid:
+            p = verts[a] + verts[b]
+            verts.append(p / np.linalg.norm(p))
+            mid[key] = len(verts) - 1
+        return mid[key]
+
+    for _ in range(subdivisions):
+        mid: dict[tuple[int, int], int] = {}
+        new = []
+        for a, b, c in faces:
+            ab, bc, ca = midpoint(mid, a, b), midpoint(mid, b, c), midpoint(mid, c, a)
+            new += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = new
+    V = np.array(verts, np.float32)
+    F = np.array(faces, np.uint32)
+    V.setflags(write=False)
+    F.setflags(write=False)
+    return V, F
+
+
+def rotation_to_wxyz(R: np.ndarray) -> np.ndarray:
+    """Quaternions (N, 4) ``wxyz`` of rotation matrices (N, 3, 3) (Shepperd's method)."""
+    R = np.asarray(R, np.float64)
+    n = len(R)
+    q = np.empty((n, 4))
+    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
+    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
+    case = np.where(tr > d.max(axis=1), 3, d.argmax(axis=1))
+
+    m = case == 3
+    s = np.sqrt(np.maximum(tr[m] + 1.0, 1e-300)) * 2.0
+    q[m] = np.stack([0.25 * s, (R[m, 2, 1] - R[m, 1, 2]) / s, (R[m, 0, 2] - R[m, 2, 0]) / s,
+                     (R[m, 1, 0] - R[m, 0, 1]) / s], axis=1)  # fmt: skip
+    m = case == 0
+    s = np.sqrt(np.maximum(1.0 + R[m, 0, 0] - R[m, 1, 1] - R[m, 2, 2], 1e-300)) * 2.0
+    q[m] = np.stack([(R[m, 2, 1] - R[m, 1, 2]) / s, 0.25 * s, (R[m, 0, 1] + R[m, 1, 0]) / s,
+                     (R[m, 0, 2] + R[m, 2, 0]) / s], axis=1)  # fmt: skip
+    m = case == 1
+    s = np.sqrt(np.maximum(1.0 + R[m, 1, 1] - R[m, 0, 0] - R[m, 2, 2], 1e-300)) * 2.0
+    q[m] = np.stack([(R[m, 0, 2] - R[m, 2, 0]) / s, (R[m, 0, 1] + R[m, 1, 0]) / s, 0.25 * s,
+                     (R[m, 1, 2] + R[m, 2, 1]) / s], axis=1)  # fmt: skip
+    m = case == 2
+    s = np.sqrt(np.maximum(1.0 + R[m, 2, 2] - R[m, 0, 0] - R[m, 1, 1], 1e-300)) * 2.0
+    q[m] = np.stack([(R[m, 1, 0] - R[m, 0, 1]) / s, (R[m, 0, 2] + R[m, 2, 0]) / s,
+                     (R[m, 1, 2] + R[m, 2, 1]) / s, 0.25 * s], axis=1)  # fmt: skip
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q
+
+
+def ellipsoid_instances(cov: np.ndarray, min_sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-instance rotation and scales of 1-sigma ellipsoids of covariances (N, 3, 3).
+
+    Returns ``wxyz`` (N, 4) float32 (rotation from the unit sphere's axes to the
+    eigenvectors; one eigenvector is flipped where they form a left-handed frame) and
+    ``scales`` (N, 3) float32, the square roots of the eigenvalues, at least ``min_sigma``
+    (flat Gaussians of planar surfaces stay visible).
+    """
+    cov = np.asarray(cov, np.float64).reshape(-1, 3, 3)
+    if len(cov) == 0:
+        return np.zeros((0, 4), np.float32), np.zeros((0, 3), np.float32)
+    sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    w, V = np.linalg.eigh(sym)  # ascending eigenvalues; eigenvectors in columns
+    V = V.copy()
+    left = np.linalg.det(V) < 0.0
+    V[left, :, 0] *= -1.0
+    scales = np.sqrt(np.maximum(w, 0.0))
+    scales = np.maximum(scales, min_sigma)
+    return rotation_to_wxyz(V).astype(np.float32), scales.astype(np.float32)
+
+
+def _interp_stops(t: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    t = np.clip(np.nan_to_num(np.asarray(t, np.float64), nan=0.5), stops[0, 0], stops[-1, 0])
+    return np.stack([np.interp(t, stops[:, 0], stops[:, k]) for k in (1, 2, 3)], axis=-1)
+
+
+def occupancy_colors(p: np.ndarray) -> np.ndarray:
+    """Colours (N, 3) uint8 of occupancy probabilities in [0, 1]."""
+    return np.round(_interp_stops(p, _OCC_STOPS)).astype(np.uint8)
+
+
+def turbo(t: np.ndarray) -> np.ndarray:
+    """Google's Turbo colour map (polynomial fit) of t in [0, 1] -> (N, 3) uint8."""
+    t = np.clip(np.nan_to_num(np.asarray(t, np.float64), nan=0.5), 0.0, 1.0)
+    r = 0.13572138 + t * (4.61539260 + t * (-42.66032258 + t * (132.13108234 + t * (-152.94239396 + t * 59.28637943))))
+    g = 0.09140261 + t * (2.19418839 + t * (4.84296658 + t * (-14.18503333 + t * (4.27729857 + t * 2.82956604))))
+    b = 0.10667330 + t * (12.64194608 + t * (-60.58204836 + t * (110.36276771 + t * (-89.90310912 + t * 27.34824973))))
+    return np.round(np.clip(np.stack([r, g, b], axis=-1), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def height_range(z: np.ndarray) -> tuple[float, float]:
+    """Colour range of heights: 2nd to 98th percentile (a few outliers do not wash it out)."""
+    z = np.asarray(z, np.float64)
+    if len(z) == 0:
+        return 0.0, 1.0
+    lo, hi = (float(v) for v in np.percentile(z, [2.0, 98.0]))
+    if hi - lo < 1e-6:
+        lo, hi = lo - 0.5, hi + 0.5
+    return lo, hi
+
+
+def height_colors(z: np.ndarray, zrange: tuple[float, float]) -> np.ndarray:
+    lo, hi = zrange
+    return turbo((np.asarray(z, np.float64) - lo) / (hi - lo))
+
+
+def colors_for(mode: str, p_occ: np.ndarray, z: np.ndarray, zrange: tuple[float, float]) -> np.ndarray:
+    """Colours (N, 3) uint8 by ``mode`` "occupancy" (of p_occ) or "height" (of z)."""
+    if mode == "height":
+        return height_colors(z, zrange)
+    return occupancy_colors(p_occ)
+
+
+def _css(rgb) -> str:
+    return f"rgb({int(rgb[0])},{int(rgb[1])},{int(rgb[2])})"
+
+
+def legend_html(mode: str, *, threshold: float, zrange: tuple[float, float], conflicts: bool) -> str:
+    """A small colour bar with its scale, and the fixed colours of the other layers."""
+    if mode == "height":
+        ts = np.linspace(0.0, 1.0, 9)
+        cols = turbo(ts)
+        lo, hi = zrange
+        left, mid, right = f"{lo:.2f} m", f"{(lo + hi) / 2:.2f} m", f"{hi:.2f} m"
+        title = "Colour: height z of the Gaussian's mean"
+    else:
+        ts = np.linspace(0.0, 1.0, 9)
+        cols = occupancy_colors(ts)
+        left, mid, right = "p = 0 (free)", "0.5", "1 (occupied)"
+        title = f"Colour: occupancy probability (Gaussians shown where p > {threshold:.2f})"
+    grad = ", ".join(f"{_css(c)} {100 * t:.0f}%" for t, c in zip(ts, cols))
+    extra = [f'<span style="color:{_css(SCAN_RGB)}">&#9632;</span> latest scan',
+             f'<span style="color:{_css(TRAJECTORY_RGB)}">&#9632;</span> trajectory']  # fmt: skip
+    if mode == "height":
+        extra.insert(0, f'<span style="color:{_css(FREE_RGB)}">&#9632;</span> free cells')
+    if conflicts:
+        extra.insert(0, f'<span style="color:{_css(CONFLICT_RGB)}">&#9632;</span> conflicting cells '
+                        "(a Gaussian in Recursive NDT, none in NDT-OM)")  # fmt: skip
+    return (
+        '<div style="font-size:0.8em;padding:0 0.5em">'
+        f"<div>{title}</div>"
+        f'<div style="height:12px;border-radius:3px;background:linear-gradient(to right, {grad})"></div>'
+        '<div style="display:flex;justify-content:space-between">'
+        f"<span>{left}</span><span>{mid}</span><span>{right}</span></div>"
+        f'<div>{"<br>".join(extra)}</div>'
+        "</div>"
+    )
+
+
+def cell_keys(index: np.ndarray) -> np.ndarray:
+    """One int64 per integer cell index (N, 3), for set operations (|index| < 2**20)."""
+    idx = np.asarray(index, np.int64).reshape(-1, 3) + (1 << 20)
+    return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
+
+
+def cap_rows(n: int, cap: int) -> np.ndarray:
+    """Indices of at most ``cap`` of ``n`` rows, spread evenly (deterministic)."""
+    if n <= cap:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))

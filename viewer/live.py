@@ -1,0 +1,297 @@
+"""LiveMapper: build a map in a worker thread while the viewer shows it grow.
+
+The worker thread reads the next scan (so a slow reader does not block the GUI),
+inserts it into the NDT-OM map and, when given, the Recursive NDT map (under the
+viewer's ``map_lock``; nothing else waits on it), and records the time per scan, the
+pose and the scan's points. A second thread redraws the viewer at most every
+``refresh_interval`` seconds (longer when a redraw takes long), so drawing never holds
+up mapping.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .geometry import cap_rows
+
+if TYPE_CHECKING:
+    from ndtom_ti import NdtOmMap
+
+    from .app import MapViewer
+
+__all__ = ["LiveMapper", "scan_parts"]
+
+
+def scan_parts(item: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, 3), T_world_sensor (4, 4)) of a scan object or a (points, T) pair."""
+    if hasattr(item, "points") and hasattr(item, "T_world_sensor"):
+        return np.asarray(item.points), np.asarray(item.T_world_sensor, np.float64)
+    if isinstance(item, (tuple, list)) and len(item) == 2:
+        return np.asarray(item[0]), np.asarray(item[1], np.float64)
+    raise TypeError(
+        "each scan must have .points (N, 3) and .T_world_sensor (4, 4), or be a (points, T_world_sensor) "
+        f"pair; got {type(item).__name__}"
+    )
+
+
+class LiveMapper:
+    """Insert ``scans`` into ``m`` (and a Recursive NDT map) while ``viewer`` shows it.
+
+    Starts paused: :meth:`play`, :meth:`pause`, :meth:`step` (or the GUI buttons).
+    ``scans_done``, ``times_ms`` (NDT-OM insert time per scan), ``finished`` and
+    ``error`` report progress; :meth:`wait` blocks until the scans run out.
+    """
+
+    def __init__(
+        self,
+        viewer: MapViewer,
+        scans: Any,
+        m: NdtOmMap | None,
+        *,
+        compare: NdtOmMap | bool = False,
+        total: int | None = None,
+        refresh_interval: float = 0.5,
+        max_scan_points: int = 50_000,
+        rate_hz: float = 0.0,
+    ):
+        from ndtom_ti import NdtOmMap
+
+        if m is None:
+            raise ValueError("live mapping needs a map: pass m=NdtOmMap(resolution)")
+        if compare is True:
+            with viewer.map_lock:
+                compare = NdtOmMap(m.resolution, occupancy=False, config=m.config, layout=m.layout,
+                                   metadata={"role": "Recursive NDT (comparison)"})  # fmt: skip
+        elif compare is False:
+            compare = None
+        self.viewer = viewer
+        self.map = m
+        self.compare = compare
+        if total is None:
+            try:
+                total = len(scans)
+            except TypeError:
+                total = None
+        self.total = total
+        self.refresh_interval = float(refresh_interval)
+        self.max_scan_points = int(max_scan_points)
+        self.rate_hz = float(rate_hz)
+        self.scans_done = 0
+        self.times_ms: list[float] = []
+        self.compare_times_ms: list[float] = []
+        self.points_used: list[int] = []
+        self.finished = False
+        self.error: str | None = None
+        self.reports: list = []
+
+        self._it = iter(scans)
+        self._positions: list[np.ndarray] = []
+        self._playing = threading.Event()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._steps = 0
+        self._step_lock = threading.Lock()
+        self._dirty = threading.Event()
+        self._done = threading.Event()
+
+        viewer.set_maps(m, compare)
+        viewer.set_trajectory(np.zeros((0, 3)))
+        viewer.set_scan(np.zeros((0, 3)))
+        self._build_gui()
+        self._worker = threading.Thread(target=self._run, name="ndtom-live-mapping", daemon=True)
+        self._drawer = threading.Thread(target=self._draw_loop, name="ndtom-live-draw", daemon=True)
+        self._worker.start()
+        self._drawer.start()
+
+    # ------------------------------------------------------------------ controls
+
+    @property
+    def playing(self) -> bool:
+        return self._playing.is_set()
+
+    def play(self) -> None:
+        if not self.finished:
+            self._playing.set()
+            self._wake.set()
+            self._update_status()
+
+    def pause(self) -> None:
+        self._playing.clear()
+        self._update_status()
+
+    def step(self, n: int = 1) -> None:
+        """Insert the next ``n`` scans (while paused)."""
+        with self._step_lock:
+            self._steps += int(n)
+        self._wake.set()
+
+    def stop(self) -> None:
+        """End mapping (the maps keep what was inserted) and the drawing thread."""
+        self._stop.set()
+        self._wake.set()
+        self._playing.clear()
+        for t in (self._worker, self._drawer):
+            if t is not threading.current_thread() and t.is_alive():
+                t.join(timeout=10.0)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until every scan is inserted (or mapping stopped); True if it finished."""
+        self._done.wait(timeout)
+        return self._done.is_set()
+
+    def wait_scans(self, n: int, timeout: float = 30.0) -> bool:
+        """Block until at least ``n`` scans are inserted (or mapping ended)."""
+        t_end = time.monotonic() + timeout
+        while self.scans_done < n and not self._done.is_set() and time.monotonic() < t_end:
+            time.sleep(0.01)
+        return self.scans_done >= n
+
+    # ------------------------------------------------------------------ GUI
+
+    def _build_gui(self) -> None:
+        v = self.viewer
+        gui, c = v.server.gui, v.controls
+        if c.live_folder is not None:  # a previous live run's controls
+            c.live_folder.remove()
+        c.live_folder = gui.add_folder("Live mapping", order=-1)
+        with c.live_folder:
+            c.play = gui.add_button("Play")
+            c.pause = gui.add_button("Pause")
+            c.step = gui.add_button("Step")
+            c.scan = gui.add_markdown(self._counter_text())
+            c.rate = gui.add_slider("Max scans per second", min=0.0, max=50.0, step=0.5,
+                                    initial_value=min(self.rate_hz, 50.0), hint="0: as fast as mapping goes")  # fmt: skip
+            c.live_status = gui.add_markdown("Paused: press Play or Step.")
+            series = [{"label": "scan"}, {"label": "NDT-OM ms", "stroke": "#c81e1e", "width": 2}]
+            if self.compare is not None:
+                series.append({"label": "R-NDT ms", "stroke": "#1e64c8", "width": 1})
+            # one (NaN) point to start with: a chart made empty never finds its x range
+            c.chart = gui.add_uplot(
+                data=tuple(np.array([0.0 if i == 0 else np.nan]) for i in range(len(series))),
+                series=tuple(series),
+                scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
+                title="Time per scan (ms)",
+                aspect=2.0,
+            )
+        c.play.on_click(lambda _: self.play())
+        c.pause.on_click(lambda _: self.pause())
+        c.step.on_click(lambda _: self.step())
+        c.rate.on_update(lambda _: setattr(self, "rate_hz", float(c.rate.value)))
+
+    def _counter_text(self) -> str:
+        of = f" / {self.total}" if self.total is not None else ""
+        return f"**Scans inserted**: {self.scans_done}{of}"
+
+    def _update_status(self) -> None:
+        c = self.viewer.controls
+        if c.live_status is None:
+            return
+        if self.error:
+            text = f"**Stopped**: {self.error}"
+        elif self.finished:
+            text = f"**Done**: {self.scans_done} scans inserted."
+        elif self.playing:
+            text = "Mapping..."
+        else:
+            text = "Paused: press Play or Step."
+        c.live_status.content = text
+        c.play.disabled = self.finished
+
+    def _update_gui(self) -> None:
+        c = self.viewer.controls
+        c.scan.content = self._counter_text()
+        n = len(self.times_ms)
+        if n:
+            cols = [np.arange(1, n + 1, dtype=np.float64), np.asarray(self.times_ms[:n], np.float64)]
+            if self.compare is not None:
+                y2 = np.full(n, np.nan)
+                k = min(n, len(self.compare_times_ms))
+                y2[:k] = self.compare_times_ms[:k]
+                cols.append(y2)
+            c.chart.data = tuple(cols)
+        self._update_status()
+
+    # ------------------------------------------------------------------ threads
+
+    def _take_turn(self) -> bool:
+        """Wait until the next scan may be inserted; False when stopping."""
+        while not self._stop.is_set():
+            if self._playing.is_set():
+                return True
+            with self._step_lock:
+                if self._steps > 0:
+                    self._steps -= 1
+                    return True
+            self._wake.wait(0.1)
+            self._wake.clear()
+        return False
+
+    def _run(self) -> None:
+        v = self.viewer
+        last = 0.0
+        try:
+            while self._take_turn():
+                if self.rate_hz > 0:
+                    wait = last + 1.0 / self.rate_hz - time.perf_counter()
+                    if wait > 0 and self._stop.wait(wait):
+                        break
+                last = time.perf_counter()
+                try:
+                    item = next(self._it)
+                except StopIteration:
+                    break
+                pts, T = scan_parts(item)
+                with v.map_lock:
+                    rep = self.map.insert_scan(pts, T)
+                    rep2 = self.compare.insert_scan(pts, T) if self.compare is not None else None
+                self.reports.append(rep)
+                self.times_ms.append(rep.seconds * 1e3)
+                if rep2 is not None:
+                    self.compare_times_ms.append(rep2.seconds * 1e3)
+                self.points_used.append(rep.points_used)
+                # pose and the scan's points for the viewer (world frame, capped)
+                P = np.asarray(pts, np.float64)
+                P = P[np.isfinite(P).all(axis=1)]
+                P = P[cap_rows(len(P), self.max_scan_points)]
+                world = (P @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+                self._positions.append(T[:3, 3].copy())
+                v.set_trajectory(np.array(self._positions))
+                v.set_scan(world)
+                self.scans_done += 1
+                self._dirty.set()
+        except Exception as exc:  # noqa: BLE001 - shown on screen; the maps keep what was inserted
+            self.error = f"{type(exc).__name__}: {exc}"
+            self._error_traceback = traceback.format_exc()
+        finally:
+            self.finished = True
+            self._playing.clear()
+            self._dirty.set()
+            self._done.set()
+
+    def _draw_loop(self) -> None:
+        v = self.viewer
+        while True:
+            self._dirty.wait(0.2)
+            stopping = self._stop.is_set() or self._done.is_set()
+            if self._dirty.is_set():
+                self._dirty.clear()
+                try:
+                    self._update_gui()
+                    v.refresh()
+                except Exception as exc:  # noqa: BLE001 - keep mapping; say what went wrong
+                    if v._closed:
+                        return
+                    self.error = self.error or f"drawing failed: {type(exc).__name__}: {exc}"
+                # throttle: at least refresh_interval, and never more than ~1/3 of the time drawing
+                pause = max(self.refresh_interval, 2.0 * v.last_refresh_s)
+                if self._stop.wait(pause) and not self._dirty.is_set():
+                    return
+                continue
+            if stopping:
+                self._update_gui()
+                return
