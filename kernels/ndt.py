@@ -197,14 +197,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ctr: i64_1d,  # [COUNTERS]
             regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
             leaves: i64_2d,  # [slots, 2]
-            block: i32_3d,  # [B, B, B] dense ray counts around the sensor (full only)
-            bflag: i8_3d,  # [B/leaf, B/leaf, B/leaf] leaves of the block that rays entered
+            block: i32_3d,  # [Bx, By, Bz] dense ray counts around the sensor (full only)
+            bflag: i8_3d,  # [B/leaf per axis] leaves of the block that rays entered
             base: i32_1d,  # [3] cell index of block[0, 0, 0]
             use_block: ti.i32,
         ):
             o = ti.Vector([origin[0], origin[1], origin[2]])
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-            bsize = block.shape[0] if use_block != 0 else 0
+            bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
             co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
             for i in range(n):
                 ce = row(cells, i)
@@ -282,9 +282,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         regions: i8_4d,
         leaves: i64_2d,
     ):
-        nb = block.shape[0] // leaf
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for bi, bj, bk in ti.ndrange(nb, nb, nb):
+        for bi, bj, bk in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
             if bflag[bi, bj, bk] == 0:
                 continue
             bflag[bi, bj, bk] = ti.i8(0)

@@ -19,7 +19,9 @@ from .kernels.ndt import C_ERASED, C_EXPORT, C_HIT_CELLS, C_RECORDS, C_TOUCHED, 
 from .runtime import MapMemoryError
 
 _TOUCHED_START = 1 << 20
-_BLOCK = 128  # cells per side of the dense ray-count block around the sensor (8 MiB)
+# Dense ray-count block around the sensor, at most 128 x 128 x 64 cells (4 MiB).
+_BLOCK = 128
+_BLOCK_Z = 64
 
 
 @dataclass
@@ -122,7 +124,7 @@ class NdtOmMap:
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._block_cells = _BLOCK
-        self._blocks: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._blocks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -234,7 +236,7 @@ class NdtOmMap:
         """Run a ray kernel over all rays, in batches when memory is tight."""
         st, slot = self._st, self._slot
         block, bflag = self._block_for(cells, ocell)
-        B = len(block)
+        B = np.array(block.shape, np.int64)
         # Leaf-aligned block centred on the sensor, kept inside the grid.
         base = (ocell // self.layout.leaf - B // (2 * self.layout.leaf)) * self.layout.leaf
         base = np.clip(base, self._glo, self._ghi - B).astype(np.int32)
@@ -272,20 +274,23 @@ class NdtOmMap:
                     self._k.reset_rays_all(slot)
                 self._reserve(bound)  # raises: nothing of this scan is kept
 
-    def _block_for(self, cells: np.ndarray, ocell: np.ndarray) -> np.ndarray:
-        """The smallest dense ray-count block (8 to 128 cells a side) that holds the
-        scan's reach around the sensor: block_merge reads every cell of it."""
+    def _block_for(self, cells: np.ndarray, ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The smallest dense ray-count block (8 to 128 cells wide, 8 to 64 high) that
+        holds the scan's reach around the sensor: block_merge reads the entered leaves."""
         if self._block_cells == 0:
-            return self._blocks.setdefault(0, (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
-        reach = int(np.abs(cells - ocell.astype(np.int32)).max()) if len(cells) else 0
-        B = 8
-        while B < min(2 * reach + 16, self._block_cells):
-            B *= 2
-        B = min(B, self._block_cells)
-        if B not in self._blocks:
-            nb = B // self.layout.leaf
-            self._blocks[B] = (np.zeros((B, B, B), np.int32), np.zeros((nb, nb, nb), np.int8))
-        return self._blocks[B]
+            return self._blocks.setdefault((0, 0, 0), (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
+        reach = np.abs(cells - ocell.astype(np.int32)).max(axis=0) if len(cells) else np.zeros(3, np.int64)
+        shape = []
+        for r, cap in zip((max(reach[0], reach[1]),) * 2 + (reach[2],), (self._block_cells,) * 2 + (_BLOCK_Z,)):
+            b = 8
+            while b < min(2 * int(r) + 16, cap):
+                b *= 2
+            shape.append(min(b, cap))
+        key = tuple(shape)
+        if key not in self._blocks:
+            nb = tuple(b // self.layout.leaf for b in key)
+            self._blocks = {key: (np.zeros(key, np.int32), np.zeros(nb, np.int8))}  # keep one size only
+        return self._blocks[key]
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
