@@ -124,6 +124,8 @@ class NdtOmMap:
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._block_cells = _BLOCK
+        self._box: tuple[np.ndarray, np.ndarray] | None = None  # cell box of the scan in hand
+        self._nbox = 0
         self._blocks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
@@ -170,32 +172,44 @@ class NdtOmMap:
                 f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
             )
 
-        finite = np.isfinite(pts).all(axis=1)
-        rep.dropped_nonfinite = int(len(pts) - finite.sum())
-        rng = np.full(len(pts), np.inf)
-        rng[finite] = np.sqrt(np.einsum("ij,ij->i", pts[finite], pts[finite]))
-        hit = finite & (rng >= cfg.min_range) & (rng <= cfg.max_range)
-        free = np.zeros_like(hit)
+        with np.errstate(over="ignore", invalid="ignore"):
+            rng2 = np.einsum("ij,ij->i", pts, pts)
+        finite = np.isfinite(rng2)
+        if not finite.all():  # NaN/Inf, or finite points so far away that r^2 overflows
+            finite = np.isfinite(pts).all(axis=1)
+            rng2[~finite] = np.inf
+        rep.dropped_nonfinite = len(pts) - int(np.count_nonzero(finite))
+        with np.errstate(over="ignore"):
+            lo2, hi2 = cfg.min_range**2, cfg.max_range**2
+        hit = (rng2 >= lo2) & (rng2 <= hi2) & finite
+        free = None
         if cfg.max_range_mode == "free":
-            free = finite & (rng > cfg.max_range)
-        rep.dropped_range = int(finite.sum() - hit.sum() - free.sum())
+            free = finite & (rng2 > hi2)
+            if not free.any():
+                free = None
+        n_hit_all = int(np.count_nonzero(hit))
+        n_free = 0 if free is None else int(np.count_nonzero(free))
+        rep.dropped_range = len(pts) - rep.dropped_nonfinite - n_hit_all - n_free
 
         local = pts[hit]
-        if free.any():
-            local = np.concatenate([local, pts[free] * (cfg.max_range / rng[free])[:, None]])
+        if free is not None:
+            local = np.concatenate([local, pts[free] * (cfg.max_range / np.sqrt(rng2[free]))[:, None]])
         world = local @ T[:3, :3].T + origin
         cells = np.floor(world / res)
-        inside = ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
-        n_hit_all = int(hit.sum())
-        rep.dropped_outside_grid = int(len(inside) - inside.sum())
-        n_hit = int(inside[:n_hit_all].sum())
-        if rep.dropped_outside_grid:
-            world = world[inside]
-            cells = cells[inside]
+        n_hit = n_hit_all
+        box = (cells.min(axis=0), cells.max(axis=0)) if len(cells) else None
+        if box is not None and ((box[0] < self._glo).any() or (box[1] >= self._ghi).any()):
+            inside = ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
+            n_hit = int(np.count_nonzero(inside[:n_hit_all]))
+            world, cells = world[inside], cells[inside]
+            box = (cells.min(axis=0), cells.max(axis=0)) if len(cells) else None
+        rep.dropped_outside_grid = n_hit_all + n_free - len(world)
         world = np.ascontiguousarray(world)
         cells = np.ascontiguousarray(cells.astype(np.int32))
         rep.points_used = n_hit
         rep.free_rays = len(world) - n_hit
+        self._box = None if box is None else (box[0].astype(np.int64), box[1].astype(np.int64))
+        self._nbox = len(cells)
 
         # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
         # fit and the rays are traced in batches, each checked against exact counts.
@@ -279,7 +293,10 @@ class NdtOmMap:
         holds the scan's reach around the sensor: block_merge reads the entered leaves."""
         if self._block_cells == 0:
             return self._blocks.setdefault((0, 0, 0), (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
-        reach = np.abs(cells - ocell.astype(np.int32)).max(axis=0) if len(cells) else np.zeros(3, np.int64)
+        if self._box is not None and len(cells) and len(cells) == self._nbox:
+            reach = np.maximum(np.abs(self._box[0] - ocell), np.abs(self._box[1] - ocell))
+        else:
+            reach = np.abs(cells - ocell.astype(np.int32)).max(axis=0) if len(cells) else np.zeros(3, np.int64)
         shape = []
         for r, cap in zip((max(reach[0], reach[1]),) * 2 + (reach[2],), (self._block_cells,) * 2 + (_BLOCK_Z,)):
             b = 8
@@ -376,7 +393,10 @@ class NdtOmMap:
 
         occ = cells if rays else cells[:n_hit]
         if len(occ):
-            box = (occ.min(axis=0).astype(np.int64), occ.max(axis=0).astype(np.int64))
+            if occ is cells and self._box is not None and len(cells) == self._nbox:
+                box = self._box  # computed by _prepare
+            else:
+                box = (occ.min(axis=0).astype(np.int64), occ.max(axis=0).astype(np.int64))
             if rays:
                 box = (np.minimum(box[0], ocell), np.maximum(box[1], ocell))
             out[0], out[1] = nodes(L.region, occ, box, rays), nodes(L.leaf, occ, box, rays)
