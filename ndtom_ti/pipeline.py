@@ -33,6 +33,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +129,11 @@ def load_config_file(path: str | Path) -> dict:
     and for keys that are not MapConfig options.
     """
     import json
-    import tomllib
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # Python 3.10: the tomli backport has the same API
+        import tomli as tomllib
 
     p = Path(path)
     if not p.is_file():
