@@ -669,6 +669,14 @@ def _json_default(o: Any) -> Any:
 
 
 # ============================================================================ plots
+def _finish(ax, xlabel: str, ylabel: str, title: str) -> None:
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+
 def _plots(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, res, fig4d, title) -> list[Path]:
     import matplotlib
 
@@ -687,23 +695,15 @@ def _plots(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, res, fig
     fig, ax = plt.subplots(figsize=(6.4, 4))
     for m in MAPPERS:
         ax.plot([r["scan"] + 1 for r in fig1], [r[f"score_{m}"] for r in fig1], styles[m], ms=3, label=LABELS[m])
-    ax.set_xlabel("clouds inserted")
-    ax.set_ylabel("mean L2 score vs batch map")
     ax.set_ylim(0, 1.05)
-    ax.set_title(f"Fig. 1: against the batch map ({res:g} m)", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _finish(ax, "clouds inserted", "mean L2 score vs batch map", f"Fig. 1: against the batch map ({res:g} m)")
     save(fig, "fig1_vs_batch.png")
 
     fig, ax = plt.subplots(figsize=(6.4, 4))
     for m in MAPPERS:
         ax.plot([r["cloud"] for r in fig2], [r[f"score_{m}"] for r in fig2], styles[m], ms=3, label=LABELS[m])
-    ax.set_xlabel("cloud")
-    ax.set_ylabel("score of the cloud's NDT map in the final map")
     ax.set_ylim(0, 1.05)
-    ax.set_title("Fig. 2: representation self-test", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _finish(ax, "cloud", "score of the cloud's NDT map in the final map", "Fig. 2: representation self-test")
     save(fig, "fig2_self_test.png")
 
     fig, ax = plt.subplots(figsize=(6.4, 4))
@@ -711,22 +711,14 @@ def _plots(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, res, fig
     ax.plot(x, [r["mean_logodds_occupied"] for r in fig3], "o-", ms=3, label="occupied cells (l > 0)")
     ax.plot(x, [r["mean_logodds_empty"] for r in fig3], "s-", ms=3, label="empty cells (l < 0)")
     ax.axhline(0, color="k", lw=0.8)
-    ax.set_xlabel("clouds inserted")
-    ax.set_ylabel("mean log-odds (NDT-OM)")
-    ax.set_title("Fig. 3: mean log-odds", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _finish(ax, "clouds inserted", "mean log-odds (NDT-OM)", "Fig. 3: mean log-odds")
     save(fig, "fig3_logodds.png")
 
     fig, ax = plt.subplots(figsize=(6.4, 4))
     x = [r["scan"] + 1 for r in fig4b]
     ax.plot(x, [100 * r["fraction"] for r in fig4b], "o-", ms=3, label="% of NDT-OM Gaussians")
     ax.plot(x, [100 * r["fraction_of_rcu"] for r in fig4b], "s--", ms=3, label="% of RCU Gaussians")
-    ax.set_xlabel("clouds inserted")
-    ax.set_ylabel("conflicting cells (%)")
-    ax.set_title(f"Fig. 4b: Gaussian in RCU, none in NDT-OM (final {fig4b[-1]['conflicting']} cells)", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _finish(ax, "clouds inserted", "conflicting cells (%)", f"Fig. 4b: Gaussian in RCU, none in NDT-OM (final {fig4b[-1]['conflicting']} cells)")
     save(fig, "fig4b_conflicting.png")
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
