@@ -40,6 +40,7 @@ f64_1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
 f32_1d = ti.types.ndarray(dtype=ti.f32, ndim=1)
 i8_4d = ti.types.ndarray(dtype=ti.i8, ndim=4)
 i8_3d = ti.types.ndarray(dtype=ti.i8, ndim=3)
+i8_1d = ti.types.ndarray(dtype=ti.i8, ndim=1)
 i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
 i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)
 
@@ -54,6 +55,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     leaf = L.leaf
     region = L.region
     grid_lo = ti.Vector(list(L.lo))
+    grid_n = ti.Vector(list(L.cells))
     occ_l1, gidx_l1 = f.l1_nodes
     occ_l2, gidx_l2 = f.l2_nodes
 
@@ -74,6 +76,43 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 ti.atomic_add(leaves[slot, which], 1)
                 r = (c - grid_lo) // region
                 regions[slot, r[0], r[1], r[2]] = ti.i8(1)
+
+    @ti.kernel
+    def prepare(
+        pts: ti.types.ndarray(ndim=2),  # [N, 3] sensor-frame points (f32 or f64)
+        n: ti.i32,
+        rot: f64_1d,  # [9] R of T_world_sensor, row-major
+        trans: f64_1d,  # [3] its translation
+        res: ti.f64,
+        r2: f64_1d,  # [3] min_range^2, max_range^2, max_range (free rays past it if > 0)
+        out_world: f64_2d,  # [N, 3]
+        out_cells: i32_2d,  # [N, 3]
+        status: i8_1d,  # [N] 0 hit, 1 free ray, 2 not finite, 3 out of range, 4 outside the grid
+    ):
+        # No atomics: the caller compacts by status (contended counters cost more).
+        for i in range(n):
+            p = ti.Vector([ti.cast(pts[i, 0], ti.f64), ti.cast(pts[i, 1], ti.f64), ti.cast(pts[i, 2], ti.f64)])
+            st = ti.i8(2)
+            if not (ti.math.isinf(p).any() or ti.math.isnan(p).any()):
+                st = ti.i8(3)
+                d2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+                if d2 >= r2[0] and d2 <= r2[1]:
+                    st = ti.i8(0)
+                elif d2 > r2[1] and r2[2] > 0.0:
+                    p = p * (r2[2] / ti.sqrt(d2))  # carve free space up to max_range
+                    st = ti.i8(1)
+                if st <= 1:
+                    w = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+                    for a in ti.static(range(3)):
+                        w[a] = rot[3 * a] * p[0] + rot[3 * a + 1] * p[1] + rot[3 * a + 2] * p[2] + trans[a]
+                    cf = ti.floor(w / res)
+                    if (cf >= grid_lo.cast(ti.f64)).all() and (cf < (grid_lo + grid_n).cast(ti.f64)).all():
+                        for a in ti.static(range(3)):
+                            out_world[i, a] = w[a]
+                            out_cells[i, a] = ti.cast(cf[a], ti.i32)
+                    else:
+                        st = ti.i8(4)
+            status[i] = st
 
     @ti.kernel
     def hits_count(
@@ -435,6 +474,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     ti.deactivate(l1, [slot, i, j, k])
 
     f.kernels = SimpleNamespace(
+        prepare=prepare,
         hits_count=hits_count,
         hits_sum=hits_sum,
         merge=merge,

@@ -52,7 +52,8 @@ def _as_points(points: Any) -> np.ndarray:
         raise TypeError(f"points must be a real numeric (N, 3) array in metres, got dtype {arr.dtype}")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {arr.shape}")
-    return np.ascontiguousarray(arr, dtype=np.float64)
+    # float32 and float64 go to the kernels as they are (zero-copy on the CPU).
+    return np.ascontiguousarray(arr, dtype=arr.dtype if arr.dtype in (np.float32, np.float64) else np.float64)
 
 
 def as_pose(T: Any, name: str = "T_world_sensor") -> np.ndarray:
@@ -172,44 +173,32 @@ class NdtOmMap:
                 f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
             )
 
-        with np.errstate(over="ignore", invalid="ignore"):
-            rng2 = np.einsum("ij,ij->i", pts, pts)
-        finite = np.isfinite(rng2)
-        if not finite.all():  # NaN/Inf, or finite points so far away that r^2 overflows
-            finite = np.isfinite(pts).all(axis=1)
-            rng2[~finite] = np.inf
-        rep.dropped_nonfinite = len(pts) - int(np.count_nonzero(finite))
-        with np.errstate(over="ignore"):
-            lo2, hi2 = cfg.min_range**2, cfg.max_range**2
-        hit = (rng2 >= lo2) & (rng2 <= hi2) & finite
-        free = None
-        if cfg.max_range_mode == "free":
-            free = finite & (rng2 > hi2)
-            if not free.any():
-                free = None
-        n_hit_all = int(np.count_nonzero(hit))
-        n_free = 0 if free is None else int(np.count_nonzero(free))
-        rep.dropped_range = len(pts) - rep.dropped_nonfinite - n_hit_all - n_free
-
-        local = pts[hit]
-        if free is not None:
-            local = np.concatenate([local, pts[free] * (cfg.max_range / np.sqrt(rng2[free]))[:, None]])
-        world = local @ T[:3, :3].T + origin
-        cells = np.floor(world / res)
-        n_hit = n_hit_all
-        box = (cells.min(axis=0), cells.max(axis=0)) if len(cells) else None
-        if box is not None and ((box[0] < self._glo).any() or (box[1] >= self._ghi).any()):
-            inside = ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
-            n_hit = int(np.count_nonzero(inside[:n_hit_all]))
-            world, cells = world[inside], cells[inside]
-            box = (cells.min(axis=0), cells.max(axis=0)) if len(cells) else None
-        rep.dropped_outside_grid = n_hit_all + n_free - len(world)
-        world = np.ascontiguousarray(world)
-        cells = np.ascontiguousarray(cells.astype(np.int32))
+        n = len(pts)
+        world = np.empty((n, 3), np.float64)
+        cells = np.empty((n, 3), np.int32)
+        status = np.empty(n, np.int8)
+        free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
+        r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
+        if n:
+            self._k.prepare(pts, n, np.ascontiguousarray(T[:3, :3]).reshape(-1), origin, res, r2, world, cells, status)
+        cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
+        n_hit, n_free = int(cnt[0]), int(cnt[1])
+        if n_hit + n_free < n:
+            hit = status == 0
+            if n_free:
+                free = status == 1
+                world = np.concatenate([world[hit], world[free]])
+                cells = np.concatenate([cells[hit], cells[free]])
+            else:
+                world, cells = world[hit], cells[hit]
+        elif n_free:  # nothing dropped, but hits must come first
+            order = np.argsort(status, kind="stable")
+            world, cells = world[order], cells[order]
+        rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
         rep.points_used = n_hit
-        rep.free_rays = len(world) - n_hit
-        self._box = None if box is None else (box[0].astype(np.int64), box[1].astype(np.int64))
-        self._nbox = len(cells)
+        rep.free_rays = n_free
+        self._box = (cells.min(axis=0).astype(np.int64), cells.max(axis=0).astype(np.int64)) if len(cells) else None
+        self._nbox = len(world)
 
         # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
         # fit and the rays are traced in batches, each checked against exact counts.
