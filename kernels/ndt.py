@@ -218,6 +218,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 for a in ti.static(range(3)):
                     touched[t, a] = c[a]
 
+    @ti.func
+    def next_t(c, step, rem, res, o, d):
+        # Ray parameter of the next cell face on one axis (BIG once the axis is done).
+        face = c + 1 if step > 0 else c
+        return (ti.cast(face, ti.f64) * res - o) / d if rem > 0 else BIG
+
     def make_rays(full: bool):
         # full=False is the benchmark floor: the same traversal and layout, one integer
         # atomic per visited cell and nothing else.
@@ -283,20 +289,33 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         else:
                             ti.atomic_add(ne[at(slot, cur)], 1)
                     visits += 1
-                    tmin = ti.min(tmax[0], tmax[1], tmax[2])
-                    # Ties (the segment crosses an edge or corner): axes stepping up move
-                    # first, so the cell holding the crossing point itself is visited.
-                    up = False
-                    for a in ti.static(range(3)):
-                        if tmax[a] == tmin and step[a] > 0:
-                            up = True
-                    for a in ti.static(range(3)):
-                        if tmax[a] == tmin and (step[a] > 0) == up:
-                            cur[a] += step[a]
-                            rem[a] -= 1
-                            # Recomputed, not accumulated: exact ties stay exact.
-                            face = cur[a] + 1 if step[a] > 0 else cur[a]
-                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a] if rem[a] > 0 else BIG
+                    # One axis crosses first (the common case): step it. tmax is recomputed,
+                    # not accumulated, so exact ties stay exact.
+                    if tmax[0] < tmax[1] and tmax[0] < tmax[2]:
+                        cur[0] += step[0]
+                        rem[0] -= 1
+                        tmax[0] = next_t(cur[0], step[0], rem[0], res, o[0], d[0])
+                    elif tmax[1] < tmax[0] and tmax[1] < tmax[2]:
+                        cur[1] += step[1]
+                        rem[1] -= 1
+                        tmax[1] = next_t(cur[1], step[1], rem[1], res, o[1], d[1])
+                    elif tmax[2] < tmax[0] and tmax[2] < tmax[1]:
+                        cur[2] += step[2]
+                        rem[2] -= 1
+                        tmax[2] = next_t(cur[2], step[2], rem[2], res, o[2], d[2])
+                    else:
+                        # Ties (the segment crosses an edge or corner): axes stepping up
+                        # move first, so the cell holding the crossing point is visited.
+                        tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                        up = False
+                        for a in ti.static(range(3)):
+                            if tmax[a] == tmin and step[a] > 0:
+                                up = True
+                        for a in ti.static(range(3)):
+                            if tmax[a] == tmin and (step[a] > 0) == up:
+                                cur[a] += step[a]
+                                rem[a] -= 1
+                                tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                 if ti.static(full):
                     if i >= n_hit:
                         note_leaf(olm, slot, ce, regions, leaves, 0)
