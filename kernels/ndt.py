@@ -243,7 +243,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
             leaves: i64_2d,  # [slots, 2]
             block: i32_3d,  # [Bx, By, Bz] dense ray counts around the sensor (full only)
-            bflag: i8_3d,  # [B/leaf per axis] leaves of the block that rays entered
+            bflag: i8_3d,  # [Bx, By, Bz/leaf] rows of the block that rays entered
             base: i32_1d,  # [3] cell index of block[0, 0, 0]
             use_block: ti.i32,
         ):
@@ -275,7 +275,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         # Near the sensor every ray passes: count in the dense block,
                         # merged into the tree once per cell by block_merge.
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
-                        lb = rel // leaf
+                        lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                         if (lb != last_leaf).any():
                             bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
                             last_leaf = lb
@@ -332,7 +332,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     def block_merge(
         slot: ti.i32,
         block: i32_3d,  # [B, B, B], zeroed here
-        bflag: i8_3d,  # [B/leaf]^3, zeroed here
+        bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
         base: i32_1d,  # [3]
         touched: i32_2d,
         cap: ti.i64,
@@ -341,20 +341,20 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         leaves: i64_2d,
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for bi, bj, bk in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
-            if bflag[bi, bj, bk] == 0:
+        for i, j, kb in ti.ndrange(block.shape[0], block.shape[1], block.shape[2] // leaf):
+            if bflag[i, j, kb] == 0:
                 continue
-            bflag[bi, bj, bk] = ti.i8(0)
+            bflag[i, j, kb] = ti.i8(0)
             first = True
-            for li, lj, lk in ti.ndrange(leaf, leaf, leaf):
-                r = ti.Vector([bi * leaf + li, bj * leaf + lj, bk * leaf + lk])
-                v = block[r[0], r[1], r[2]]
+            for kk in range(leaf):
+                k = kb * leaf + kk
+                v = block[i, j, k]
                 if v != 0:
-                    c = b0 + r
-                    if first:  # the block is leaf-aligned: one leaf per (bi, bj, bk)
+                    c = b0 + ti.Vector([i, j, k])
+                    if first:  # the block is leaf-aligned: a row lies in one leaf
                         note_leaf(olm, slot, c, regions, leaves, 0)
                         first = False
-                    block[r[0], r[1], r[2]] = 0
+                    block[i, j, k] = 0
                     if ti.atomic_add(ne[at(slot, c)], v) == 0:
                         t = ti.atomic_add(ctr[C_TOUCHED], 1)
                         if t < cap:

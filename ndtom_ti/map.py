@@ -294,7 +294,7 @@ class NdtOmMap:
             shape.append(min(b, cap))
         key = tuple(shape)
         if key not in self._blocks:
-            nb = tuple(b // self.layout.leaf for b in key)
+            nb = (key[0], key[1], key[2] // self.layout.leaf)
             self._blocks = {key: (np.zeros(key, np.int32), np.zeros(nb, np.int8))}  # keep one size only
         return self._blocks[key]
 
