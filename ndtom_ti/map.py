@@ -533,9 +533,10 @@ class NdtOmMap:
 
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
-        return int((self._raw_gaussians_cheap()).sum())
+        return int(np.count_nonzero(self._occupied_gaussian_mask()))
 
-    def _raw_gaussians_cheap(self) -> np.ndarray:
+    def _occupied_gaussian_mask(self) -> np.ndarray:
+        """Of the records with at least min_points points, which cells are occupied."""
         k = self._nrec
         cand = np.flatnonzero(self._rec_n[:k] >= self.config.min_points)
         if len(cand) == 0:
