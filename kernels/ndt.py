@@ -7,8 +7,9 @@ Per scan, in this order:
                      record with the RCU (a new record for a cell's first points).
 4. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
                      rays passing each cell and a compact list of the touched cells.
-5. ``apply_free`` / ``apply_hits``: eq. (12) once per touched cell, clamp, and reset of
-                     the Gaussian of a cell whose log-odds fell to <= 0.
+5. ``apply_hits`` / ``apply_free``: eq. (12) once per touched cell (hit cells first, their
+                     ray counts cleared), clamp, and reset of the Gaussian of a cell
+                     whose log-odds fell to <= 0.
 
 Kernels are closures over the process's storage, built once. The map's slot, its
 resolution, sensor model and Gaussian records are arguments, so nothing recompiles per
@@ -363,9 +364,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def free_update(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+        # Hit cells were updated by apply_hits, which cleared their ray count: skipped.
         k = ne[at(slot, c)]
-        ne[at(slot, c)] = 0
-        if hn[at(slot, c)] == 0:
+        if k > 0:
+            ne[at(slot, c)] = 0
             l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
             lo[at(slot, c)] = l
             if l <= 0.0:
@@ -434,6 +436,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             note_leaf(olm, slot, c, regions, leaves, 0)
             lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
             hn[at(slot, c)] = 0
+            ne[at(slot, c)] = 0  # eq. (12): a cell with endpoints takes the hit update only
 
     # ---- queries, export, load -------------------------------------------------------
 

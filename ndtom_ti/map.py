@@ -327,6 +327,8 @@ class NdtOmMap:
             ctr[C_RECORDS] = self._nrec
             k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
             self._nrec = int(ctr[C_RECORDS])
+        if nh:
+            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count)
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
             if nt <= len(self._touched):
@@ -335,8 +337,6 @@ class NdtOmMap:
                 k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
                 self._touched = np.empty((2 * nt, 3), np.int32)
             rep.cells_passed = nt
-        if nh:
-            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count)
         fs.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = int(ctr[C_VISITS])
