@@ -52,3 +52,11 @@ def sim_hall_dynamic(tmp_path_factory):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def room_scans():
+    """12 small scans of the demo room (16 rings x 360 beams), shared by the viewer tests."""
+    from ndtom_ti.demo import make_scans
+
+    return make_scans(12, rings=16, per_ring=360)

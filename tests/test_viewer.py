@@ -26,16 +26,11 @@ RES = 0.5
 
 
 @pytest.fixture(scope="module")
-def scans():
-    return make_scans(12, rings=16, per_ring=360)
-
-
-@pytest.fixture(scope="module")
-def maps(scans):
+def maps(room_scans):
     """(NDT-OM map, Recursive NDT map) of the same scans."""
     m = NdtOmMap(RES)
     r = NdtOmMap(RES, occupancy=False)
-    for s in scans:
+    for s in room_scans:
         m.insert_scan(s.points, s.T_world_sensor)
         r.insert_scan(s.points, s.T_world_sensor)
     yield m, r
@@ -223,10 +218,10 @@ def test_conflicting_cells_layer(maps, make_viewer):
     assert alone.drawn["conflicts"] == 0 and alone.controls.layers["conflicts"].disabled
 
 
-def test_live_mapping_pause_step_play(scans, maps, make_viewer):
+def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
     m_ref, r_ref = maps
     v = make_viewer()
-    lm = v.live(scans, NdtOmMap(RES), compare=True, refresh_interval=0.05)
+    lm = v.live(room_scans, NdtOmMap(RES), compare=True, refresh_interval=0.05)
     c = v.controls
     time.sleep(0.3)
     assert lm.scans_done == 0 and not lm.playing  # starts paused
@@ -234,15 +229,15 @@ def test_live_mapping_pause_step_play(scans, maps, make_viewer):
     assert lm.wait_scans(1, timeout=20) and lm.scans_done == 1
     c.play.value = True
     assert lm.wait(timeout=60) and lm.error is None
-    assert lm.scans_done == len(scans) and len(lm.times_ms) == len(scans) == len(lm.compare_times_ms)
+    assert lm.scans_done == len(room_scans) and len(lm.times_ms) == len(room_scans) == len(lm.compare_times_ms)
     time.sleep(0.5)  # the drawing thread catches up
     for _ in range(100):
-        if c.scan.content.endswith(f" {len(scans)} / {len(scans)}") and v.drawn.get("trajectory") == len(scans):
+        if c.scan.content.endswith(f" {len(room_scans)} / {len(room_scans)}") and v.drawn.get("trajectory") == len(room_scans):
             break
         time.sleep(0.05)
-    assert c.scan.content == f"**Scans inserted**: {len(scans)} / {len(scans)}"
-    assert v.drawn["trajectory"] == len(scans) and v.drawn["scan"] > 1000
-    assert len(c.chart.data[0]) == len(scans)
+    assert c.scan.content == f"**Scans inserted**: {len(room_scans)} / {len(room_scans)}"
+    assert v.drawn["trajectory"] == len(room_scans) and v.drawn["scan"] > 1000
+    assert len(c.chart.data[0]) == len(room_scans)
     # the same map as one built directly (known answer), and its comparison map
     with v.map_lock:  # the drawing thread may be reading the maps
         assert _keys(lm.map.gaussians()["index"]) == _keys(m_ref.gaussians()["index"])
@@ -251,20 +246,20 @@ def test_live_mapping_pause_step_play(scans, maps, make_viewer):
     lm.stop()
 
 
-def test_live_pause_stops_mapping(scans, make_viewer):
+def test_live_pause_stops_mapping(room_scans, make_viewer):
     v = make_viewer()
-    lm = v.live(scans, NdtOmMap(RES), rate_hz=20.0)
+    lm = v.live(room_scans, NdtOmMap(RES), rate_hz=20.0)
     lm.play()
     assert lm.wait_scans(2, timeout=20)
     v.controls.pause.value = True
     time.sleep(0.2)
     n = lm.scans_done
     time.sleep(0.4)
-    assert lm.scans_done == n < len(scans) and not lm.finished
+    assert lm.scans_done == n < len(room_scans) and not lm.finished
     lm.stop()
 
 
-def test_slow_drawing_does_not_stall_mapping(scans, make_viewer, monkeypatch):
+def test_slow_drawing_does_not_stall_mapping(room_scans, make_viewer, monkeypatch):
     v = make_viewer()
     drawn = []
     real = v.refresh
@@ -275,14 +270,14 @@ def test_slow_drawing_does_not_stall_mapping(scans, make_viewer, monkeypatch):
         real()
 
     monkeypatch.setattr(v, "refresh", slow_refresh)
-    lm = v.live(scans, NdtOmMap(RES), refresh_interval=0.05)
+    lm = v.live(room_scans, NdtOmMap(RES), refresh_interval=0.05)
     t0 = time.perf_counter()
     lm.play()
     assert lm.wait(timeout=60)
     elapsed = time.perf_counter() - t0
     # mapping went on while the (0.6 s) redraws ran: drawing 12 times in turn would take 7 s
     starts = [t for t in drawn if t >= t0]
-    assert lm.scans_done == len(scans) and elapsed < 2.5 and len(starts) <= 4
+    assert lm.scans_done == len(room_scans) and elapsed < 2.5 and len(starts) <= 4
     lm.stop()
 
 

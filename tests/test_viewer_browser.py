@@ -22,7 +22,6 @@ import numpy as np
 import pytest
 
 from ndtom_ti import NdtOmMap
-from ndtom_ti.demo import make_scans
 
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
@@ -46,14 +45,9 @@ H, W = 240, 320  # rendered image (the page is 800 x 600)
 
 
 @pytest.fixture(scope="module")
-def scans():
-    return make_scans(12, rings=16, per_ring=360)
-
-
-@pytest.fixture(scope="module")
-def room(scans):
+def room(room_scans):
     m = NdtOmMap(RES)
-    for s in scans:
+    for s in room_scans:
         m.insert_scan(s.points, s.T_world_sensor)
     return m
 
@@ -208,12 +202,12 @@ def test_empty_map_draws_nothing(page, room, viewers):
     assert _drawn(_render_until(client, lambda im: _drawn(im) > 3000)) > 3000
 
 
-def test_play_button_advances_live_mapping(page, scans, viewers):
+def test_play_button_advances_live_mapping(page, room_scans, viewers):
     v = _viewer(viewers)
-    lm = v.live(scans, NdtOmMap(RES), compare=True, rate_hz=8.0, refresh_interval=0.2)
+    lm = v.live(room_scans, NdtOmMap(RES), compare=True, rate_hz=8.0, refresh_interval=0.2)
     client = _connect(page, v)
     counter = page.get_by_text(re.compile(r"^Scans inserted: \d+ / \d+$"))
-    sync_api.expect(counter).to_have_text(f"Scans inserted: 0 / {len(scans)}", timeout=15_000)
+    sync_api.expect(counter).to_have_text(f"Scans inserted: 0 / {len(room_scans)}", timeout=15_000)
     time.sleep(0.5)
     assert lm.scans_done == 0  # paused until Play
     page.get_by_role("button", name="Play").click()
@@ -223,13 +217,13 @@ def test_play_button_advances_live_mapping(page, scans, viewers):
     t_end = time.monotonic() + 30
     while time.monotonic() < t_end:
         seen.add(int(counter.inner_text().split(":")[1].split("/")[0]))
-        if len(scans) in seen:
+        if len(room_scans) in seen:
             break
         time.sleep(0.1)
-    assert len(scans) in seen and len(seen - {0}) >= 2, f"counter values seen: {sorted(seen)}"
-    assert lm.wait(timeout=10) and lm.scans_done == len(scans)
+    assert len(room_scans) in seen and len(seen - {0}) >= 2, f"counter values seen: {sorted(seen)}"
+    assert lm.wait(timeout=10) and lm.scans_done == len(room_scans)
     # the map built live is drawn, with its conflicting cells (the box taken away)
-    assert _wait(lambda: v.drawn.get("trajectory") == len(scans))
+    assert _wait(lambda: v.drawn.get("trajectory") == len(room_scans))
     assert v.drawn["gaussians"] > 1000 and v.drawn["conflicts"] > 0
     v.frame()
     assert _drawn(_render_until(client, lambda im: _drawn(im) > 3000)) > 3000
