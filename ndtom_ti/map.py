@@ -125,8 +125,6 @@ class NdtOmMap:
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._block_cells = _BLOCK
-        self._box: tuple[np.ndarray, np.ndarray] | None = None  # cell box of the scan in hand
-        self._nbox = 0
         self._blocks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
@@ -197,16 +195,15 @@ class NdtOmMap:
         rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
         rep.points_used = n_hit
         rep.free_rays = n_free
-        self._box = (cells.min(axis=0).astype(np.int64), cells.max(axis=0).astype(np.int64)) if len(cells) else None
-        self._nbox = len(world)
+        box = (cells.min(axis=0).astype(np.int64), cells.max(axis=0).astype(np.int64)) if len(cells) else None
 
         # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
         # fit and the rays are traced in batches, each checked against exact counts.
         limit = runtime.pool_limit()
-        one_pass = self._st.pool_bytes(self._scan_bound(cells, n_hit, ocell)) <= limit
+        one_pass = self._st.pool_bytes(self._scan_bound(cells, n_hit, ocell, box=box)) <= limit
         if not one_pass:
             self._reserve(self._new_hit_nodes(cells[:n_hit]))
-        return world, cells, n_hit, origin, ocell, rep, one_pass
+        return world, cells, n_hit, origin, ocell, rep, box, one_pass
 
     def _new_hit_nodes(self, hit_cells: np.ndarray) -> np.ndarray:
         """Exact number of nodes per type that writing these hit cells allocates."""
@@ -227,18 +224,19 @@ class NdtOmMap:
         one integer atomic per visited cell and nothing else. It leaves ray counters set:
         use a map made for this purpose only."""
         t0 = time.perf_counter()
-        world, cells, n_hit, origin, ocell, rep, one_pass = self._prepare(points, T_world_sensor)
+        world, cells, n_hit, origin, ocell, rep, box, one_pass = self._prepare(points, T_world_sensor)
         self._ctr[:] = 0
         if len(world):
-            self._trace(self._k.rays_floor, world, cells, n_hit, origin, ocell, one_pass)
+            self._trace(self._k.rays_floor, world, cells, n_hit, origin, ocell, box, one_pass)
         rep.ray_cell_visits = int(self._ctr[C_VISITS])
         rep.seconds = time.perf_counter() - t0
         return rep
 
-    def _trace(self, kernel, world, cells, n_hit, origin, ocell, one_pass: bool) -> None:
-        """Run a ray kernel over all rays, in batches when memory is tight."""
+    def _trace(self, kernel, world, cells, n_hit, origin, ocell, box, one_pass: bool) -> None:
+        """Run a ray kernel over all rays (``box``: their cells' bounding box), in batches
+        when memory is tight."""
         st, slot = self._st, self._slot
-        block, bflag = self._block_for(cells, ocell)
+        block, bflag = self._block_for(box, ocell)
         B = np.array(block.shape, np.int64)
         # Leaf-aligned block centred on the sensor, kept inside the grid.
         base = (ocell // self.layout.leaf - B // (2 * self.layout.leaf)) * self.layout.leaf
@@ -277,15 +275,12 @@ class NdtOmMap:
                     self._k.reset_rays_all(slot)
                 self._reserve(bound)  # raises: nothing of this scan is kept
 
-    def _block_for(self, cells: np.ndarray, ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _block_for(self, box: tuple[np.ndarray, np.ndarray], ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The smallest dense ray-count block (8 to 128 cells wide, 8 to 64 high) that
         holds the scan's reach around the sensor: block_merge reads the entered leaves."""
         if self._block_cells == 0:
             return self._blocks.setdefault((0, 0, 0), (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
-        if self._box is not None and len(cells) and len(cells) == self._nbox:
-            reach = np.maximum(np.abs(self._box[0] - ocell), np.abs(self._box[1] - ocell))
-        else:
-            reach = np.abs(cells - ocell.astype(np.int32)).max(axis=0) if len(cells) else np.zeros(3, np.int64)
+        reach = np.maximum(np.abs(box[0] - ocell), np.abs(box[1] - ocell))
         shape = []
         for r, cap in zip((max(reach[0], reach[1]),) * 2 + (reach[2],), (self._block_cells,) * 2 + (_BLOCK_Z,)):
             b = 8
@@ -307,14 +302,14 @@ class NdtOmMap:
         unchanged.
         """
         t0 = time.perf_counter()
-        world, cells, n_hit, origin, ocell, rep, one_pass = self._prepare(points, T_world_sensor)
+        world, cells, n_hit, origin, ocell, rep, box, one_pass = self._prepare(points, T_world_sensor)
         n = len(world)
         cfg, res = self.config, self.resolution
         k, ctr, fs, slot = self._k, self._ctr, self._st, self._slot
         ctr[:] = 0
         lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
         if self.occupancy_enabled and n:
-            self._trace(k.rays, world, cells, n_hit, origin, ocell, one_pass)  # may refuse
+            self._trace(k.rays, world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         if n_hit:
@@ -360,11 +355,18 @@ class NdtOmMap:
         self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat = n_, cell, mean, scat
 
     def _scan_bound(
-        self, cells: np.ndarray, n_hit: int, ocell: np.ndarray, tight: bool = False, rays: bool | None = None
+        self,
+        cells: np.ndarray,
+        n_hit: int,
+        ocell: np.ndarray,
+        tight: bool = False,
+        rays: bool | None = None,
+        box: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Upper bound of the nodes a scan can add, per node type (occupancy regions,
         occupancy leaves, index regions, index leaves): the nodes of the scan's bounding
-        box, or with ``tight`` also at most one node per node boundary each ray crosses."""
+        box (``box`` of all ``cells`` when known), or with ``tight`` also at most one node
+        per node boundary each ray crosses."""
         out = np.zeros(4, np.int64)
         if len(cells) == 0:
             return out
@@ -380,19 +382,21 @@ class NdtOmMap:
             per_ray = int((np.abs(q - ocell // size).sum(axis=1) + 1).sum()) if with_rays else len(c)
             return min(n_box, per_ray)
 
+        def box_of(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if box is not None and len(c) == len(cells):
+                return box
+            return c.min(axis=0).astype(np.int64), c.max(axis=0).astype(np.int64)
+
         occ = cells if rays else cells[:n_hit]
         if len(occ):
-            if occ is cells and self._box is not None and len(cells) == self._nbox:
-                box = self._box  # computed by _prepare
-            else:
-                box = (occ.min(axis=0).astype(np.int64), occ.max(axis=0).astype(np.int64))
+            lo, hi = box_of(occ)
             if rays:
-                box = (np.minimum(box[0], ocell), np.maximum(box[1], ocell))
-            out[0], out[1] = nodes(L.region, occ, box, rays), nodes(L.leaf, occ, box, rays)
+                lo, hi = np.minimum(lo, ocell), np.maximum(hi, ocell)
+            out[0], out[1] = nodes(L.region, occ, (lo, hi), rays), nodes(L.leaf, occ, (lo, hi), rays)
         if n_hit:
             h = cells[:n_hit]
-            box = (h.min(axis=0).astype(np.int64), h.max(axis=0).astype(np.int64))
-            out[2], out[3] = nodes(L.region, h, box, False), nodes(L.leaf, h, box, False)
+            hbox = box_of(h)
+            out[2], out[3] = nodes(L.region, h, hbox, False), nodes(L.leaf, h, hbox, False)
         return out
 
     def _reserve(self, extra_nodes: np.ndarray) -> None:
