@@ -29,6 +29,8 @@ C_VISITS = 2
 C_ERASED = 3
 C_EXPORT = 4
 C_RECORDS = 5  # records in use (copied in and out by the caller)
+C_BLOCK_CELLS = 6  # cells of the dense block that took the free-space update
+C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 COUNTERS = 8
 
 BIG = 1.0e300
@@ -274,7 +276,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     rel = cur - b0
                     if ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                         # Near the sensor every ray passes: count in the dense block,
-                        # merged into the tree once per cell by block_merge.
+                        # applied to the tree once per cell by block_apply.
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
                         lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                         if (lb != last_leaf).any():
@@ -329,54 +331,63 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     rays = make_rays(True)
     rays_floor = make_rays(False)
 
-    @ti.kernel
-    def block_merge(
-        slot: ti.i32,
-        block: i32_3d,  # [B, B, B], zeroed here
-        bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
-        base: i32_1d,  # [3]
-        touched: i32_2d,
-        cap: ti.i64,
-        ctr: i64_1d,
-        regions: i8_4d,
-        leaves: i64_2d,
-    ):
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for i, j, kb in ti.ndrange(block.shape[0], block.shape[1], block.shape[2] // leaf):
-            if bflag[i, j, kb] == 0:
-                continue
-            bflag[i, j, kb] = ti.i8(0)
-            first = True
-            for kk in range(leaf):
-                k = kb * leaf + kk
-                v = block[i, j, k]
-                if v != 0:
-                    c = b0 + ti.Vector([i, j, k])
-                    if first:  # the block is leaf-aligned: a row lies in one leaf
-                        note_leaf(olm, slot, c, regions, leaves, 0)
-                        first = False
-                    block[i, j, k] = 0
-                    if ti.atomic_add(ne[at(slot, c)], v) == 0:
-                        t = ti.atomic_add(ctr[C_TOUCHED], 1)
-                        if t < cap:
-                            for a in ti.static(range(3)):
-                                touched[t, a] = c[a]
+    @ti.func
+    def free_update(slot, c, k, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+        # eq. (12) for a cell that k rays passed and no endpoint hit; Gaussian reset at l <= 0.
+        l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
+        lo[at(slot, c)] = l
+        if l <= 0.0:
+            r = gslot[at(slot, c)] - 1
+            if r >= 0:
+                if rec_n[r] > 0:
+                    # Mean and scatter are overwritten by the next first merge.
+                    rec_n[r] = 0
+                    ti.atomic_add(ctr[C_ERASED], 1)
 
     @ti.func
-    def free_update(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+    def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
         # Hit cells were updated by apply_hits, which cleared their ray count: skipped.
         k = ne[at(slot, c)]
         if k > 0:
             ne[at(slot, c)] = 0
-            l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
-            lo[at(slot, c)] = l
-            if l <= 0.0:
-                r = gslot[at(slot, c)] - 1
-                if r >= 0:
-                    if rec_n[r] > 0:
-                        # Mean and scatter are overwritten by the next first merge.
-                        rec_n[r] = 0
-                        ti.atomic_add(ctr[C_ERASED], 1)
+            free_update(slot, c, k, l_free, l_min, l_max, rec_n, ctr)
+
+    @ti.kernel
+    def block_apply(
+        slot: ti.i32,
+        block: i32_3d,  # [Bx, By, Bz] ray counts, zeroed here
+        bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
+        base: i32_1d,  # [3]
+        l_free: ti.f64,
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,
+        ctr: i64_1d,
+        regions: i8_4d,
+        leaves: i64_2d,
+    ):
+        # eq. (12) for the cells of the dense block, straight from their counts (hit cells
+        # were zeroed by apply_hits). One column of rows per thread.
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        for i, j in ti.ndrange(block.shape[0], block.shape[1]):
+            cells = 0
+            for kb in range(block.shape[2] // leaf):
+                if bflag[i, j, kb] != 0:
+                    bflag[i, j, kb] = ti.i8(0)
+                    first = True
+                    for kk in range(leaf):
+                        k = kb * leaf + kk
+                        v = block[i, j, k]
+                        if v != 0:
+                            block[i, j, k] = 0
+                            c = b0 + ti.Vector([i, j, k])
+                            if first:  # the block is leaf-aligned: a row lies in one leaf
+                                note_leaf(olm, slot, c, regions, leaves, 0)
+                                first = False
+                            free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                            cells += 1
+            if cells > 0:
+                ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
 
     @ti.kernel
     def apply_free(
@@ -390,24 +401,33 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         ctr: i64_1d,
     ):
         for t in range(nt):
-            free_update(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr)
+            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr)
 
     @ti.kernel
     def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d):
         # Fallback when the touched list overflowed: visit every known cell.
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] > 0:
-                free_update(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
+                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
 
     @ti.kernel
-    def count_new_leaves(slot: ti.i32, keys: i32_2d, n: ti.i32, out: i64_1d):
-        # Leaves (by leaf index) not allocated yet in each tree; reading never allocates.
-        for k in range(n):
-            b = at(slot, row(keys, k))
-            if olm[b] == 0:
-                ti.atomic_add(out[0], 1)
-            if glm[b] == 0:
-                ti.atomic_add(out[1], 1)
+    def count_new_leaves(slot: ti.i32, cells: i32_2d, n: ti.i32, lbase: i32_1d, seen: i32_3d, dedup: ti.i32, out: i64_1d):
+        # Leaves the cells would allocate in each tree, each counted once: ``seen`` holds
+        # zeroed flags over the cells' box of leaves from ``lbase`` (dedup=0: the cells lie
+        # in distinct leaves already). Reading never allocates.
+        b0 = ti.Vector([lbase[0], lbase[1], lbase[2]], dt=ti.i32)
+        for i in range(n):
+            lf = row(cells, i) // leaf
+            first = True
+            if dedup != 0:
+                r = lf - b0
+                first = ti.atomic_or(seen[r[0], r[1], r[2]], 1) == 0
+            if first:
+                b = at(slot, lf)
+                if olm[b] == 0:
+                    ti.atomic_add(out[0], 1)
+                if glm[b] == 0:
+                    ti.atomic_add(out[1], 1)
 
     @ti.kernel
     def reset_rays(slot: ti.i32, touched: i32_2d, nt: ti.i32):
@@ -430,13 +450,25 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         l_max: ti.f32,
         regions: i8_4d,  # [L1] occupancy-tree regions in use
         leaves: i64_2d,
+        block: i32_3d,  # the scan's dense ray counts (see rays)
+        base: i32_1d,
+        use_block: ti.i32,
+        ctr: i64_1d,
     ):
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
         for s in range(nh):
             c = row(hitlist, s)
             note_leaf(olm, slot, c, regions, leaves, 0)
             lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
             hn[at(slot, c)] = 0
-            ne[at(slot, c)] = 0  # eq. (12): a cell with endpoints takes the hit update only
+            # eq. (12): a cell with endpoints takes the hit update only
+            rel = c - b0
+            if (rel >= 0).all() and (rel < bsize).all():
+                block[rel[0], rel[1], rel[2]] = 0
+            elif ne[at(slot, c)] != 0:
+                ne[at(slot, c)] = 0
+                ti.atomic_add(ctr[C_HIT_PASSED], 1)
 
     # ---- queries, export, load -------------------------------------------------------
 
@@ -502,7 +534,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         merge=merge,
         rays=rays,
         rays_floor=rays_floor,
-        block_merge=block_merge,
+        block_apply=block_apply,
         apply_free=apply_free,
         apply_free_all=apply_free_all,
         apply_hits=apply_hits,

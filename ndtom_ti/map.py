@@ -15,13 +15,26 @@ from . import runtime
 from .config import MapConfig
 from .kernels.layout import Layout
 from .kernels.layout import RECORD_BYTES
-from .kernels.ndt import C_ERASED, C_EXPORT, C_HIT_CELLS, C_RECORDS, C_TOUCHED, C_VISITS, COUNTERS, make_kernels
+from .kernels.ndt import (
+    C_BLOCK_CELLS,
+    C_ERASED,
+    C_EXPORT,
+    C_HIT_CELLS,
+    C_HIT_PASSED,
+    C_RECORDS,
+    C_TOUCHED,
+    C_VISITS,
+    COUNTERS,
+    make_kernels,
+)
 from .runtime import MapMemoryError
 
 _TOUCHED_START = 1 << 20
-# Dense ray-count block around the sensor, at most 128 x 128 x 64 cells (4 MiB).
-_BLOCK = 128
-_BLOCK_Z = 64
+# Dense scan-local ray counts over the scan's cell box, at most this many cells (4 B each):
+# counting there is several times cheaper than in the sparse tree. Past it the block keeps
+# the part nearest the sensor, where rays are densest, and the rest counts in the tree.
+BLOCK_CELLS = 1 << 25
+_SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
 
 
 @dataclass
@@ -35,7 +48,7 @@ class ScanReport:
     dropped_range: int = 0  # closer than min_range, or past max_range with mode "drop"
     dropped_outside_grid: int = 0
     cells_hit: int = 0
-    cells_passed: int = 0  # distinct cells rays passed through (occupancy maps)
+    cells_passed: int = 0  # distinct cells rays passed without an endpoint: free-space updates
     ray_cell_visits: int = 0
     gaussians_erased: int = 0
     seconds: float = 0.0
@@ -124,8 +137,9 @@ class NdtOmMap:
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
-        self._block_cells = _BLOCK
-        self._blocks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self.block_cells = BLOCK_CELLS
+        self._block_buf = np.zeros(0, np.int32)  # always zero between scans
+        self._bflag_buf = np.zeros(0, np.int8)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -200,23 +214,38 @@ class NdtOmMap:
         # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
         # fit and the rays are traced in batches, each checked against exact counts.
         limit = runtime.pool_limit()
-        one_pass = self._st.pool_bytes(self._scan_bound(cells, n_hit, ocell, box=box)) <= limit
+        bound = self._scan_bound(cells, n_hit, ocell, box=box)
+        one_pass = self._st.pool_bytes(bound) <= limit
         if not one_pass:
-            self._reserve(self._new_hit_nodes(cells[:n_hit]))
+            # The index tree takes only hit cells: count its new nodes exactly and retry.
+            hit_nodes = self._new_hit_nodes(cells[:n_hit])
+            bound[2:] = hit_nodes[2:]
+            one_pass = self._st.pool_bytes(bound) <= limit
+            if not one_pass:
+                self._reserve(hit_nodes)
         return world, cells, n_hit, origin, ocell, rep, box, one_pass
 
     def _new_hit_nodes(self, hit_cells: np.ndarray) -> np.ndarray:
-        """Exact number of nodes per type that writing these hit cells allocates."""
+        """Nodes per type that writing these hit cells can allocate: leaves exactly, regions
+        as those of the cells' box not in use yet."""
         out = np.zeros(4, np.int64)
         if len(hit_cells) == 0:
             return out
         L, st = self.layout, self._st
-        leaves = np.ascontiguousarray(np.unique(hit_cells // L.leaf, axis=0).astype(np.int32))
+        lo, hi = hit_cells.min(axis=0) // L.leaf, hit_cells.max(axis=0) // L.leaf
+        shape = tuple(int(x) for x in hi - lo + 1)
         new = np.zeros(2, np.int64)
-        self._k.count_new_leaves(self._slot, leaves, len(leaves), new)
-        regions = np.unique((hit_cells.astype(np.int64) - self._glo) // L.region, axis=0)
-        r = (self._slot, regions[:, 0], regions[:, 1], regions[:, 2])
-        out[:] = [np.count_nonzero(st.occ_regions[r] == 0), new[0], np.count_nonzero(st.gidx_regions[r] == 0), new[1]]
+        if math.prod(shape) <= _SEEN_MAX:
+            seen = np.zeros(shape, np.int32)  # flags over the cells' box of leaves
+            self._k.count_new_leaves(self._slot, hit_cells, len(hit_cells), lo.astype(np.int32), seen, 1, new)
+        else:  # a sparse, wide scan: one cell per distinct leaf
+            key = np.ravel_multi_index((hit_cells // L.leaf - lo).T, shape)
+            _, first = np.unique(key, return_index=True)
+            one = np.ascontiguousarray(hit_cells[first])
+            self._k.count_new_leaves(self._slot, one, len(one), lo.astype(np.int32), np.zeros((1, 1, 1), np.int32), 0, new)
+        rlo, rhi = ((np.stack([lo, hi]) * L.leaf - self._glo) // L.region).astype(np.int64)
+        box = (self._slot, *(slice(a, b + 1) for a, b in zip(rlo, rhi)))
+        out[:] = [np.count_nonzero(st.occ_regions[box] == 0), new[0], np.count_nonzero(st.gidx_regions[box] == 0), new[1]]
         return out
 
     def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
@@ -232,24 +261,20 @@ class NdtOmMap:
         rep.seconds = time.perf_counter() - t0
         return rep
 
-    def _trace(self, kernel, world, cells, n_hit, origin, ocell, box, one_pass: bool) -> None:
+    def _trace(self, kernel, world, cells, n_hit, origin, ocell, box, one_pass: bool):
         """Run a ray kernel over all rays (``box``: their cells' bounding box), in batches
-        when memory is tight."""
+        when memory is tight. Returns the dense block (block, row flags, base) the rays
+        counted in, or None."""
         st, slot = self._st, self._slot
-        block, bflag = self._block_for(box, ocell)
-        B = np.array(block.shape, np.int64)
-        # Leaf-aligned block centred on the sensor, kept inside the grid.
-        base = (ocell // self.layout.leaf - B // (2 * self.layout.leaf)) * self.layout.leaf
-        base = np.clip(base, self._glo, self._ghi - B).astype(np.int32)
+        dense = one_pass and kernel is self._k.rays  # the floor counts in the tree only
+        block, bflag, base = self._block_for(box if dense else None, ocell)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base)  # fmt: skip
         n = len(world)
         if one_pass:
-            kernel(slot, world, cells, n_hit, n, *args, 1)
-            if kernel is self._k.rays:
-                self._k.block_merge(slot, block, bflag, base, *args[3:8])
+            kernel(slot, world, cells, n_hit, n, *args, int(dense))
             st.note_usage()
-            return
+            return (block, bflag, base) if dense and block.size else None
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
         d = world - origin
         az = np.arctan2(d[:, 1], d[:, 0])
@@ -261,7 +286,7 @@ class NdtOmMap:
             a, b = pending.pop()
             bound = self._scan_bound(cs[a:b], 0, ocell, tight=True, rays=True)
             if st.pool_bytes(bound) <= limit:
-                # No dense block here: its merge would allocate outside this batch's bound.
+                # No dense block here: its cells would reach the tree outside this batch's bound.
                 kernel(slot, np.ascontiguousarray(ws[a:b]), np.ascontiguousarray(cs[a:b]), max(0, min(n_hit - a, b - a)), b - a, *args, 0)
                 st.note_usage()
             elif b - a > 1:
@@ -274,24 +299,32 @@ class NdtOmMap:
                 else:
                     self._k.reset_rays_all(slot)
                 self._reserve(bound)  # raises: nothing of this scan is kept
+        return None
 
-    def _block_for(self, box: tuple[np.ndarray, np.ndarray], ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The smallest dense ray-count block (8 to 128 cells wide, 8 to 64 high) that
-        holds the scan's reach around the sensor: block_merge reads the entered leaves."""
-        if self._block_cells == 0:
-            return self._blocks.setdefault((0, 0, 0), (np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8)))
-        reach = np.maximum(np.abs(box[0] - ocell), np.abs(box[1] - ocell))
-        shape = []
-        for r, cap in zip((max(reach[0], reach[1]),) * 2 + (reach[2],), (self._block_cells,) * 2 + (_BLOCK_Z,)):
-            b = 8
-            while b < min(2 * int(r) + 16, cap):
-                b *= 2
-            shape.append(min(b, cap))
-        key = tuple(shape)
-        if key not in self._blocks:
-            nb = (key[0], key[1], key[2] // self.layout.leaf)
-            self._blocks = {key: (np.zeros(key, np.int32), np.zeros(nb, np.int8))}  # keep one size only
-        return self._blocks[key]
+    def _block_for(self, box, ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The dense ray-count block of a scan: the leaf-aligned box of its cells and the
+        sensor, trimmed on its far sides to ``block_cells`` cells (empty with no ``box``)."""
+        leaf = self.layout.leaf
+        if box is None or self.block_cells < leaf**3:
+            return np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32)
+        oleaf = ocell // leaf
+        lo = np.minimum(box[0] // leaf, oleaf)  # in leaves
+        hi = np.maximum(box[1] // leaf, oleaf) + 1
+        while int(np.prod(hi - lo)) * leaf**3 > self.block_cells:
+            a = int(np.argmax(hi - lo))
+            cut = max(1, int(hi[a] - lo[a]) // 8)
+            if hi[a] - oleaf[a] - 1 >= oleaf[a] - lo[a]:  # trim the side farther from the sensor
+                hi[a] = max(hi[a] - cut, oleaf[a] + 1)
+            else:
+                lo[a] = min(lo[a] + cut, oleaf[a])
+        shape = tuple(int(x) * leaf for x in hi - lo)
+        n = shape[0] * shape[1] * shape[2]
+        if n > len(self._block_buf):
+            self._block_buf = np.zeros(max(n, len(self._block_buf) * 5 // 4), np.int32)
+            self._bflag_buf = np.zeros(len(self._block_buf) // leaf, np.int8)
+        block = self._block_buf[:n].reshape(shape)
+        bflag = self._bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
+        return block, bflag, (lo * leaf).astype(np.int32)
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
@@ -308,8 +341,10 @@ class NdtOmMap:
         k, ctr, fs, slot = self._k, self._ctr, self._st, self._slot
         ctr[:] = 0
         lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
+        dense = None
         if self.occupancy_enabled and n:
-            self._trace(k.rays, world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
+            dense = self._trace(k.rays, world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
+        block, bflag, base = dense if dense is not None else self._block_for(None, ocell)
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         if n_hit:
@@ -323,7 +358,9 @@ class NdtOmMap:
             k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
             self._nrec = int(ctr[C_RECORDS])
         if nh:
-            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count)
+            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None), ctr)
+        if dense is not None:
+            k.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
             if nt <= len(self._touched):
@@ -331,7 +368,7 @@ class NdtOmMap:
             else:
                 k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
                 self._touched = np.empty((2 * nt, 3), np.int32)
-            rep.cells_passed = nt
+            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + int(ctr[C_BLOCK_CELLS])
         fs.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = int(ctr[C_VISITS])
@@ -436,6 +473,8 @@ class NdtOmMap:
             "gaussians": gauss,
             "bytes_per_known_cell": total / known if known else float("nan"),
             "bytes_per_gaussian": total / gauss if gauss else float("nan"),
+            # Scan scratch outside the map: the dense ray-count block (kept between scans).
+            "scratch_bytes": self._block_buf.nbytes + self._bflag_buf.nbytes,
             "process_pool_bytes": self._st.pool_bytes(),
             "process_pool_budget_bytes": runtime.pool_limit(),
         }

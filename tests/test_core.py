@@ -84,12 +84,14 @@ def test_n_is_an_integer_count_past_float32_range():
 # --------------------------------------------------------------------------- DDA
 
 
-def single_scan_logodds(res, origin, endpoints):
+def single_scan_logodds(res, origin, endpoints, block_cells=None):
     """Insert one scan of world ``endpoints`` seen from ``origin``; return the map, its
     log-odds per cell, and the world endpoints exactly as the map computed them."""
     T = np.eye(4)
     T[:3, 3] = origin
     m = NdtOmMap(res, config=MapConfig(**WIDE))
+    if block_cells is not None:
+        m.block_cells = block_cells
     local = np.asarray(endpoints, np.float64) - origin
     m.insert_scan(local, T)
     k = m.known_cells()
@@ -102,13 +104,27 @@ def assert_logodds_equal(got, ref):
         assert got[c] == pytest.approx(v, rel=1e-5, abs=1e-6), c
 
 
-def test_dda_matches_reference_on_thousands_of_random_rays(rng):
+# Ray counts go to a dense block over the scan's cells, trimmed to ``block_cells`` around
+# the sensor, and to the sparse tree past it: whole block, split, tree only.
+BLOCKS = [None, 8**3 * 27, 0]
+
+
+@pytest.mark.parametrize("block_cells", BLOCKS)
+def test_dda_matches_reference_on_thousands_of_random_rays(rng, block_cells):
     res = 0.2
     for origin in ([0.1, 0.2, 0.3], [-3.37, 5.01, -0.77]):
         origin = np.asarray(origin)
         ends = origin + rng.normal(size=(3000, 3)) * 4.0
-        _, got, world = single_scan_logodds(res, origin, ends)
+        m, got, world = single_scan_logodds(res, origin, ends, block_cells)
         assert_logodds_equal(got, eq12_logodds([(origin, world)], res, **WIDE_REF))
+        rep = m.insert_scan(ends - origin, m_pose(origin))
+        assert rep.cells_passed == sum(v < 0 for v in got.values())  # free-space updates, both paths
+
+
+def m_pose(origin):
+    T = np.eye(4)
+    T[:3, 3] = origin
+    return T
 
 
 WIDE_REF = dict(l_min=-1e6, l_max=1e6)
@@ -183,10 +199,13 @@ def test_occupancy_hand_computed_with_clamps():
     assert sorted(k["logodds"].round(5).tolist()) == [-2.0] * 5 + [2.0]
 
 
-def test_cell_both_hit_and_passed_takes_the_hit_update():
+@pytest.mark.parametrize("block_cells", BLOCKS)
+def test_cell_both_hit_and_passed_takes_the_hit_update(block_cells):
     lo = math.log(0.6 / 0.4)
     le = math.log(0.49 / 0.51)
     m = NdtOmMap(1.0)
+    if block_cells is not None:
+        m.block_cells = block_cells
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
     # Ray A ends in cell (2,0,0); ray B passes it and ends in (5,0,0).
@@ -207,12 +226,15 @@ def test_occupancy_of_unknown_cells_is_prior_and_flagged():
     assert p[0] > 0.5 and p[1] < 0.5 and p[2] == 0.5 and p[3] == 0.5
 
 
-def test_multi_scan_logodds_match_reference(rng):
+@pytest.mark.parametrize("block_cells", BLOCKS)
+def test_multi_scan_logodds_match_reference(rng, block_cells):
     """Several scans from different origins, clamps active: eq. (12) per scan exactly."""
     res = 0.3
     scans = []
     cfg = MapConfig(logodds_min=-0.5, logodds_max=1.0)
     m = NdtOmMap(res, config=cfg)
+    if block_cells is not None:
+        m.block_cells = block_cells
     for k in range(5):
         o = rng.uniform(-1, 1, 3)
         ends = rng.normal(size=(600, 3)) * 2.0 + [3.0, 0.0, 0.0]
