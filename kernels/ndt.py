@@ -34,6 +34,9 @@ C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 COUNTERS = 8
 
 BIG = 1.0e300
+# Ray parameters t in [0, 1] of two axes' crossings closer than this are settled by
+# recomputing both by division. Summing steps strays < 1e-11 even over 10^5 steps.
+TIE_MARGIN = 1.0e-9
 
 i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
 i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -227,9 +230,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         face = c + 1 if step > 0 else c
         return (ti.cast(face, ti.f64) * res - o) / d if rem > 0 else BIG
 
-    def make_rays(full: bool):
-        # full=False is the benchmark floor: the same traversal and layout, one integer
+    def make_rays(mode: str):
+        # "full": counts in the dense block where it covers the cell, else in the tree.
+        # "dense": the block covers every cell of the scan: no bounds checks, no tree.
+        # "floor": the benchmark floor: the same traversal through the tree, one integer
         # atomic per visited cell and nothing else.
+        full = mode != "floor"
         @ti.kernel
         def rays(
             slot: ti.i32,
@@ -261,6 +267,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 step = ti.Vector([0, 0, 0], dt=ti.i32)
                 rem = ti.Vector([0, 0, 0], dt=ti.i32)
                 tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+                tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
                 for a in ti.static(range(3)):
                     diff = ce[a] - co[a]
                     if diff != 0:
@@ -268,13 +275,17 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rem[a] = ti.abs(diff)
                         face = co[a] + 1 if diff > 0 else co[a]
                         tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                        tdel[a] = res / ti.abs(d[a])
                 visits = 0
                 last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
                 # Each pass steps at least one axis towards the endpoint cell, so the loop
                 # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
                 while rem[0] + rem[1] + rem[2] > 0:
                     rel = cur - b0
-                    if ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
+                    if ti.static(mode == "dense"):
+                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                    elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                         # Near the sensor every ray passes: count in the dense block,
                         # applied to the tree once per cell by block_apply.
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
@@ -292,44 +303,56 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         else:
                             ti.atomic_add(ne[at(slot, cur)], 1)
                     visits += 1
-                    # One axis crosses first (the common case): step it. tmax is recomputed,
-                    # not accumulated, so exact ties stay exact.
-                    if tmax[0] < tmax[1] and tmax[0] < tmax[2]:
+                    # One axis crosses first by a clear margin (the common case): step it,
+                    # advancing its crossing parameter by addition.
+                    if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
                         cur[0] += step[0]
                         rem[0] -= 1
-                        tmax[0] = next_t(cur[0], step[0], rem[0], res, o[0], d[0])
-                    elif tmax[1] < tmax[0] and tmax[1] < tmax[2]:
+                        tmax[0] = tmax[0] + tdel[0] if rem[0] > 0 else BIG
+                    elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
                         cur[1] += step[1]
                         rem[1] -= 1
-                        tmax[1] = next_t(cur[1], step[1], rem[1], res, o[1], d[1])
-                    elif tmax[2] < tmax[0] and tmax[2] < tmax[1]:
+                        tmax[1] = tmax[1] + tdel[1] if rem[1] > 0 else BIG
+                    elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
                         cur[2] += step[2]
                         rem[2] -= 1
-                        tmax[2] = next_t(cur[2], step[2], rem[2], res, o[2], d[2])
+                        tmax[2] = tmax[2] + tdel[2] if rem[2] > 0 else BIG
                     else:
-                        # Ties (the segment crosses an edge or corner): axes stepping up
-                        # move first, so the cell holding the crossing point is visited.
+                        # Near a tie: the crossings recomputed by division, as the decision
+                        # the margin stands in for (the sums stray far less than it).
+                        for a in ti.static(range(3)):
+                            tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                         tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                        ties = 0
                         up = False
                         for a in ti.static(range(3)):
-                            if tmax[a] == tmin and step[a] > 0:
-                                up = True
+                            if tmax[a] == tmin:
+                                ties += 1
+                                if step[a] > 0:
+                                    up = True
+                        # An exact tie (the segment crosses an edge or corner): axes stepping
+                        # up move first, so the cell holding the crossing point is visited.
                         for a in ti.static(range(3)):
-                            if tmax[a] == tmin and (step[a] > 0) == up:
+                            if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
                                 cur[a] += step[a]
                                 rem[a] -= 1
                                 tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-                if ti.static(full):
-                    if i >= n_hit:
+                if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
+                    if ti.static(mode == "dense"):
+                        rel = ce - b0
+                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                    else:
                         note_leaf(olm, slot, ce, regions, leaves, 0)
                         visit(slot, ce, touched, cap, ctr)
-                        visits += 1
+                    visits += 1
                 ti.atomic_add(ctr[C_VISITS], visits)
 
         return rays
 
-    rays = make_rays(True)
-    rays_floor = make_rays(False)
+    rays = make_rays("full")
+    rays_dense = make_rays("dense")
+    rays_floor = make_rays("floor")
 
     @ti.func
     def free_update(slot, c, k, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
@@ -367,23 +390,23 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         leaves: i64_2d,
     ):
         # eq. (12) for the cells of the dense block, straight from their counts (hit cells
-        # were zeroed by apply_hits). One column of rows per thread.
+        # were zeroed by apply_hits). One leaf of the tree per iteration, so its cells are
+        # updated together (the block is leaf-aligned).
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for i, j in ti.ndrange(block.shape[0], block.shape[1]):
+        for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
             cells = 0
-            for kb in range(block.shape[2] // leaf):
+            for ii, jj in ti.ndrange(leaf, leaf):
+                i, j = bi * leaf + ii, bj * leaf + jj
                 if bflag[i, j, kb] != 0:
                     bflag[i, j, kb] = ti.i8(0)
-                    first = True
                     for kk in range(leaf):
                         k = kb * leaf + kk
                         v = block[i, j, k]
                         if v != 0:
                             block[i, j, k] = 0
                             c = b0 + ti.Vector([i, j, k])
-                            if first:  # the block is leaf-aligned: a row lies in one leaf
+                            if cells == 0:
                                 note_leaf(olm, slot, c, regions, leaves, 0)
-                                first = False
                             free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
                             cells += 1
             if cells > 0:
@@ -534,6 +557,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         merge=merge,
         rays=rays,
         rays_floor=rays_floor,
+        rays_dense=rays_dense,
         block_apply=block_apply,
         apply_free=apply_free,
         apply_free_all=apply_free_all,

@@ -57,6 +57,14 @@ class ScanReport:
         return asdict(self)
 
 
+def cell_box(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest index per axis of (N, 3) cells, as int64. Per column: numpy's
+    reduction over axis 0 of an (N, 3) array is ~20x slower."""
+    lo = np.array([cells[:, a].min() for a in range(3)], np.int64)
+    hi = np.array([cells[:, a].max() for a in range(3)], np.int64)
+    return lo, hi
+
+
 def _as_points(points: Any) -> np.ndarray:
     arr = np.asarray(points)
     if arr.dtype == np.bool_:
@@ -209,7 +217,7 @@ class NdtOmMap:
         rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
         rep.points_used = n_hit
         rep.free_rays = n_free
-        box = (cells.min(axis=0).astype(np.int64), cells.max(axis=0).astype(np.int64)) if len(cells) else None
+        box = cell_box(cells) if len(cells) else None
 
         # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
         # fit and the rays are traced in batches, each checked against exact counts.
@@ -232,7 +240,7 @@ class NdtOmMap:
         if len(hit_cells) == 0:
             return out
         L, st = self.layout, self._st
-        lo, hi = hit_cells.min(axis=0) // L.leaf, hit_cells.max(axis=0) // L.leaf
+        lo, hi = (b // L.leaf for b in cell_box(hit_cells))
         shape = tuple(int(x) for x in hi - lo + 1)
         new = np.zeros(2, np.int64)
         if math.prod(shape) <= _SEEN_MAX:
@@ -272,6 +280,9 @@ class NdtOmMap:
                 st.occ_regions, st.leaf_count, block, bflag, base)  # fmt: skip
         n = len(world)
         if one_pass:
+            lo, hi = np.minimum(box[0], ocell), np.maximum(box[1], ocell)
+            if dense and (base <= lo).all() and (base + np.array(block.shape) > hi).all():
+                kernel = self._k.rays_dense  # the block covers every cell of the scan
             kernel(slot, world, cells, n_hit, n, *args, int(dense))
             st.note_usage()
             return (block, bflag, base) if dense and block.size else None
@@ -422,7 +433,7 @@ class NdtOmMap:
         def box_of(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if box is not None and len(c) == len(cells):
                 return box
-            return c.min(axis=0).astype(np.int64), c.max(axis=0).astype(np.int64)
+            return cell_box(c)
 
         occ = cells if rays else cells[:n_hit]
         if len(occ):
