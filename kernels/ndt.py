@@ -434,23 +434,43 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
 
     @ti.kernel
-    def count_new_leaves(slot: ti.i32, cells: i32_2d, n: ti.i32, lbase: i32_1d, seen: i32_3d, dedup: ti.i32, out: i64_1d):
-        # Leaves the cells would allocate in each tree, each counted once: ``seen`` holds
-        # zeroed flags over the cells' box of leaves from ``lbase`` (dedup=0: the cells lie
-        # in distinct leaves already). Reading never allocates.
+    def count_new_nodes(
+        slot: ti.i32,
+        cells: i32_2d,
+        n: ti.i32,
+        lbase: i32_1d,  # [3] first leaf of ``seen``
+        seen: i32_3d,  # zeroed flags over the cells' box of leaves
+        dedup: ti.i32,  # 0: the cells lie in distinct leaves already (``seen`` unused)
+        rbase: i32_1d,  # [3] first region of ``rseen``
+        rseen: i32_3d,  # zeroed flags over the cells' box of regions
+        occ_regions: i8_4d,
+        gidx_regions: i8_4d,
+        out: i64_1d,  # [4] new occupancy leaves, index leaves, occupancy regions, index regions
+    ):
+        # Nodes the cells would allocate in each tree, each counted once. Reading never
+        # allocates.
         b0 = ti.Vector([lbase[0], lbase[1], lbase[2]], dt=ti.i32)
+        r0 = ti.Vector([rbase[0], rbase[1], rbase[2]], dt=ti.i32)
         for i in range(n):
-            lf = row(cells, i) // leaf
+            c = row(cells, i)
+            lf = c // leaf
             first = True
             if dedup != 0:
-                r = lf - b0
-                first = ti.atomic_or(seen[r[0], r[1], r[2]], 1) == 0
+                q = lf - b0
+                first = ti.atomic_or(seen[q[0], q[1], q[2]], 1) == 0
             if first:
                 b = at(slot, lf)
                 if olm[b] == 0:
                     ti.atomic_add(out[0], 1)
                 if glm[b] == 0:
                     ti.atomic_add(out[1], 1)
+                r = (c - grid_lo) // region
+                q = r - r0
+                if ti.atomic_or(rseen[q[0], q[1], q[2]], 1) == 0:
+                    if occ_regions[slot, r[0], r[1], r[2]] == 0:
+                        ti.atomic_add(out[2], 1)
+                    if gidx_regions[slot, r[0], r[1], r[2]] == 0:
+                        ti.atomic_add(out[3], 1)
 
     @ti.kernel
     def reset_rays(slot: ti.i32, touched: i32_2d, nt: ti.i32):
@@ -563,7 +583,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         apply_free_all=apply_free_all,
         apply_hits=apply_hits,
         reset_rays=reset_rays,
-        count_new_leaves=count_new_leaves,
+        count_new_nodes=count_new_nodes,
         reset_rays_all=reset_rays_all,
         query=query,
         count_known=count_known,

@@ -234,27 +234,26 @@ class NdtOmMap:
         return world, cells, n_hit, origin, ocell, rep, box, one_pass
 
     def _new_hit_nodes(self, hit_cells: np.ndarray) -> np.ndarray:
-        """Nodes per type that writing these hit cells can allocate: leaves exactly, regions
-        as those of the cells' box not in use yet."""
-        out = np.zeros(4, np.int64)
+        """Exact number of nodes per type that writing these hit cells allocates."""
         if len(hit_cells) == 0:
-            return out
-        L, st = self.layout, self._st
-        lo, hi = (b // L.leaf for b in cell_box(hit_cells))
+            return np.zeros(4, np.int64)
+        L = self.layout
+        box = cell_box(hit_cells)
+        lo, hi = (b // L.leaf for b in box)
+        rlo, rhi = ((b - self._glo) // L.region for b in box)
+        rseen = np.zeros(tuple(int(x) for x in rhi - rlo + 1), np.int32)  # at most the grid's regions
         shape = tuple(int(x) for x in hi - lo + 1)
-        new = np.zeros(2, np.int64)
         if math.prod(shape) <= _SEEN_MAX:
-            seen = np.zeros(shape, np.int32)  # flags over the cells' box of leaves
-            self._k.count_new_leaves(self._slot, hit_cells, len(hit_cells), lo.astype(np.int32), seen, 1, new)
+            cells, seen, dedup = hit_cells, np.zeros(shape, np.int32), 1
         else:  # a sparse, wide scan: one cell per distinct leaf
             key = np.ravel_multi_index((hit_cells // L.leaf - lo).T, shape)
             _, first = np.unique(key, return_index=True)
-            one = np.ascontiguousarray(hit_cells[first])
-            self._k.count_new_leaves(self._slot, one, len(one), lo.astype(np.int32), np.zeros((1, 1, 1), np.int32), 0, new)
-        rlo, rhi = ((np.stack([lo, hi]) * L.leaf - self._glo) // L.region).astype(np.int64)
-        box = (self._slot, *(slice(a, b + 1) for a, b in zip(rlo, rhi)))
-        out[:] = [np.count_nonzero(st.occ_regions[box] == 0), new[0], np.count_nonzero(st.gidx_regions[box] == 0), new[1]]
-        return out
+            cells, seen, dedup = np.ascontiguousarray(hit_cells[first]), np.zeros((1, 1, 1), np.int32), 0
+        new = np.zeros(4, np.int64)
+        st = self._st
+        self._k.count_new_nodes(self._slot, cells, len(cells), lo.astype(np.int32), seen, dedup,
+                                rlo.astype(np.int32), rseen, st.occ_regions, st.gidx_regions, new)  # fmt: skip
+        return new[[2, 0, 3, 1]]
 
     def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Benchmark floor: the scan's rays traversed through the same sparse layout with

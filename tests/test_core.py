@@ -121,6 +121,22 @@ def test_dda_matches_reference_on_thousands_of_random_rays(rng, block_cells):
         assert rep.cells_passed == sum(v < 0 for v in got.values())  # free-space updates, both paths
 
 
+def test_long_rays_far_from_the_origin_match_the_reference(rng):
+    """Thousands of steps per ray, 1 km out, and rational slopes from a cell corner (exact
+    ties recurring along the ray): the summed crossings decide as division would."""
+    res = 0.1
+    far = np.array([1000.03, -1000.07, 20.01])
+    ends = far + rng.normal(size=(150, 3)) * [120.0, 120.0, 5.0]
+    _, got, world = single_scan_logodds(res, far, ends)
+    assert_logodds_equal(got, eq12_logodds([(far, world)], res, **WIDE_REF))
+    # Cells of 0.25 m make these plane crossings exact in floating point, so the ties are
+    # true ties for both the kernel and the reference (edges and corners every few steps).
+    corner = np.array([0.0, 0.0, 0.0])
+    ends = np.array([[300.0, 100.0, 0.0], [-150.0, 150.0, 50.0], [240.0, -80.0, 40.0], [-96.0, -32.0, -128.0]])
+    _, got, world = single_scan_logodds(0.25, corner, ends)
+    assert_logodds_equal(got, eq12_logodds([(corner, world)], 0.25, **WIDE_REF))
+
+
 def m_pose(origin):
     T = np.eye(4)
     T[:3, 3] = origin
