@@ -1,15 +1,18 @@
 """Taichi kernels of the NDT-OM update (method.md sections 2 and 3).
 
 Per scan, in this order:
-1. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
-2. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
-3. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
-                     record with the RCU (a new record for a cell's first points).
-4. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
-                     rays passing each cell and a compact list of the touched cells.
-5. ``apply_hits`` / ``apply_free``: eq. (12) once per touched cell (hit cells first, their
-                     ray counts cleared), clamp, and reset of the Gaussian of a cell
-                     whose log-odds fell to <= 0.
+1. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
+                     rays passing each cell: in a dense scan-local block over the scan's
+                     cells (``rays_dense`` when it holds them all), in the tree past it
+                     with a compact list of the cells touched there.
+2. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
+3. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
+4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
+                     record with the RCU (a new record for a cell's first points), then
+                     applies eq. (12) to the cell and clears its ray count.
+5. ``block_apply`` / ``apply_free``: eq. (12) once per cell that rays passed and no
+                     endpoint hit, clamp, and reset of the Gaussian of a cell whose
+                     log-odds fell to <= 0.
 
 Kernels are closures over the process's storage, built once. The map's slot, its
 resolution, sensor model and Gaussian records are arguments, so nothing recompiles per
@@ -162,6 +165,20 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ti.atomic_add(acc[s, 7], q[1] * q[2])
             ti.atomic_add(acc[s, 8], q[2] * q[2])
 
+    @ti.func
+    def hit_update(slot, c, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
+                   block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
+        # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared.
+        note_leaf(olm, slot, c, regions, leaves, 0)
+        lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
+        hn[at(slot, c)] = 0
+        rel = c - b0
+        if (rel >= 0).all() and (rel < bsize).all():
+            block[rel[0], rel[1], rel[2]] = 0
+        elif ne[at(slot, c)] != 0:
+            ne[at(slot, c)] = 0
+            ti.atomic_add(ctr[C_HIT_PASSED], 1)
+
     @ti.kernel
     def merge(
         slot: ti.i32,
@@ -174,7 +191,18 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rec_mean: f64_2d,  # [C, 3] records: mean minus cell centre
         rec_scat: f64_2d,  # [C, 6] records: scatter xx xy xz yy yz zz
         ctr: i64_1d,  # [COUNTERS]; C_RECORDS holds the records in use
+        l_hit: ti.f64,
+        l_min: ti.f32,
+        l_max: ti.f32,
+        regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
+        leaves: i64_2d,
+        block: i32_3d,  # the scan's dense ray counts (see rays)
+        base: i32_1d,
+        use_block: ti.i32,
     ):
+        # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
         for s in range(nh):
             c = row(hitlist, s)
             r = gslot[at(slot, c)] - 1
@@ -215,6 +243,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     rec_scat[r, a] = rec_scat[r, a] * k
                 tot_i = n_max
             rec_n[r] = tot_i
+            hit_update(slot, c, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
 
     @ti.func
     def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()):
@@ -369,7 +398,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
-        # Hit cells were updated by apply_hits, which cleared their ray count: skipped.
+        # Hit cells were updated by merge, which cleared their ray count: skipped.
         k = ne[at(slot, c)]
         if k > 0:
             ne[at(slot, c)] = 0
@@ -390,7 +419,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         leaves: i64_2d,
     ):
         # eq. (12) for the cells of the dense block, straight from their counts (hit cells
-        # were zeroed by apply_hits). One leaf of the tree per iteration, so its cells are
+        # were zeroed by merge). One leaf of the tree per iteration, so its cells are
         # updated together (the block is leaf-aligned).
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
@@ -483,36 +512,6 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             if I[0] == slot:
                 ne[I] = 0
 
-    @ti.kernel
-    def apply_hits(
-        slot: ti.i32,
-        hitlist: i32_2d,  # [H, 3]
-        nh: ti.i32,
-        l_hit: ti.f64,
-        l_min: ti.f32,
-        l_max: ti.f32,
-        regions: i8_4d,  # [L1] occupancy-tree regions in use
-        leaves: i64_2d,
-        block: i32_3d,  # the scan's dense ray counts (see rays)
-        base: i32_1d,
-        use_block: ti.i32,
-        ctr: i64_1d,
-    ):
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
-        for s in range(nh):
-            c = row(hitlist, s)
-            note_leaf(olm, slot, c, regions, leaves, 0)
-            lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
-            hn[at(slot, c)] = 0
-            # eq. (12): a cell with endpoints takes the hit update only
-            rel = c - b0
-            if (rel >= 0).all() and (rel < bsize).all():
-                block[rel[0], rel[1], rel[2]] = 0
-            elif ne[at(slot, c)] != 0:
-                ne[at(slot, c)] = 0
-                ti.atomic_add(ctr[C_HIT_PASSED], 1)
-
     # ---- queries, export, load -------------------------------------------------------
 
     @ti.kernel
@@ -581,7 +580,6 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         block_apply=block_apply,
         apply_free=apply_free,
         apply_free_all=apply_free_all,
-        apply_hits=apply_hits,
         reset_rays=reset_rays,
         count_new_nodes=count_new_nodes,
         reset_rays_all=reset_rays_all,

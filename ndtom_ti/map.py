@@ -365,17 +365,16 @@ class NdtOmMap:
             if self._nrec + nh > len(self._rec_n):
                 self._alloc_records(max(len(self._rec_n) * 5 // 4, self._nrec + nh))
             ctr[C_RECORDS] = self._nrec
-            k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr)
+            k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
+                    cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None))  # fmt: skip
             self._nrec = int(ctr[C_RECORDS])
-        if nh:
-            k.apply_hits(slot, hitlist, nh, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None), ctr)
         if dense is not None:
             k.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
-            if nt <= len(self._touched):
+            if 0 < nt <= len(self._touched):
                 k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr)
-            else:
+            elif nt:
                 k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
                 self._touched = np.empty((2 * nt, 3), np.int32)
             rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + int(ctr[C_BLOCK_CELLS])
