@@ -20,6 +20,7 @@ count leaves exactly as they create them (Taichi 1.7 has no reliable way to ask)
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,6 +154,11 @@ class Storage:
         self.node_high_water = np.zeros(4, np.int64)
         self.free_slots = list(range(slots - 1, -1, -1))
         self.kernels = None  # built lazily by kernels.ndt.make_kernels
+        # Scan scratch shared by the maps: the dense ray-count block and its row flags, all
+        # zero between updates, which hold ``lock`` while they use it.
+        self.block_buf = np.zeros(0, np.int32)
+        self.bflag_buf = np.zeros(0, np.int8)
+        self.lock = threading.RLock()
 
     def nodes(self, slot: int | None = None) -> np.ndarray:
         """Live node counts of the four node types, for one slot or all."""

@@ -146,8 +146,6 @@ class NdtOmMap:
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self.block_cells = BLOCK_CELLS
-        self._block_buf = np.zeros(0, np.int32)  # always zero between scans
-        self._bflag_buf = np.zeros(0, np.int8)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -329,11 +327,12 @@ class NdtOmMap:
                 lo[a] = min(lo[a] + cut, oleaf[a])
         shape = tuple(int(x) * leaf for x in hi - lo)
         n = shape[0] * shape[1] * shape[2]
-        if n > len(self._block_buf):
-            self._block_buf = np.zeros(max(n, len(self._block_buf) * 5 // 4), np.int32)
-            self._bflag_buf = np.zeros(len(self._block_buf) // leaf, np.int8)
-        block = self._block_buf[:n].reshape(shape)
-        bflag = self._bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
+        st = self._st
+        if n > len(st.block_buf):
+            st.block_buf = np.zeros(max(n, len(st.block_buf) * 5 // 4), np.int32)
+            st.bflag_buf = np.zeros(len(st.block_buf) // leaf, np.int8)
+        block = st.block_buf[:n].reshape(shape)
+        bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
         return block, bflag, (lo * leaf).astype(np.int32)
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
@@ -344,6 +343,16 @@ class NdtOmMap:
         are dropped and counted in the returned report. A call that raises leaves the map
         unchanged.
         """
+        with self._st.lock:  # the dense block is shared by the maps of the process
+            try:
+                return self._insert(points, T_world_sensor)
+            except BaseException:
+                # Interrupted between kernels (Ctrl-C): keep the shared block zero.
+                self._st.block_buf[:] = 0
+                self._st.bflag_buf[:] = 0
+                raise
+
+    def _insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
         t0 = time.perf_counter()
         world, cells, n_hit, origin, ocell, rep, box, one_pass = self._prepare(points, T_world_sensor)
         n = len(world)
@@ -482,8 +491,8 @@ class NdtOmMap:
             "gaussians": gauss,
             "bytes_per_known_cell": total / known if known else float("nan"),
             "bytes_per_gaussian": total / gauss if gauss else float("nan"),
-            # Scan scratch outside the map: the dense ray-count block (kept between scans).
-            "scratch_bytes": self._block_buf.nbytes + self._bflag_buf.nbytes,
+            # Scan scratch of all maps, outside the pool: the dense ray-count block.
+            "process_scratch_bytes": self._st.block_buf.nbytes + self._st.bflag_buf.nbytes,
             "process_pool_bytes": self._st.pool_bytes(),
             "process_pool_budget_bytes": runtime.pool_limit(),
         }
