@@ -259,9 +259,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         face = c + 1 if step > 0 else c
         return (ti.cast(face, ti.f64) * res - o) / d if rem > 0 else BIG
 
-    def make_rays(mode: str):
+    def make_rays(mode: str, flags: bool = True):
         # "full": counts in the dense block where it covers the cell, else in the tree.
-        # "dense": the block covers every cell of the scan: no bounds checks, no tree.
+        # "dense": the block covers every cell of the scan: no bounds checks, no tree;
+        # with flags=False no row flags either (a second cache line per visit), for
+        # blocks that rays fill densely: block_apply then reads every row.
         # "floor": the benchmark floor: the same traversal through the tree, one integer
         # atomic per visited cell and nothing else.
         full = mode != "floor"
@@ -313,7 +315,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     rel = cur - b0
                     if ti.static(mode == "dense"):
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
-                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                        if ti.static(flags):
+                            bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
                     elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                         # Near the sensor every ray passes: count in the dense block,
                         # applied to the tree once per cell by block_apply.
@@ -370,7 +373,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     if ti.static(mode == "dense"):
                         rel = ce - b0
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
-                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                        if ti.static(flags):
+                            bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
                     else:
                         note_leaf(olm, slot, ce, regions, leaves, 0)
                         visit(slot, ce, touched, cap, ctr)
@@ -381,6 +385,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     rays = make_rays("full")
     rays_dense = make_rays("dense")
+    rays_dense_unflagged = make_rays("dense", flags=False)
     rays_floor = make_rays("floor")
 
     @ti.func
@@ -409,6 +414,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         slot: ti.i32,
         block: i32_3d,  # [Bx, By, Bz] ray counts, zeroed here
         bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
+        flagged: ti.i32,  # 0: the rays set no flags: read every row
         base: i32_1d,  # [3]
         l_free: ti.f64,
         l_min: ti.f32,
@@ -426,8 +432,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             cells = 0
             for ii, jj in ti.ndrange(leaf, leaf):
                 i, j = bi * leaf + ii, bj * leaf + jj
-                if bflag[i, j, kb] != 0:
-                    bflag[i, j, kb] = ti.i8(0)
+                entered = True
+                if flagged != 0:
+                    entered = bflag[i, j, kb] != 0
+                    if entered:
+                        bflag[i, j, kb] = ti.i8(0)
+                if entered:
                     for kk in range(leaf):
                         k = kb * leaf + kk
                         v = block[i, j, k]
@@ -577,6 +587,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rays=rays,
         rays_floor=rays_floor,
         rays_dense=rays_dense,
+        rays_dense_unflagged=rays_dense_unflagged,
         block_apply=block_apply,
         apply_free=apply_free,
         apply_free_all=apply_free_all,

@@ -146,6 +146,7 @@ class NdtOmMap:
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self.block_cells = BLOCK_CELLS
+        self._block_density = 0.0  # ray visits per cell of the last scan's dense block
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -268,8 +269,8 @@ class NdtOmMap:
 
     def _trace(self, kernel, world, cells, n_hit, origin, ocell, box, one_pass: bool):
         """Run a ray kernel over all rays (``box``: their cells' bounding box), in batches
-        when memory is tight. Returns the dense block (block, row flags, base) the rays
-        counted in, or None."""
+        when memory is tight. Returns the dense block (block, row flags, base, whether
+        the rays set the flags) they counted in, or None."""
         st, slot = self._st, self._slot
         dense = one_pass and kernel is self._k.rays  # the floor counts in the tree only
         block, bflag, base = self._block_for(box if dense else None, ocell)
@@ -278,11 +279,19 @@ class NdtOmMap:
         n = len(world)
         if one_pass:
             lo, hi = np.minimum(box[0], ocell), np.maximum(box[1], ocell)
+            flagged = True
             if dense and (base <= lo).all() and (base + np.array(block.shape) > hi).all():
-                kernel = self._k.rays_dense  # the block covers every cell of the scan
+                # The block covers every cell of the scan. Row flags pay off only where
+                # rays leave most rows empty (as in the last scan: fewer visits than cells).
+                flagged = self._block_density < 1.0
+                kernel = self._k.rays_dense if flagged else self._k.rays_dense_unflagged
+            visits0 = int(self._ctr[C_VISITS])
             kernel(slot, world, cells, n_hit, n, *args, int(dense))
             st.note_usage()
-            return (block, bflag, base) if dense and block.size else None
+            if not (dense and block.size):
+                return None
+            self._block_density = (int(self._ctr[C_VISITS]) - visits0) / block.size
+            return block, bflag, base, flagged
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
         d = world - origin
         az = np.arctan2(d[:, 1], d[:, 0])
@@ -363,7 +372,7 @@ class NdtOmMap:
         dense = None
         if self.occupancy_enabled and n:
             dense = self._trace(k.rays, world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
-        block, bflag, base = dense if dense is not None else self._block_for(None, ocell)
+        block, bflag, base, flagged = dense if dense is not None else (*self._block_for(None, ocell), True)
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         if n_hit:
@@ -378,7 +387,7 @@ class NdtOmMap:
                     cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None))  # fmt: skip
             self._nrec = int(ctr[C_RECORDS])
         if dense is not None:
-            k.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
+            k.block_apply(slot, block, bflag, int(flagged), base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):

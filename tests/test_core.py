@@ -90,8 +90,7 @@ def single_scan_logodds(res, origin, endpoints, block_cells=None):
     T = np.eye(4)
     T[:3, 3] = origin
     m = NdtOmMap(res, config=MapConfig(**WIDE))
-    if block_cells is not None:
-        m.block_cells = block_cells
+    set_block(m, block_cells)
     local = np.asarray(endpoints, np.float64) - origin
     m.insert_scan(local, T)
     k = m.known_cells()
@@ -105,8 +104,16 @@ def assert_logodds_equal(got, ref):
 
 
 # Ray counts go to a dense block over the scan's cells, trimmed to ``block_cells`` around
-# the sensor, and to the sparse tree past it: whole block, split, tree only.
-BLOCKS = [None, 8**3 * 27, 0]
+# the sensor, and to the sparse tree past it: whole block (rows flagged as rays enter
+# them, or all rows read as after a dense scan), split, tree only.
+BLOCKS = [None, "unflagged", 8**3 * 27, 0]
+
+
+def set_block(m, block_cells):
+    if block_cells == "unflagged":
+        m._block_density = float("inf")
+    elif block_cells is not None:
+        m.block_cells = block_cells
 
 
 @pytest.mark.parametrize("block_cells", BLOCKS)
@@ -220,8 +227,7 @@ def test_cell_both_hit_and_passed_takes_the_hit_update(block_cells):
     lo = math.log(0.6 / 0.4)
     le = math.log(0.49 / 0.51)
     m = NdtOmMap(1.0)
-    if block_cells is not None:
-        m.block_cells = block_cells
+    set_block(m, block_cells)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
     # Ray A ends in cell (2,0,0); ray B passes it and ends in (5,0,0).
@@ -249,9 +255,8 @@ def test_multi_scan_logodds_match_reference(rng, block_cells):
     scans = []
     cfg = MapConfig(logodds_min=-0.5, logodds_max=1.0)
     m = NdtOmMap(res, config=cfg)
-    if block_cells is not None:
-        m.block_cells = block_cells
     for k in range(5):
+        set_block(m, block_cells)  # the block's density is measured anew each scan
         o = rng.uniform(-1, 1, 3)
         ends = rng.normal(size=(600, 3)) * 2.0 + [3.0, 0.0, 0.0]
         T = np.eye(4)

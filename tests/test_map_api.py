@@ -17,6 +17,7 @@ from test_core import assert_matches_batch, random_pose, to_world
 import ndtom_ti
 from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap
 from ndtom_ti import runtime
+from ndtom_ti.map import BLOCK_CELLS
 
 
 def scene_scans(rng, scans=4):
@@ -286,6 +287,29 @@ def test_len_repr_and_memory_report(rng):
     assert rep["total_bytes"] == m.memory_bytes() > 0
     assert rep["gaussians"] == len(m) and rep["known_cells"] == len(m.known_cells()["index"])
     assert rep["bytes_per_gaussian"] > 0 and rep["process_pool_bytes"] <= rep["process_pool_budget_bytes"]
+    # the dense ray-count block: at least this scene's box, at most its cap (+ row flags)
+    assert 0 < rep["process_scratch_bytes"] <= BLOCK_CELLS * 1.25 * (4 + 1 / 8)
+    assert not m._st.block_buf.any() and not m._st.bflag_buf.any()  # zero between updates
+
+
+def test_interrupted_update_leaves_the_shared_block_zero(rng, monkeypatch):
+    scans = scene_scans(rng, 1)
+    m, other = NdtOmMap(0.25), NdtOmMap(0.25)
+
+    def interrupt(*a):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(m._k, "hits_count", interrupt)  # after the rays counted in the block
+    with pytest.raises(KeyboardInterrupt):
+        m.insert_scan(*scans[0])
+    monkeypatch.undo()
+    assert not m._st.block_buf.any() and not m._st.bflag_buf.any()
+    ref = NdtOmMap(0.25)
+    for mm in (other, ref):
+        mm.insert_scan(*scans[0])
+    a, b = other.known_cells(), ref.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])
 
 
 def test_gaussian_filters():
