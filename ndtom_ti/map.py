@@ -145,7 +145,9 @@ class NdtOmMap:
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(COUNTERS, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
-        self.block_cells = BLOCK_CELLS
+        # On CUDA a numpy block is copied to the device and back at every launch: keep it
+        # to the 1M cells nearest the sensor there.
+        self.block_cells = BLOCK_CELLS if self.arch == "cpu" else 1 << 20
         self._block_density = 0.0  # ray visits per cell of the last scan's dense block
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
