@@ -38,10 +38,19 @@ def assert_matches_batch(m, world, cov_rtol=1e-5, mean_atol=1e-6):
     assert err.max() <= cov_rtol, f"worst relative covariance error {err.max():.2e}"
 
 
+def rcu_map(res, occupancy):
+    """Recursive NDT, or NDT-OM whose rays count in the dense block (endpoints too) but
+    whose free-space updates are too weak to erase any Gaussian."""
+    if not occupancy:
+        return NdtOmMap(res, occupancy=False)
+    return NdtOmMap(res, config=MapConfig(p_empty=0.4999999))
+
+
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1000.0, -1000.0, 20.0)])
 @pytest.mark.parametrize("res", [0.2, 0.5])
-def test_rcu_equals_batch_random_scans(rng, offset, res):
-    m = NdtOmMap(res, occupancy=False)
+@pytest.mark.parametrize("occupancy", [False, True])
+def test_rcu_equals_batch_random_scans(rng, offset, res, occupancy):
+    m = rcu_map(res, occupancy)
     world = []
     for k in range(6):
         T = random_pose(rng, np.asarray(offset) + rng.normal(size=3))
@@ -53,10 +62,11 @@ def test_rcu_equals_batch_random_scans(rng, offset, res):
         assert_matches_batch(m, np.concatenate(world))
 
 
-def test_rcu_equals_batch_on_lidar_scans(sim_hall_scans):
+@pytest.mark.parametrize("occupancy", [False, True])
+def test_rcu_equals_batch_on_lidar_scans(sim_hall_scans, occupancy):
     """Real-shaped lidar scans (thin walls, 57k points each), far from the origin too."""
     scans = sim_hall_scans
-    m = NdtOmMap(0.4, occupancy=False)
+    m = rcu_map(0.4, occupancy)
     world = []
     for pts, T in scans:
         m.insert_scan(pts, T)
