@@ -100,6 +100,8 @@ class Layout:
     def validate(self) -> None:
         if any(n < 1 for n in self.l1) or self.l2 < 1 or self.leaf < 1:
             raise ValueError(f"grid layout sizes must be positive, got {self}")
+        if self.leaf & (self.leaf - 1):
+            raise ValueError(f"the leaf size must be a power of two (kernels shift by it), got {self.leaf}")
         if any(c >= 2**30 for c in self.cells):
             raise ValueError(f"grid of {self.cells} cells per axis overflows 32-bit cell indices")
 

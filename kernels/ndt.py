@@ -259,6 +259,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         face = c + 1 if step > 0 else c
         return (ti.cast(face, ti.f64) * res - o) / d if rem > 0 else BIG
 
+    SHIFT = leaf.bit_length() - 1  # leaf is a power of two
+
     def make_rays(mode: str, flags: bool = True):
         # "full": counts in the dense block where it covers the cell, else in the tree.
         # "dense": the block covers every cell of the scan: no bounds checks, no tree;
@@ -285,9 +287,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             block: i32_3d,  # [Bx, By, Bz] dense ray counts around the sensor (full only)
             bflag: i8_3d,  # [Bx, By, Bz/leaf] rows of the block that rays entered
             base: i32_1d,  # [3] cell index of block[0, 0, 0]
+            block1: i32_1d,  # the same block and flags, flat ("dense" steps a flat index)
+            bflag1: i8_1d,
             use_block: ti.i32,
         ):
             o = ti.Vector([origin[0], origin[1], origin[2]])
+            strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
             bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
             co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
@@ -309,14 +314,17 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         tdel[a] = res / ti.abs(d[a])
                 visits = 0
                 last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
+                li = (co - b0).dot(strides)  # flat index of the current cell in the block
+                dli = step * strides
+                left = rem[0] + rem[1] + rem[2]
                 # Each pass steps at least one axis towards the endpoint cell, so the loop
                 # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
-                while rem[0] + rem[1] + rem[2] > 0:
+                while left > 0:
                     rel = cur - b0
                     if ti.static(mode == "dense"):
-                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                        ti.atomic_add(block1[li], 1)
                         if ti.static(flags):
-                            bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                            bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                     elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                         # Near the sensor every ray passes: count in the dense block,
                         # applied to the tree once per cell by block_apply.
@@ -340,14 +348,20 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
                         cur[0] += step[0]
                         rem[0] -= 1
+                        left -= 1
+                        li += dli[0]
                         tmax[0] = tmax[0] + tdel[0] if rem[0] > 0 else BIG
                     elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
                         cur[1] += step[1]
                         rem[1] -= 1
+                        left -= 1
+                        li += dli[1]
                         tmax[1] = tmax[1] + tdel[1] if rem[1] > 0 else BIG
                     elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
                         cur[2] += step[2]
                         rem[2] -= 1
+                        left -= 1
+                        li += dli[2]
                         tmax[2] = tmax[2] + tdel[2] if rem[2] > 0 else BIG
                     else:
                         # Near a tie: the crossings recomputed by division, as the decision
@@ -368,13 +382,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
                                 cur[a] += step[a]
                                 rem[a] -= 1
+                                left -= 1
+                                li += dli[a]
                                 tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                 if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
-                    if ti.static(mode == "dense"):
-                        rel = ce - b0
-                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
+                    if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                        ti.atomic_add(block1[li], 1)
                         if ti.static(flags):
-                            bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                            bflag1[li >> SHIFT] = ti.i8(1)
                     else:
                         note_leaf(olm, slot, ce, regions, leaves, 0)
                         visit(slot, ce, touched, cap, ctr)

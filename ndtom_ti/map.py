@@ -277,7 +277,7 @@ class NdtOmMap:
         dense = one_pass and kernel is self._k.rays  # the floor counts in the tree only
         block, bflag, base = self._block_for(box if dense else None, ocell)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
-                st.occ_regions, st.leaf_count, block, bflag, base)  # fmt: skip
+                st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
         n = len(world)
         if one_pass:
             lo, hi = np.minimum(box[0], ocell), np.maximum(box[1], ocell)

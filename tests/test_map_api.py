@@ -504,3 +504,9 @@ def test_import_creates_no_taichi_program():
     code = "import ndtom_ti, taichi as ti; print(ti.lang.impl.get_runtime().prog is None)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "True", out.stderr[-500:]
+
+
+@pytest.mark.parametrize("kw", [{"leaf": 6}, {"leaf": 0}, {"l2": 0}, {"l1": (0, 1, 1)}])
+def test_bad_layout_is_refused(kw):
+    with pytest.raises(ValueError, match="power of two|positive"):
+        ndtom_ti.Layout(**kw).validate()
