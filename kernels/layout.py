@@ -164,7 +164,11 @@ class Storage:
 
     def nodes(self, slot: int | None = None) -> np.ndarray:
         """Live node counts of the four node types, for one slot or all."""
-        sl = slice(None) if slot is None else slice(slot, slot + 1)
+        if slot is None:  # free slots hold no nodes: count up to the last slot in use
+            free = set(self.free_slots)
+            sl = slice(0, max((s + 1 for s in range(self.slots) if s not in free), default=0))
+        else:
+            sl = slice(slot, slot + 1)
         return np.array(
             [
                 np.count_nonzero(self.occ_regions[sl]),
