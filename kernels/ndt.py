@@ -10,7 +10,7 @@ Per scan, in this order:
 4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
                      record with the RCU (a new record for a cell's first points), then
                      applies eq. (12) to the cell and clears its ray count.
-5. ``block_apply`` / ``apply_free``: eq. (12) once per cell that rays passed and no
+5. ``block_apply(_all)`` / ``apply_free``: eq. (12) once per cell that rays passed and no
                      endpoint hit, clamp, and reset of the Gaussian of a cell whose
                      log-odds fell to <= 0.
 
@@ -265,7 +265,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         # "full": counts in the dense block where it covers the cell, else in the tree.
         # "dense": the block covers every cell of the scan: no bounds checks, no tree;
         # with flags=False no row flags either (a second cache line per visit), for
-        # blocks that rays fill densely: block_apply then reads every row.
+        # blocks that rays fill densely: block_apply_all then reads every cell.
         # "floor": the benchmark floor: the same traversal through the tree, one integer
         # atomic per visited cell and nothing else.
         full = mode != "floor"
@@ -429,7 +429,6 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         slot: ti.i32,
         block: i32_3d,  # [Bx, By, Bz] ray counts, zeroed here
         bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
-        flagged: ti.i32,  # 0: the rays set no flags: read every row
         base: i32_1d,  # [3]
         l_free: ti.f64,
         l_min: ti.f32,
@@ -447,12 +446,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             cells = 0
             for ii, jj in ti.ndrange(leaf, leaf):
                 i, j = bi * leaf + ii, bj * leaf + jj
-                entered = True
-                if flagged != 0:
-                    entered = bflag[i, j, kb] != 0
-                    if entered:
-                        bflag[i, j, kb] = ti.i8(0)
-                if entered:
+                if bflag[i, j, kb] != 0:
+                    bflag[i, j, kb] = ti.i8(0)
                     for kk in range(leaf):
                         k = kb * leaf + kk
                         v = block[i, j, k]
@@ -463,6 +458,41 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                 note_leaf(olm, slot, c, regions, leaves, 0)
                             free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
                             cells += 1
+            if cells > 0:
+                ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
+
+    @ti.kernel
+    def block_apply_all(
+        slot: ti.i32,
+        block1: i32_1d,  # the block, flat: [Bx * By * Bz] ray counts, zeroed here
+        shape: i32_1d,  # [3] its shape
+        base: i32_1d,
+        l_free: ti.f64,
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,
+        ctr: i64_1d,
+        regions: i8_4d,
+        leaves: i64_2d,
+    ):
+        # block_apply for a block the rays filled densely (no row flags): every column
+        # of cells along z read in memory order.
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bz = shape[2]
+        for i, j in ti.ndrange(shape[0], shape[1]):
+            cells = 0
+            last = -1
+            col = (i * shape[1] + j) * bz
+            for k in range(bz):
+                v = block1[col + k]
+                if v != 0:
+                    block1[col + k] = 0
+                    c = b0 + ti.Vector([i, j, k])
+                    if k >> SHIFT != last:  # a new leaf of the tree
+                        note_leaf(olm, slot, c, regions, leaves, 0)
+                        last = k >> SHIFT
+                    free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                    cells += 1
             if cells > 0:
                 ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
 
@@ -604,6 +634,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rays_dense=rays_dense,
         rays_dense_unflagged=rays_dense_unflagged,
         block_apply=block_apply,
+        block_apply_all=block_apply_all,
         apply_free=apply_free,
         apply_free_all=apply_free_all,
         reset_rays=reset_rays,

@@ -390,7 +390,11 @@ class NdtOmMap:
                     cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None))  # fmt: skip
             self._nrec = int(ctr[C_RECORDS])
         if dense is not None:
-            k.block_apply(slot, block, bflag, int(flagged), base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
+            if flagged:
+                k.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
+            else:
+                k.block_apply_all(slot, block.reshape(-1), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
+                                  self._rec_n, ctr, fs.occ_regions, fs.leaf_count)  # fmt: skip
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
