@@ -288,12 +288,11 @@ class NdtOmMap:
                 # (measured on the hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15).
                 flagged = self._block_density < 0.2
                 kernel = self._k.rays_dense if flagged else self._k.rays_dense_unflagged
-            visits0 = int(self._ctr[C_VISITS])
             kernel(slot, world, cells, n_hit, n, *args, int(dense))
             st.note_usage()
             if not (dense and block.size):
                 return None
-            self._block_density = (int(self._ctr[C_VISITS]) - visits0) / block.size
+            self._block_density = int(self._ctr[C_VISITS]) / block.size  # the only rays kernel of the update
             return block, bflag, base, flagged
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
         d = world - origin
@@ -341,7 +340,7 @@ class NdtOmMap:
         n = shape[0] * shape[1] * shape[2]
         st = self._st
         if n > len(st.block_buf):
-            st.block_buf = np.zeros(max(n, len(st.block_buf) * 5 // 4), np.int32)
+            st.block_buf = np.zeros(max(n, min(len(st.block_buf) * 5 // 4, BLOCK_CELLS)), np.int32)
             st.bflag_buf = np.zeros(len(st.block_buf) // leaf, np.int8)
         block = st.block_buf[:n].reshape(shape)
         bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
