@@ -135,8 +135,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     ):
         for i in range(n):
             c = row(cells, i)
-            note_leaf(glm, slot, c, regions, leaves, 1)
             if ti.atomic_add(hn[at(slot, c)], 1) == 0:
+                # Every leaf these writes allocate holds a cell's first point: count it there.
+                note_leaf(glm, slot, c, regions, leaves, 1)
                 s = ti.atomic_add(ctr[C_HIT_CELLS], 1)
                 for a in ti.static(range(3)):
                     hitlist[s, a] = c[a]
