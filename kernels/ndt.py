@@ -346,24 +346,21 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     visits += 1
                     # One axis crosses first by a clear margin (the common case): step it,
                     # advancing its crossing parameter by addition.
+                    first = -1
                     if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
-                        cur[0] += step[0]
-                        rem[0] -= 1
-                        left -= 1
-                        li += dli[0]
-                        tmax[0] = tmax[0] + tdel[0] if rem[0] > 0 else BIG
+                        first = 0
                     elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
-                        cur[1] += step[1]
-                        rem[1] -= 1
-                        left -= 1
-                        li += dli[1]
-                        tmax[1] = tmax[1] + tdel[1] if rem[1] > 0 else BIG
+                        first = 1
                     elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
-                        cur[2] += step[2]
-                        rem[2] -= 1
-                        left -= 1
-                        li += dli[2]
-                        tmax[2] = tmax[2] + tdel[2] if rem[2] > 0 else BIG
+                        first = 2
+                    if first >= 0:
+                        for a in ti.static(range(3)):
+                            if a == first:
+                                cur[a] += step[a]
+                                rem[a] -= 1
+                                left -= 1
+                                li += dli[a]
+                                tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
                     else:
                         # Near a tie: the crossings recomputed by division, as the decision
                         # the margin stands in for (the sums stray far less than it).
