@@ -21,6 +21,7 @@ map.
 
 from types import SimpleNamespace
 
+import numpy as np
 import taichi as ti
 
 from .layout import Storage
@@ -36,7 +37,9 @@ C_BLOCK_CELLS = 6  # cells of the dense block that took the free-space update
 C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 COUNTERS = 8
 
-BIG = 1.0e300
+# Finite in f32 too: kernel float literals are f32, and 1e300 would become inf, which
+# fast math assumes never occurs. Ray parameters that matter are <= 1.
+BIG = 1.0e30
 # Ray parameters t in [0, 1] of two axes' crossings closer than this are settled by
 # recomputing both by division. Summing steps strays < 1e-11 even over 10^5 steps.
 TIE_MARGIN = 1.0e-9
@@ -167,86 +170,6 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ti.atomic_add(acc[s, 8], q[2] * q[2])
 
     @ti.func
-    def hit_update(slot, c, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                   block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
-        # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared.
-        note_leaf(olm, slot, c, regions, leaves, 0)
-        lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
-        hn[at(slot, c)] = 0
-        rel = c - b0
-        if (rel >= 0).all() and (rel < bsize).all():
-            block[rel[0], rel[1], rel[2]] = 0
-        elif ne[at(slot, c)] != 0:
-            ne[at(slot, c)] = 0
-            ti.atomic_add(ctr[C_HIT_PASSED], 1)
-
-    @ti.kernel
-    def merge(
-        slot: ti.i32,
-        hitlist: i32_2d,  # [H, 3]
-        acc: f64_2d,  # [H, 9]
-        nh: ti.i32,
-        n_max: ti.i32,  # 0: no cap
-        rec_n: i32_1d,  # [C] records: points
-        rec_cell: i32_2d,  # [C, 3] records: cell index
-        rec_mean: f64_2d,  # [C, 3] records: mean minus cell centre
-        rec_scat: f64_2d,  # [C, 6] records: scatter xx xy xz yy yz zz
-        ctr: i64_1d,  # [COUNTERS]; C_RECORDS holds the records in use
-        l_hit: ti.f64,
-        l_min: ti.f32,
-        l_max: ti.f32,
-        regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
-        leaves: i64_2d,
-        block: i32_3d,  # the scan's dense ray counts (see rays)
-        base: i32_1d,
-        use_block: ti.i32,
-    ):
-        # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
-        for s in range(nh):
-            c = row(hitlist, s)
-            r = gslot[at(slot, c)] - 1
-            if r < 0:
-                r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
-                gslot[at(slot, c)] = r + 1
-                for a in ti.static(range(3)):
-                    rec_cell[r, a] = c[a]
-            n = ti.cast(hn[at(slot, c)], ti.f64)
-            sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
-            mu_y = sv / n
-            ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
-            s_y = ss - ti.Vector(
-                [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
-            ) / n
-            m_i = rec_n[r]
-            tot_i = m_i + hn[at(slot, c)]
-            if m_i == 0:
-                for a in ti.static(range(3)):
-                    rec_mean[r, a] = mu_y[a]
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = s_y[a]
-            else:
-                m = ti.cast(m_i, ti.f64)
-                tot = m + n
-                mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
-                d = mu_x - mu_y
-                w = m * n / tot
-                dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
-                mu = (m * mu_x + n * mu_y) / tot
-                for a in ti.static(range(3)):
-                    rec_mean[r, a] = mu[a]
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
-            if n_max > 0 and tot_i > n_max:
-                k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = rec_scat[r, a] * k
-                tot_i = n_max
-            rec_n[r] = tot_i
-            hit_update(slot, c, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
-
-    @ti.func
     def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()):
         if ti.atomic_add(ne[at(slot, c)], 1) == 0:
             t = ti.atomic_add(ctr[C_TOUCHED], 1)
@@ -261,145 +184,6 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         return (ti.cast(face, ti.f64) * res - o) / d if rem > 0 else BIG
 
     SHIFT = leaf.bit_length() - 1  # leaf is a power of two
-
-    def make_rays(mode: str, flags: bool = True):
-        # "full": counts in the dense block where it covers the cell, else in the tree.
-        # "dense": the block covers every cell of the scan: no bounds checks, no tree;
-        # with flags=False no row flags either (a second cache line per visit), for
-        # blocks that rays fill densely: block_apply_all then reads every cell.
-        # "floor": the benchmark floor: the same traversal through the tree, one integer
-        # atomic per visited cell and nothing else.
-        full = mode != "floor"
-        @ti.kernel
-        def rays(
-            slot: ti.i32,
-            pts: f64_2d,  # [N, 3] world endpoints
-            cells: i32_2d,  # [N, 3] endpoint cells
-            n_hit: ti.i32,  # rays [0, n_hit) end in a hit; the rest are free rays
-            n: ti.i32,
-            origin: f64_1d,  # [3] world sensor origin
-            ocell: i32_1d,  # [3] its cell
-            res: ti.f64,
-            touched: i32_2d,  # [cap, 3] out: cells touched for the first time this scan
-            cap: ti.i64,
-            ctr: i64_1d,  # [COUNTERS]
-            regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
-            leaves: i64_2d,  # [slots, 2]
-            block: i32_3d,  # [Bx, By, Bz] dense ray counts around the sensor (full only)
-            bflag: i8_3d,  # [Bx, By, Bz/leaf] rows of the block that rays entered
-            base: i32_1d,  # [3] cell index of block[0, 0, 0]
-            block1: i32_1d,  # the same block and flags, flat ("dense" steps a flat index)
-            bflag1: i8_1d,
-            use_block: ti.i32,
-        ):
-            o = ti.Vector([origin[0], origin[1], origin[2]])
-            strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
-            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-            bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
-            co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
-            for i in range(n):
-                ce = row(cells, i)
-                d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
-                cur = co
-                step = ti.Vector([0, 0, 0], dt=ti.i32)
-                rem = ti.Vector([0, 0, 0], dt=ti.i32)
-                tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
-                tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
-                for a in ti.static(range(3)):
-                    diff = ce[a] - co[a]
-                    if diff != 0:
-                        step[a] = 1 if diff > 0 else -1
-                        rem[a] = ti.abs(diff)
-                        face = co[a] + 1 if diff > 0 else co[a]
-                        tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
-                        tdel[a] = res / ti.abs(d[a])
-                visits = 0
-                last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
-                li = (co - b0).dot(strides)  # flat index of the current cell in the block
-                dli = step * strides
-                left = rem[0] + rem[1] + rem[2]
-                # Each pass steps at least one axis towards the endpoint cell, so the loop
-                # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
-                while left > 0:
-                    rel = cur - b0
-                    if ti.static(mode == "dense"):
-                        ti.atomic_add(block1[li], 1)
-                        if ti.static(flags):
-                            bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
-                    elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
-                        # Near the sensor every ray passes: count in the dense block,
-                        # applied to the tree once per cell by block_apply.
-                        ti.atomic_add(block[rel[0], rel[1], rel[2]], 1)
-                        lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
-                        if (lb != last_leaf).any():
-                            bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
-                            last_leaf = lb
-                    else:
-                        lf = cur // leaf
-                        if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
-                            note_leaf(olm, slot, cur, regions, leaves, 0)
-                            last_leaf = lf
-                        if ti.static(full):
-                            visit(slot, cur, touched, cap, ctr)
-                        else:
-                            ti.atomic_add(ne[at(slot, cur)], 1)
-                    visits += 1
-                    # One axis crosses first by a clear margin (the common case): step it,
-                    # advancing its crossing parameter by addition.
-                    first = -1
-                    if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
-                        first = 0
-                    elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
-                        first = 1
-                    elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
-                        first = 2
-                    if first >= 0:
-                        for a in ti.static(range(3)):
-                            if a == first:
-                                cur[a] += step[a]
-                                rem[a] -= 1
-                                left -= 1
-                                li += dli[a]
-                                tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
-                    else:
-                        # Near a tie: the crossings recomputed by division, as the decision
-                        # the margin stands in for (the sums stray far less than it).
-                        for a in ti.static(range(3)):
-                            tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-                        tmin = ti.min(tmax[0], tmax[1], tmax[2])
-                        ties = 0
-                        up = False
-                        for a in ti.static(range(3)):
-                            if tmax[a] == tmin:
-                                ties += 1
-                                if step[a] > 0:
-                                    up = True
-                        # An exact tie (the segment crosses an edge or corner): axes stepping
-                        # up move first, so the cell holding the crossing point is visited.
-                        for a in ti.static(range(3)):
-                            if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
-                                cur[a] += step[a]
-                                rem[a] -= 1
-                                left -= 1
-                                li += dli[a]
-                                tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-                if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
-                    if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                        ti.atomic_add(block1[li], 1)
-                        if ti.static(flags):
-                            bflag1[li >> SHIFT] = ti.i8(1)
-                    else:
-                        note_leaf(olm, slot, ce, regions, leaves, 0)
-                        visit(slot, ce, touched, cap, ctr)
-                    visits += 1
-                ti.atomic_add(ctr[C_VISITS], visits)
-
-        return rays
-
-    rays = make_rays("full")
-    rays_dense = make_rays("dense")
-    rays_dense_unflagged = make_rays("dense", flags=False)
-    rays_floor = make_rays("floor")
 
     @ti.func
     def free_update(slot, c, k, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
@@ -422,77 +206,310 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ne[at(slot, c)] = 0
             free_update(slot, c, k, l_free, l_min, l_max, rec_n, ctr)
 
-    @ti.kernel
-    def block_apply(
-        slot: ti.i32,
-        block: i32_3d,  # [Bx, By, Bz] ray counts, zeroed here
-        bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
-        base: i32_1d,  # [3]
-        l_free: ti.f64,
-        l_min: ti.f32,
-        l_max: ti.f32,
-        rec_n: i32_1d,
-        ctr: i64_1d,
-        regions: i8_4d,
-        leaves: i64_2d,
-    ):
-        # eq. (12) for the cells of the dense block, straight from their counts (hit cells
-        # were zeroed by merge). One leaf of the tree per iteration, so its cells are
-        # updated together (the block is leaf-aligned).
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
-            cells = 0
-            for ii, jj in ti.ndrange(leaf, leaf):
-                i, j = bi * leaf + ii, bj * leaf + jj
-                if bflag[i, j, kb] != 0:
-                    bflag[i, j, kb] = ti.i8(0)
-                    for kk in range(leaf):
-                        k = kb * leaf + kk
-                        v = block[i, j, k]
-                        if v != 0:
-                            block[i, j, k] = 0
-                            c = b0 + ti.Vector([i, j, k])
-                            if cells == 0:
-                                note_leaf(olm, slot, c, regions, leaves, 0)
-                            free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
-                            cells += 1
-            if cells > 0:
-                ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
+    def block_kernels(bt):
+        """The kernels that read or write the scan's dense ray-count block, for block
+        dtype ``bt``: u16 halves its memory traffic and holds any count of a scan of at
+        most 65535 rays (a ray passes a cell once); i32 takes larger scans."""
+        b3d = ti.types.ndarray(dtype=bt, ndim=3)
+        b1d = ti.types.ndarray(dtype=bt, ndim=1)
 
-    @ti.kernel
-    def block_apply_all(
-        slot: ti.i32,
-        block1: i32_1d,  # the block, flat: [Bx * By * Bz] ray counts, zeroed here
-        shape: i32_1d,  # [3] its shape
-        base: i32_1d,
-        l_free: ti.f64,
-        l_min: ti.f32,
-        l_max: ti.f32,
-        rec_n: i32_1d,
-        ctr: i64_1d,
-        regions: i8_4d,
-        leaves: i64_2d,
-    ):
-        # block_apply for a block the rays filled densely (no row flags): every column
-        # of cells along z read in memory order.
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        bz = shape[2]
-        for i, j in ti.ndrange(shape[0], shape[1]):
-            cells = 0
-            last = -1
-            col = (i * shape[1] + j) * bz
-            for k in range(bz):
-                v = block1[col + k]
-                if v != 0:
-                    block1[col + k] = 0
-                    c = b0 + ti.Vector([i, j, k])
-                    if k >> SHIFT != last:  # a new leaf of the tree
-                        note_leaf(olm, slot, c, regions, leaves, 0)
-                        last = k >> SHIFT
-                    free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
-                    cells += 1
-            if cells > 0:
-                ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
+        @ti.func
+        def hit_update(slot, c, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
+                       block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
+            # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared.
+            note_leaf(olm, slot, c, regions, leaves, 0)
+            lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
+            hn[at(slot, c)] = 0
+            rel = c - b0
+            if (rel >= 0).all() and (rel < bsize).all():
+                block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
+            elif ne[at(slot, c)] != 0:
+                ne[at(slot, c)] = 0
+                ti.atomic_add(ctr[C_HIT_PASSED], 1)
+
+        @ti.kernel
+        def merge(
+            slot: ti.i32,
+            hitlist: i32_2d,  # [H, 3]
+            acc: f64_2d,  # [H, 9]
+            nh: ti.i32,
+            n_max: ti.i32,  # 0: no cap
+            rec_n: i32_1d,  # [C] records: points
+            rec_cell: i32_2d,  # [C, 3] records: cell index
+            rec_mean: f64_2d,  # [C, 3] records: mean minus cell centre
+            rec_scat: f64_2d,  # [C, 6] records: scatter xx xy xz yy yz zz
+            ctr: i64_1d,  # [COUNTERS]; C_RECORDS holds the records in use
+            l_hit: ti.f64,
+            l_min: ti.f32,
+            l_max: ti.f32,
+            regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
+            leaves: i64_2d,
+            block: b3d,  # the scan's dense ray counts (see rays)
+            base: i32_1d,
+            use_block: ti.i32,
+        ):
+            # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
+            for s in range(nh):
+                c = row(hitlist, s)
+                r = gslot[at(slot, c)] - 1
+                if r < 0:
+                    r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                    gslot[at(slot, c)] = r + 1
+                    for a in ti.static(range(3)):
+                        rec_cell[r, a] = c[a]
+                n = ti.cast(hn[at(slot, c)], ti.f64)
+                sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+                mu_y = sv / n
+                ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
+                s_y = ss - ti.Vector(
+                    [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
+                ) / n
+                m_i = rec_n[r]
+                tot_i = m_i + hn[at(slot, c)]
+                if m_i == 0:
+                    for a in ti.static(range(3)):
+                        rec_mean[r, a] = mu_y[a]
+                    for a in ti.static(range(6)):
+                        rec_scat[r, a] = s_y[a]
+                else:
+                    m = ti.cast(m_i, ti.f64)
+                    tot = m + n
+                    mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+                    d = mu_x - mu_y
+                    w = m * n / tot
+                    dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
+                    mu = (m * mu_x + n * mu_y) / tot
+                    for a in ti.static(range(3)):
+                        rec_mean[r, a] = mu[a]
+                    for a in ti.static(range(6)):
+                        rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
+                if n_max > 0 and tot_i > n_max:
+                    k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
+                    for a in ti.static(range(6)):
+                        rec_scat[r, a] = rec_scat[r, a] * k
+                    tot_i = n_max
+                rec_n[r] = tot_i
+                hit_update(slot, c, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
+
+        def make_rays(mode: str, flags: bool = True):
+            # "full": counts in the dense block where it covers the cell, else in the tree.
+            # "dense": the block covers every cell of the scan: no bounds checks, no tree;
+            # with flags=False no row flags either (a second cache line per visit), for
+            # blocks that rays fill densely: block_apply_all then reads every cell.
+            # "floor": the benchmark floor: the same traversal through the tree, one integer
+            # atomic per visited cell and nothing else.
+            full = mode != "floor"
+            @ti.kernel
+            def rays(
+                slot: ti.i32,
+                pts: f64_2d,  # [N, 3] world endpoints
+                cells: i32_2d,  # [N, 3] endpoint cells
+                n_hit: ti.i32,  # rays [0, n_hit) end in a hit; the rest are free rays
+                n: ti.i32,
+                origin: f64_1d,  # [3] world sensor origin
+                ocell: i32_1d,  # [3] its cell
+                res: ti.f64,
+                touched: i32_2d,  # [cap, 3] out: cells touched for the first time this scan
+                cap: ti.i64,
+                ctr: i64_1d,  # [COUNTERS]
+                regions: i8_4d,  # [slots, L1] occupancy-tree regions in use
+                leaves: i64_2d,  # [slots, 2]
+                block: b3d,  # [Bx, By, Bz] dense ray counts around the sensor (full only)
+                bflag: i8_3d,  # [Bx, By, Bz/leaf] rows of the block that rays entered
+                base: i32_1d,  # [3] cell index of block[0, 0, 0]
+                block1: b1d,  # the same block and flags, flat ("dense" steps a flat index)
+                bflag1: i8_1d,
+                use_block: ti.i32,
+            ):
+                o = ti.Vector([origin[0], origin[1], origin[2]])
+                strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
+                b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+                bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
+                co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+                for i in range(n):
+                    ce = row(cells, i)
+                    d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
+                    cur = co
+                    step = ti.Vector([0, 0, 0], dt=ti.i32)
+                    rem = ti.Vector([0, 0, 0], dt=ti.i32)
+                    tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+                    tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+                    for a in ti.static(range(3)):
+                        diff = ce[a] - co[a]
+                        if diff != 0:
+                            step[a] = 1 if diff > 0 else -1
+                            rem[a] = ti.abs(diff)
+                            face = co[a] + 1 if diff > 0 else co[a]
+                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                            tdel[a] = res / ti.abs(d[a])
+                    visits = 0
+                    last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
+                    li = (co - b0).dot(strides)  # flat index of the current cell in the block
+                    dli = step * strides
+                    left = rem[0] + rem[1] + rem[2]
+                    # Each pass steps at least one axis towards the endpoint cell, so the loop
+                    # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+                    while left > 0:
+                        rel = cur - b0
+                        if ti.static(mode == "dense"):
+                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                            if ti.static(flags):
+                                bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
+                        elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
+                            # Near the sensor every ray passes: count in the dense block,
+                            # applied to the tree once per cell by block_apply.
+                            ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
+                            lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
+                            if (lb != last_leaf).any():
+                                bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
+                                last_leaf = lb
+                        else:
+                            lf = cur // leaf
+                            if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
+                                note_leaf(olm, slot, cur, regions, leaves, 0)
+                                last_leaf = lf
+                            if ti.static(full):
+                                visit(slot, cur, touched, cap, ctr)
+                            else:
+                                ti.atomic_add(ne[at(slot, cur)], 1)
+                        visits += 1
+                        # One axis crosses first by a clear margin (the common case): step it,
+                        # advancing its crossing parameter by addition.
+                        first = -1
+                        if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
+                            first = 0
+                        elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
+                            first = 1
+                        elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
+                            first = 2
+                        if first >= 0:
+                            for a in ti.static(range(3)):
+                                if a == first:
+                                    cur[a] += step[a]
+                                    rem[a] -= 1
+                                    left -= 1
+                                    li += dli[a]
+                                    tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
+                        else:
+                            # Near a tie: the crossings recomputed by division, as the decision
+                            # the margin stands in for (the sums stray far less than it).
+                            for a in ti.static(range(3)):
+                                tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                            tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                            ties = 0
+                            up = False
+                            for a in ti.static(range(3)):
+                                if tmax[a] == tmin:
+                                    ties += 1
+                                    if step[a] > 0:
+                                        up = True
+                            # An exact tie (the segment crosses an edge or corner): axes stepping
+                            # up move first, so the cell holding the crossing point is visited.
+                            for a in ti.static(range(3)):
+                                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                                    cur[a] += step[a]
+                                    rem[a] -= 1
+                                    left -= 1
+                                    li += dli[a]
+                                    tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                    if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
+                        if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                            if ti.static(flags):
+                                bflag1[li >> SHIFT] = ti.i8(1)
+                        else:
+                            note_leaf(olm, slot, ce, regions, leaves, 0)
+                            visit(slot, ce, touched, cap, ctr)
+                        visits += 1
+                    ti.atomic_add(ctr[C_VISITS], visits)
+
+            return rays
+
+        @ti.kernel
+        def block_apply(
+            slot: ti.i32,
+            block: b3d,  # [Bx, By, Bz] ray counts, zeroed here
+            bflag: i8_3d,  # [Bx, By, Bz/leaf] rows entered, zeroed here
+            base: i32_1d,  # [3]
+            l_free: ti.f64,
+            l_min: ti.f32,
+            l_max: ti.f32,
+            rec_n: i32_1d,
+            ctr: i64_1d,
+            regions: i8_4d,
+            leaves: i64_2d,
+        ):
+            # eq. (12) for the cells of the dense block, straight from their counts (hit cells
+            # were zeroed by merge). One leaf of the tree per iteration, so its cells are
+            # updated together (the block is leaf-aligned).
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
+                cells = 0
+                for ii, jj in ti.ndrange(leaf, leaf):
+                    i, j = bi * leaf + ii, bj * leaf + jj
+                    if bflag[i, j, kb] != 0:
+                        bflag[i, j, kb] = ti.i8(0)
+                        for kk in range(leaf):
+                            k = kb * leaf + kk
+                            v = ti.cast(block[i, j, k], ti.i32)
+                            if v != 0:
+                                block[i, j, k] = ti.cast(0, bt)
+                                c = b0 + ti.Vector([i, j, k])
+                                if cells == 0:
+                                    note_leaf(olm, slot, c, regions, leaves, 0)
+                                free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                                cells += 1
+                if cells > 0:
+                    ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
+
+        @ti.kernel
+        def block_apply_all(
+            slot: ti.i32,
+            block1: b1d,  # the block, flat: [Bx * By * Bz] ray counts, zeroed here
+            shape: i32_1d,  # [3] its shape
+            base: i32_1d,
+            l_free: ti.f64,
+            l_min: ti.f32,
+            l_max: ti.f32,
+            rec_n: i32_1d,
+            ctr: i64_1d,
+            regions: i8_4d,
+            leaves: i64_2d,
+        ):
+            # block_apply for a block the rays filled densely (no row flags): every column
+            # of cells along z read in memory order.
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            bz = shape[2]
+            for i, j in ti.ndrange(shape[0], shape[1]):
+                cells = 0
+                last = -1
+                col = (i * shape[1] + j) * bz
+                for k in range(bz):
+                    v = ti.cast(block1[col + k], ti.i32)
+                    if v != 0:
+                        block1[col + k] = ti.cast(0, bt)
+                        c = b0 + ti.Vector([i, j, k])
+                        if k >> SHIFT != last:  # a new leaf of the tree
+                            note_leaf(olm, slot, c, regions, leaves, 0)
+                            last = k >> SHIFT
+                        free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                        cells += 1
+                if cells > 0:
+                    ti.atomic_add(ctr[C_BLOCK_CELLS], cells)
+
+        return SimpleNamespace(
+            merge=merge,
+            rays=make_rays("full"),
+            rays_dense=make_rays("dense"),
+            rays_dense_unflagged=make_rays("dense", flags=False),
+            block_apply=block_apply,
+            block_apply_all=block_apply_all,
+            rays_floor=make_rays("floor"),
+        )
+
+    by_dtype = {np.dtype(np.uint16): block_kernels(ti.u16), np.dtype(np.int32): block_kernels(ti.i32)}
 
     @ti.kernel
     def apply_free(
@@ -626,13 +643,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         prepare=prepare,
         hits_count=hits_count,
         hits_sum=hits_sum,
-        merge=merge,
-        rays=rays,
-        rays_floor=rays_floor,
-        rays_dense=rays_dense,
-        rays_dense_unflagged=rays_dense_unflagged,
-        block_apply=block_apply,
-        block_apply_all=block_apply_all,
+        block=by_dtype,  # by the block's numpy dtype
+        rays_floor=by_dtype[np.dtype(np.int32)].rays_floor,
         apply_free=apply_free,
         apply_free_all=apply_free_all,
         reset_rays=reset_rays,

@@ -149,6 +149,8 @@ class NdtOmMap:
         # to the 1M cells nearest the sensor there.
         self.block_cells = BLOCK_CELLS if self.arch == "cpu" else 1 << 20
         self._block_density = 0.0  # ray visits per cell of the last scan's dense block
+        # A ray passes a cell once: u16 ray counts hold any scan of up to 65535 rays.
+        self._u16_rays = 65535
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -264,18 +266,21 @@ class NdtOmMap:
         world, cells, n_hit, origin, ocell, rep, box, one_pass = self._prepare(points, T_world_sensor)
         self._ctr[:] = 0
         if len(world):
-            self._trace(self._k.rays_floor, world, cells, n_hit, origin, ocell, box, one_pass)
+            self._trace("floor", world, cells, n_hit, origin, ocell, box, one_pass)
         rep.ray_cell_visits = int(self._ctr[C_VISITS])
         rep.seconds = time.perf_counter() - t0
         return rep
 
-    def _trace(self, kernel, world, cells, n_hit, origin, ocell, box, one_pass: bool):
-        """Run a ray kernel over all rays (``box``: their cells' bounding box), in batches
-        when memory is tight. Returns the dense block (block, row flags, base, whether
-        the rays set the flags) they counted in, or None."""
+    def _trace(self, mode: str, world, cells, n_hit, origin, ocell, box, one_pass: bool):
+        """Run the ray kernel of ``mode`` ("full" or "floor") over all rays (``box``: their
+        cells' bounding box), in batches when memory is tight. Returns the dense block
+        (block, row flags, base, whether the rays set the flags) they counted in, or None."""
         st, slot = self._st, self._slot
-        dense = one_pass and kernel is self._k.rays  # the floor counts in the tree only
-        block, bflag, base = self._block_for(box if dense else None, ocell)
+        dense = one_pass and mode == "full"  # the floor counts in the tree only
+        dtype = np.uint16 if len(world) <= self._u16_rays else np.int32
+        kb = self._k.block[np.dtype(dtype)]
+        kernel = kb.rays if mode == "full" else kb.rays_floor
+        block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
         n = len(world)
@@ -287,7 +292,7 @@ class NdtOmMap:
                 # rays leave most rows empty: the last scan made few visits per block cell
                 # (measured on the hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15).
                 flagged = self._block_density < 0.2
-                kernel = self._k.rays_dense if flagged else self._k.rays_dense_unflagged
+                kernel = kb.rays_dense if flagged else kb.rays_dense_unflagged
             kernel(slot, world, cells, n_hit, n, *args, int(dense))
             st.note_usage()
             if not (dense and block.size):
@@ -320,12 +325,13 @@ class NdtOmMap:
                 self._reserve(bound)  # raises: nothing of this scan is kept
         return None
 
-    def _block_for(self, box, ocell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The dense ray-count block of a scan: the leaf-aligned box of its cells and the
-        sensor, trimmed on its far sides to ``block_cells`` cells (empty with no ``box``)."""
+    def _block_for(self, box, ocell: np.ndarray, dtype=np.int32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The dense ray-count block (of ``dtype``) of a scan: the leaf-aligned box of its
+        cells and the sensor, trimmed on its far sides to ``block_cells`` cells (empty
+        with no ``box``)."""
         leaf = self.layout.leaf
         if box is None or self.block_cells < leaf**3:
-            return np.zeros((0, 0, 0), np.int32), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32)
+            return np.zeros((0, 0, 0), dtype), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32)
         oleaf = ocell // leaf
         lo = np.minimum(box[0] // leaf, oleaf)  # in leaves
         hi = np.maximum(box[1] // leaf, oleaf) + 1
@@ -339,10 +345,12 @@ class NdtOmMap:
         shape = tuple(int(x) * leaf for x in hi - lo)
         n = shape[0] * shape[1] * shape[2]
         st = self._st
-        if n > len(st.block_buf):
-            st.block_buf = np.zeros(max(n, min(len(st.block_buf) * 5 // 4, BLOCK_CELLS)), np.int32)
-            st.bflag_buf = np.zeros(len(st.block_buf) // leaf, np.int8)
-        block = st.block_buf[:n].reshape(shape)
+        words = -(-n * np.dtype(dtype).itemsize // 4)  # the buffer is int32, viewed as dtype
+        if words > len(st.block_buf):
+            st.block_buf = np.zeros(max(words, min(len(st.block_buf) * 5 // 4, BLOCK_CELLS)), np.int32)
+        if n // leaf > len(st.bflag_buf):
+            st.bflag_buf = np.zeros(max(n // leaf, min(len(st.bflag_buf) * 5 // 4, BLOCK_CELLS // leaf)), np.int8)
+        block = st.block_buf.view(dtype)[:n].reshape(shape)
         bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
         return block, bflag, (lo * leaf).astype(np.int32)
 
@@ -373,8 +381,9 @@ class NdtOmMap:
         lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
         dense = None
         if self.occupancy_enabled and n:
-            dense = self._trace(k.rays, world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
+            dense = self._trace("full", world, cells, n_hit, origin, ocell, box, one_pass)  # may refuse
         block, bflag, base, flagged = dense if dense is not None else (*self._block_for(None, ocell), True)
+        kb = k.block[block.dtype]
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         if n_hit:
@@ -385,14 +394,14 @@ class NdtOmMap:
             if self._nrec + nh > len(self._rec_n):
                 self._alloc_records(max(len(self._rec_n) * 5 // 4, self._nrec + nh))
             ctr[C_RECORDS] = self._nrec
-            k.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
+            kb.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
                     cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None))  # fmt: skip
             self._nrec = int(ctr[C_RECORDS])
         if dense is not None:
             if flagged:
-                k.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
+                kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
             else:
-                k.block_apply_all(slot, block.reshape(-1), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
+                kb.block_apply_all(slot, block.reshape(-1), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
                                   self._rec_n, ctr, fs.occ_regions, fs.leaf_count)  # fmt: skip
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])

@@ -115,13 +115,17 @@ def assert_logodds_equal(got, ref):
 
 # Ray counts go to a dense block over the scan's cells, trimmed to ``block_cells`` around
 # the sensor, and to the sparse tree past it: whole block (rows flagged as rays enter
-# them, or all rows read as after a dense scan), split, tree only.
-BLOCKS = [None, "unflagged", 8**3 * 27, 0]
+# them, or all rows read as after a dense scan; u16 counts, or i32 as for scans of more
+# than 65535 rays), split, tree only.
+BLOCKS = [None, "unflagged", "i32", "i32 unflagged", 8**3 * 27, 0]
 
 
 def set_block(m, block_cells):
-    if block_cells == "unflagged":
-        m._block_density = float("inf")
+    if isinstance(block_cells, str):
+        if "unflagged" in block_cells:
+            m._block_density = float("inf")
+        if "i32" in block_cells:
+            m._u16_rays = 0
     elif block_cells is not None:
         m.block_cells = block_cells
 
@@ -248,6 +252,15 @@ def test_cell_both_hit_and_passed_takes_the_hit_update(block_cells):
     assert got[(5, 0, 0)] == pytest.approx(lo, rel=1e-6)
     assert got[(1, 0, 0)] == pytest.approx(2 * le, rel=1e-6)
     assert got[(3, 0, 0)] == pytest.approx(le, rel=1e-6)
+
+
+def test_scan_of_more_rays_than_u16_counts_hold():
+    # Every ray passes the sensor's cell: 65546 passes would wrap to 10 in 16 bits.
+    m = NdtOmMap(1.0)
+    T = m_pose([0.5, 0.5, 0.5])
+    d = np.random.default_rng(3).normal(size=(65546, 3))
+    m.insert_scan(d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0, T)
+    assert m.occupancy(np.array([[0.5, 0.5, 0.5]]))[0] == pytest.approx(1 / (1 + math.exp(-m.config.logodds_min)))
 
 
 def test_occupancy_of_unknown_cells_is_prior_and_flagged():
