@@ -24,8 +24,9 @@ from .kernels.ndt import (
     C_RECORDS,
     C_TOUCHED,
     C_VISITS,
-    COUNTERS,
+    CTR_SIZE,
     make_kernels,
+    total,
 )
 from .runtime import MapMemoryError
 
@@ -143,7 +144,7 @@ class NdtOmMap:
         self._k = make_kernels(self._st)
         # Empty the slot for the next map; nothing to do at interpreter exit.
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
-        self._ctr = np.zeros(COUNTERS, np.int64)
+        self._ctr = np.zeros(CTR_SIZE, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         # On CUDA a numpy block is copied to the device and back at every launch: keep it
         # to the 1M cells nearest the sensor there.
@@ -267,7 +268,7 @@ class NdtOmMap:
         self._ctr[:] = 0
         if len(world):
             self._trace("floor", world, cells, n_hit, origin, ocell, box, one_pass)
-        rep.ray_cell_visits = int(self._ctr[C_VISITS])
+        rep.ray_cell_visits = total(self._ctr, C_VISITS)
         rep.seconds = time.perf_counter() - t0
         return rep
 
@@ -297,7 +298,7 @@ class NdtOmMap:
             st.note_usage()
             if not (dense and block.size):
                 return None
-            self._block_density = int(self._ctr[C_VISITS]) / block.size  # the only rays kernel of the update
+            self._block_density = total(self._ctr, C_VISITS) / block.size  # the only rays kernel of the update
             return block, bflag, base, flagged
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
         d = world - origin
@@ -410,10 +411,10 @@ class NdtOmMap:
             elif nt:
                 k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
                 self._touched = np.empty((2 * nt, 3), np.int32)
-            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + int(ctr[C_BLOCK_CELLS])
+            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
         fs.note_usage()
         rep.cells_hit = nh
-        rep.ray_cell_visits = int(ctr[C_VISITS])
+        rep.ray_cell_visits = total(ctr, C_VISITS)
         rep.gaussians_erased = int(ctr[C_ERASED])
         self.scans_inserted += 1
         self.points_inserted += n_hit

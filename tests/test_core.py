@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from reference import batch_stats, eq12_logodds, ray_cells
+from reference import batch_stats, eq12_logodds, ray_cells, ray_pass_counts
 
 from ndtom_ti import MapConfig, NdtOmMap
 
@@ -140,6 +140,7 @@ def test_dda_matches_reference_on_thousands_of_random_rays(rng, block_cells):
         assert_logodds_equal(got, eq12_logodds([(origin, world)], res, **WIDE_REF))
         rep = m.insert_scan(ends - origin, m_pose(origin))
         assert rep.cells_passed == sum(v < 0 for v in got.values())  # free-space updates, both paths
+        assert rep.ray_cell_visits == sum(ray_pass_counts(origin, world, res).values())
 
 
 def test_long_rays_far_from_the_origin_match_the_reference(rng):
