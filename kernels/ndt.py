@@ -228,11 +228,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         b1d = ti.types.ndarray(dtype=bt, ndim=1)
 
         @ti.func
-        def hit_update(slot, c, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
+        def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
                        block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
             # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared.
             note_leaf(olm, slot, c, regions, leaves, 0)
-            lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(hn[at(slot, c)] * l_hit, ti.f32), l_min), l_max)
+            lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
             hn[at(slot, c)] = 0
             rel = c - b0
             if (rel >= 0).all() and (rel < bsize).all():
@@ -273,7 +273,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     gslot[at(slot, c)] = r + 1
                     for a in ti.static(range(3)):
                         rec_cell[r, a] = c[a]
-                n = ti.cast(hn[at(slot, c)], ti.f64)
+                cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
+                n = ti.cast(cnt, ti.f64)
                 sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
                 mu_y = sv / n
                 ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
@@ -281,7 +282,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
                 ) / n
                 m_i = rec_n[r]
-                tot_i = m_i + hn[at(slot, c)]
+                tot_i = m_i + cnt
                 if m_i == 0:
                     for a in ti.static(range(3)):
                         rec_mean[r, a] = mu_y[a]
@@ -305,7 +306,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rec_scat[r, a] = rec_scat[r, a] * k
                     tot_i = n_max
                 rec_n[r] = tot_i
-                hit_update(slot, c, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
+                hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
 
         def make_rays(mode: str, flags: bool = True):
             # "full": counts in the dense block where it covers the cell, else in the tree.
