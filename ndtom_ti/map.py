@@ -31,7 +31,7 @@ from .kernels.ndt import (
 from .runtime import MapMemoryError
 
 _TOUCHED_START = 1 << 20
-# Dense scan-local ray counts over the scan's cell box, at most this many cells (4 B each):
+# Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
 # counting there is several times cheaper than in the sparse tree. Past it the block keeps
 # the part nearest the sensor, where rays are densest, and the rest counts in the tree.
 BLOCK_CELLS = 1 << 25
