@@ -47,6 +47,12 @@ def total(ctr, which: int) -> int:
     """A counter's value: its slot plus its striped copies."""
     return int(ctr[which] + ctr[COUNTERS + which :: COUNTERS].sum())
 
+# The occupancy tree's per-cell i32 ``ne``: the rays that passed the cell in this scan
+# (low bits, zero between scans) and whether the cell has a Gaussian record (NE_GAUSS, set
+# once and kept): eq. (12) then walks the Gaussian index tree only for such cells.
+NE_GAUSS = 1 << 30
+NE_COUNT = NE_GAUSS - 1
+
 # Finite in f32 too: kernel float literals are f32, and 1e300 would become inf, which
 # fast math assumes never occurs. Ray parameters that matter are <= 1.
 BIG = 1.0e30
@@ -185,7 +191,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()):
-        if ti.atomic_add(ne[at(slot, c)], 1) == 0:
+        if ti.atomic_add(ne[at(slot, c)], 1) & NE_COUNT == 0:
             t = ti.atomic_add(ctr[C_TOUCHED], 1)
             if t < cap:
                 for a in ti.static(range(3)):
@@ -200,11 +206,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     SHIFT = leaf.bit_length() - 1  # leaf is a power of two
 
     @ti.func
-    def free_update(slot, c, k, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
-        # eq. (12) for a cell that k rays passed and no endpoint hit; Gaussian reset at l <= 0.
+    def free_update(slot, c, k, g, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+        # eq. (12) for a cell that k rays passed and no endpoint hit; reset of its Gaussian
+        # (g: NE_GAUSS set) at l <= 0.
         l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
         lo[at(slot, c)] = l
-        if l <= 0.0:
+        if l <= 0.0 and g != 0:
             r = gslot[at(slot, c)] - 1
             if r >= 0:
                 if rec_n[r] > 0:
@@ -215,10 +222,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
         # Hit cells were updated by merge, which cleared their ray count: skipped.
-        k = ne[at(slot, c)]
+        v = ne[at(slot, c)]
+        k = v & NE_COUNT
         if k > 0:
-            ne[at(slot, c)] = 0
-            free_update(slot, c, k, l_free, l_min, l_max, rec_n, ctr)
+            ne[at(slot, c)] = v & NE_GAUSS
+            free_update(slot, c, k, v & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
 
     def block_kernels(bt):
         """The kernels that read or write the scan's dense ray-count block, for block
@@ -230,15 +238,17 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         @ti.func
         def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
                        block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
-            # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared.
+            # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
+            # the cell has a Gaussian record now.
             note_leaf(olm, slot, c, regions, leaves, 0)
             lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
             hn[at(slot, c)] = 0
+            v = ne[at(slot, c)]
+            ne[at(slot, c)] = NE_GAUSS
             rel = c - b0
             if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
-            elif ne[at(slot, c)] != 0:
-                ne[at(slot, c)] = 0
+            elif v & NE_COUNT != 0:
                 ti.atomic_add(ctr[C_HIT_PASSED], 1)
 
         @ti.kernel
@@ -474,7 +484,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                 c = b0 + ti.Vector([i, j, k])
                                 if cells == 0:
                                     note_leaf(olm, slot, c, regions, leaves, 0)
-                                free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
                                 cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
@@ -509,7 +519,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         if k >> SHIFT != last:  # a new leaf of the tree
                             note_leaf(olm, slot, c, regions, leaves, 0)
                             last = k >> SHIFT
-                        free_update(slot, c, v, l_free, l_min, l_max, rec_n, ctr)
+                        free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
                         cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
@@ -544,7 +554,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d):
         # Fallback when the touched list overflowed: visit every known cell.
         for I in ti.grouped(ne):
-            if I[0] == slot and ne[I] > 0:
+            if I[0] == slot and ne[I] & NE_COUNT > 0:
                 free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
 
     @ti.kernel
@@ -589,13 +599,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     @ti.kernel
     def reset_rays(slot: ti.i32, touched: i32_2d, nt: ti.i32):
         for t in range(nt):
-            ne[at(slot, row(touched, t))] = 0
+            c = row(touched, t)
+            ne[at(slot, c)] = ne[at(slot, c)] & NE_GAUSS
 
     @ti.kernel
     def reset_rays_all(slot: ti.i32):
         for I in ti.grouped(ne):
             if I[0] == slot:
-                ne[I] = 0
+                ne[I] = ne[I] & NE_GAUSS
 
     # ---- queries, export, load -------------------------------------------------------
 
@@ -627,11 +638,13 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             lo[at(slot, c)] = val[k]
 
     @ti.kernel
-    def load_slots(slot: ti.i32, rec_cell: i32_2d, n: ti.i32, regions: i8_4d, leaves: i64_2d):
+    def load_slots(slot: ti.i32, rec_cell: i32_2d, n: ti.i32, regions: i8_4d, occ_regions: i8_4d, leaves: i64_2d):
         for r in range(n):
             c = row(rec_cell, r)
             note_leaf(glm, slot, c, regions, leaves, 1)
             gslot[at(slot, c)] = r + 1
+            note_leaf(olm, slot, c, occ_regions, leaves, 0)
+            ne[at(slot, c)] = ne[at(slot, c)] | NE_GAUSS
 
     @ti.kernel
     def count_leaf_cells(ctr: i64_2d):

@@ -672,7 +672,7 @@ class NdtOmMap:
             self._rec_mean[: len(g_idx)] = st["g_mean_rel"]
             self._rec_scat[: len(g_idx)] = st["g_scatter"]
             self._nrec = len(g_idx)
-            self._k.load_slots(self._slot, g_idx, len(g_idx), fs.gidx_regions, fs.leaf_count)
+            self._k.load_slots(self._slot, g_idx, len(g_idx), fs.gidx_regions, fs.occ_regions, fs.leaf_count)
         fs.note_usage()
 
     def _load_bound(self, occ_idx: np.ndarray, g_idx: np.ndarray) -> np.ndarray:
@@ -681,8 +681,9 @@ class NdtOmMap:
         def distinct(idx: np.ndarray, size: int) -> int:
             return 0 if len(idx) == 0 else len(np.unique(idx.astype(np.int64) // size, axis=0))
 
+        occ = np.concatenate([occ_idx, g_idx])  # a Gaussian's cell holds its flag in the occupancy tree
         return np.array(
-            [distinct(occ_idx, L.region), distinct(occ_idx, L.leaf), distinct(g_idx, L.region), distinct(g_idx, L.leaf)],
+            [distinct(occ, L.region), distinct(occ, L.leaf), distinct(g_idx, L.region), distinct(g_idx, L.leaf)],
             np.int64,
         )
 

@@ -296,12 +296,17 @@ def test_multi_scan_logodds_match_reference(rng, block_cells):
 # --------------------------------------------------------------------------- erasure
 
 
-def test_gaussian_reset_when_logodds_falls_to_zero():
+@pytest.mark.parametrize("block_cells", [None, 0])
+@pytest.mark.parametrize("reload", [False, True])
+def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path):
     m = NdtOmMap(1.0)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
     wall = np.array([[5.5, 0.5, 0.5], [5.2, 0.6, 0.4], [5.7, 0.3, 0.6], [5.4, 0.4, 0.5]]) - T[:3, 3]
     m.insert_scan(wall, T)
+    if reload:  # a loaded map knows which cells hold Gaussians too
+        m = NdtOmMap.load(m.save(tmp_path / "wall.ndtom"))
+    set_block(m, block_cells)
     assert m.gaussians()["index"].tolist() == [[5, 0, 0]]
     # The object leaves: rays now pass cell 5 and end in cell 9.
     far = np.array([[9.5, 0.5, 0.5]] * 10) - T[:3, 3]
