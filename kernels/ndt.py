@@ -237,12 +237,13 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
         @ti.func
         def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                       block: ti.template(), b0, bsize, ctr: ti.template()):  # fmt: skip
+                       block: ti.template(), b0, bsize, ctr: ti.template(), dense_hits):  # fmt: skip
             # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
             # the cell has a Gaussian record now.
             note_leaf(olm, slot, c, regions, leaves, 0)
             lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
-            hn[at(slot, c)] = 0
+            if dense_hits == 0:
+                hn[at(slot, c)] = 0
             v = ne[at(slot, c)]
             ne[at(slot, c)] = NE_GAUSS
             rel = c - b0
@@ -250,6 +251,49 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
             elif v & NE_COUNT != 0:
                 ti.atomic_add(ctr[C_HIT_PASSED], 1)
+
+        @ti.kernel
+        def hits_dense(
+            cells: i32_2d,  # [N, 3] cells of the hits
+            n: ti.i32,
+            hitlist: i32_2d,  # [N, 3] out: distinct hit cells (the first ctr[C_HIT_CELLS])
+            hcnt: i32_1d,  # [N] out: points per hit cell
+            off: i32_1d,  # [N] out: where each hit cell's points start in ``order``
+            rank: i32_1d,  # [N] scratch: a point's rank among its cell's points
+            order: i32_1d,  # [N] out: the points grouped by hit cell
+            ctr: i64_1d,
+            block: b3d,  # the scan's ray counts, covering every cell of the scan
+            base: i32_1d,
+        ):
+            # Points grouped by hit cell without the tree, for a block that holds every hit
+            # cell and at most 65535 points (u16): a hit cell's ray count is dropped anyway
+            # (eq. 12), so its block entry counts the cell's points, then holds its slot.
+            # merge then sums each cell's points itself (no atomics per point).
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            for i in range(n):
+                q = row(cells, i) - b0
+                block[q[0], q[1], q[2]] = ti.cast(0, bt)
+            for i in range(n):
+                q = row(cells, i) - b0
+                k = ti.cast(ti.atomic_add(block[q[0], q[1], q[2]], ti.cast(1, bt)), ti.i32)
+                rank[i] = k
+                if k == 0:
+                    s = ti.atomic_add(ctr[C_HIT_CELLS], 1)
+                    for a in ti.static(range(3)):
+                        hitlist[s, a] = cells[i, a]
+            for s in range(n):
+                if s < ctr[C_HIT_CELLS]:
+                    q = row(hitlist, s) - b0
+                    hcnt[s] = ti.cast(block[q[0], q[1], q[2]], ti.i32)
+                    block[q[0], q[1], q[2]] = ti.cast(s, bt)
+            for _ in range(1):  # prefix sums, one thread
+                run = 0
+                for s in range(ti.cast(ctr[C_HIT_CELLS], ti.i32)):
+                    off[s] = run
+                    run += hcnt[s]
+            for i in range(n):
+                q = row(cells, i) - b0
+                order[off[ti.cast(block[q[0], q[1], q[2]], ti.i32)] + rank[i]] = i
 
         @ti.kernel
         def merge(
@@ -271,6 +315,13 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             block: b3d,  # the scan's dense ray counts (see rays)
             base: i32_1d,
             use_block: ti.i32,
+            hcnt: i32_1d,  # [H] points per hit cell, from hits_dense (dense_hits != 0)
+            gregions: i8_4d,  # [slots, L1] index-tree regions in use
+            dense_hits: ti.i32,  # 1: hits grouped by hits_dense, 0: counted and summed in the tree
+            pts: f64_2d,  # [N, 3] world points of the hits (dense_hits)
+            order: i32_1d,  # [N] (dense_hits)
+            off: i32_1d,  # [H] (dense_hits)
+            res: ti.f64,
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
@@ -280,14 +331,30 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 r = gslot[at(slot, c)] - 1
                 if r < 0:
                     r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                    if dense_hits != 0:  # hits_count did not touch the index tree
+                        note_leaf(glm, slot, c, gregions, leaves, 1)
                     gslot[at(slot, c)] = r + 1
                     for a in ti.static(range(3)):
                         rec_cell[r, a] = c[a]
-                cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
+                cnt = 0
+                if dense_hits != 0:
+                    cnt = hcnt[s]
+                else:
+                    cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
                 n = ti.cast(cnt, ti.f64)
-                sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+                sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+                ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
+                if dense_hits != 0:  # sums relative to the cell centre, as hits_sum's
+                    centre = (c.cast(ti.f64) + 0.5) * res
+                    for j in range(off[s], off[s] + cnt):
+                        i = order[j]
+                        x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
+                        sv += x
+                        ss += ti.Vector([x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]])
+                else:
+                    sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+                    ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
                 mu_y = sv / n
-                ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
                 s_y = ss - ti.Vector(
                     [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
                 ) / n
@@ -316,7 +383,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rec_scat[r, a] = rec_scat[r, a] * k
                     tot_i = n_max
                 rec_n[r] = tot_i
-                hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr)
+                hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
         def make_rays(mode: str, flags: bool = True):
             # "full": counts in the dense block where it covers the cell, else in the tree.
@@ -525,6 +592,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
 
         return SimpleNamespace(
+            hits_dense=hits_dense,
             merge=merge,
             rays=make_rays("full"),
             rays_dense=make_rays("dense"),

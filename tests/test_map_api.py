@@ -299,7 +299,8 @@ def test_interrupted_update_leaves_the_shared_block_zero(rng, monkeypatch):
     def interrupt(*a):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(m._k, "hits_count", interrupt)  # after the rays counted in the block
+    for kb in m._k.block.values():  # after the rays and the hits counted in the block
+        monkeypatch.setattr(kb, "merge", interrupt)
     with pytest.raises(KeyboardInterrupt):
         m.insert_scan(*scans[0])
     monkeypatch.undo()
