@@ -7,6 +7,8 @@ Per scan, in this order:
                      with a compact list of the cells touched there.
 2. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
 3. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
+   (``hits_dense`` instead, when the block holds every cell of a scan of <= 65535 rays:
+   the points grouped by hit cell in the block, summed by merge.)
 4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
                      record with the RCU (a new record for a cell's first points), then
                      applies eq. (12) to the cell and clears its ray count.

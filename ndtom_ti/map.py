@@ -152,6 +152,7 @@ class NdtOmMap:
         self._block_density = 0.0  # ray visits per cell of the last scan's dense block
         # A ray passes a cell once: u16 ray counts hold any scan of up to 65535 rays.
         self._u16_rays = 65535
+        self._group_hits = True  # endpoints grouped in the block where it can (see _insert)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
         # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
@@ -391,7 +392,7 @@ class NdtOmMap:
         nh = 0
         # Points per hit cell counted in the block (no tree walks) when it holds them all
         # and 16-bit entries can hold a hit cell's slot.
-        dense_hits = whole and block.dtype == np.uint16
+        dense_hits = whole and block.dtype == np.uint16 and self._group_hits
         g = max(n_hit, 1) if dense_hits else 1
         hcnt, off, order = np.empty(g, np.int32), np.empty(g, np.int32), np.empty(g, np.int32)
         if n_hit:
