@@ -280,7 +280,8 @@ class NdtOmMap:
         holds every cell of the scan), or None."""
         st, slot = self._st, self._slot
         dense = one_pass and mode == "full"  # the floor counts in the tree only
-        dtype = np.uint16 if len(world) <= self._u16_rays else np.int32
+        # 16-bit counts on the CPU only: NVIDIA GPUs have no 16-bit atomics.
+        dtype = np.uint16 if self.arch == "cpu" and len(world) <= self._u16_rays else np.int32
         kb = self._k.block[np.dtype(dtype)]
         kernel = kb.rays if mode == "full" else kb.rays_floor
         block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
