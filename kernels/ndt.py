@@ -7,8 +7,8 @@ Per scan, in this order:
                      with a compact list of the cells touched there.
 2. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
 3. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
-   (``hits_dense`` instead, when the block holds every cell of a scan of <= 65535 rays:
-   the points grouped by hit cell in the block, summed by merge.)
+   (``hits_dense`` instead, on the CPU when the block holds every cell of the scan: the
+   points grouped by hit cell in the block, summed by merge.)
 4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
                      record with the RCU (a new record for a cell's first points), then
                      applies eq. (12) to the cell and clears its ray count.
@@ -48,6 +48,7 @@ CTR_SIZE = COUNTERS * (1 + STRIPES)
 def total(ctr, which: int) -> int:
     """A counter's value: its slot plus its striped copies."""
     return int(ctr[which] + ctr[COUNTERS + which :: COUNTERS].sum())
+
 
 # The occupancy tree's per-cell i32 ``ne``: the rays that passed the cell in this scan
 # (low bits, zero between scans) and whether the cell has a Gaussian record (NE_GAUSS, set
@@ -268,8 +269,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             base: i32_1d,
         ):
             # Points grouped by hit cell without the tree, for a block that holds every hit
-            # cell and at most 65535 points (u16): a hit cell's ray count is dropped anyway
-            # (eq. 12), so its block entry counts the cell's points, then holds its slot.
+            # cell (an entry holds any count or slot: at most one per ray): a hit cell's ray
+            # count is dropped anyway (eq. 12), so its block entry counts the cell's points,
+            # then holds its slot.
             # merge then sums each cell's points itself (no atomics per point).
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
             for i in range(n):

@@ -391,9 +391,9 @@ class NdtOmMap:
         kb = k.block[block.dtype]
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
-        # Points per hit cell counted in the block (no tree walks) when it holds them all
-        # and 16-bit entries can hold a hit cell's slot.
-        dense_hits = whole and block.dtype == np.uint16 and self._group_hits
+        # Points per hit cell counted in the block (no tree walks) when it holds them all; on
+        # the CPU only (its prefix sum runs on one thread).
+        dense_hits = whole and self.arch == "cpu" and self._group_hits
         g = max(n_hit, 1) if dense_hits else 1
         hcnt, off, order = np.empty(g, np.int32), np.empty(g, np.int32), np.empty(g, np.int32)
         if n_hit:
