@@ -74,6 +74,7 @@ i8_3d = ti.types.ndarray(dtype=ti.i8, ndim=3)
 i8_1d = ti.types.ndarray(dtype=ti.i8, ndim=1)
 i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
 i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)
+u64_1d = ti.types.ndarray(dtype=ti.u64, ndim=1)
 
 
 def make_kernels(f: Storage) -> SimpleNamespace:
@@ -237,6 +238,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         most 65535 rays (a ray passes a cell once); i32 takes larger scans."""
         b3d = ti.types.ndarray(dtype=bt, ndim=3)
         b1d = ti.types.ndarray(dtype=bt, ndim=1)
+        bits = 16 if bt == ti.u16 else 32
 
         @ti.func
         def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
@@ -560,11 +562,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
 
+        lanes = 64 // bits  # block entries per 64-bit word
+        mask = (1 << bits) - 1
+
         @ti.kernel
         def block_apply_all(
             slot: ti.i32,
-            block1: b1d,  # the block, flat: [Bx * By * Bz] ray counts, zeroed here
-            shape: i32_1d,  # [3] its shape
+            words: u64_1d,  # the block, flat, as 64-bit words: ray counts, zeroed here
+            shape: i32_1d,  # [3] its shape in cells
             base: i32_1d,
             l_free: ti.f64,
             l_min: ti.f32,
@@ -575,23 +580,29 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             leaves: i64_2d,
         ):
             # block_apply for a block the rays filled densely (no row flags): every column
-            # of cells along z read in memory order.
+            # of cells along z read in memory order, a word of `lanes` cells at a time, so
+            # the empty cells (most of them) cost one test per word. Little-endian: lane 0
+            # is the word's first cell.
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-            bz = shape[2]
+            wz = shape[2] // lanes  # a multiple of the leaf size: whole words
             for i, j in ti.ndrange(shape[0], shape[1]):
                 cells = 0
                 last = -1
-                col = (i * shape[1] + j) * bz
-                for k in range(bz):
-                    v = ti.cast(block1[col + k], ti.i32)
-                    if v != 0:
-                        block1[col + k] = ti.cast(0, bt)
-                        c = b0 + ti.Vector([i, j, k])
-                        if k >> SHIFT != last:  # a new leaf of the tree
-                            note_leaf(olm, slot, c, regions, leaves, 0)
-                            last = k >> SHIFT
-                        free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
-                        cells += 1
+                col = (i * shape[1] + j) * wz
+                for kw in range(wz):
+                    w = words[col + kw]
+                    if w != 0:
+                        words[col + kw] = ti.u64(0)
+                        for lane in ti.static(range(lanes)):
+                            v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
+                            if v != 0:
+                                k = kw * lanes + lane
+                                c = b0 + ti.Vector([i, j, k])
+                                if k >> SHIFT != last:  # a new leaf of the tree
+                                    note_leaf(olm, slot, c, regions, leaves, 0)
+                                    last = k >> SHIFT
+                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
+                                cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
 

@@ -417,7 +417,7 @@ class NdtOmMap:
             if flagged:
                 kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
             else:
-                kb.block_apply_all(slot, block.reshape(-1), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
+                kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
                                   self._rec_n, ctr, fs.occ_regions, fs.leaf_count)  # fmt: skip
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
