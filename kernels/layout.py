@@ -154,6 +154,7 @@ class Storage:
         # Most nodes of each type ever allocated: Taichi keeps freed nodes for reuse but
         # never returns a chunk, so the pool follows the high-water mark.
         self.node_high_water = np.zeros(4, np.int64)
+        self._counts: dict = {}  # slot -> (its leaf counts, its node counts)
         self.free_slots = list(range(slots - 1, -1, -1))
         self.kernels = None  # built lazily by kernels.ndt.make_kernels
         # Scan scratch shared by the maps: the dense ray-count block and its row flags, all
@@ -166,18 +167,27 @@ class Storage:
         """Live node counts of the four node types, for one slot or all."""
         if slot is None:  # free slots hold no nodes: count up to the last slot in use
             free = set(self.free_slots)
-            sl = slice(0, max((s + 1 for s in range(self.slots) if s not in free), default=0))
+            slots = range(max((s + 1 for s in range(self.slots) if s not in free), default=0))
         else:
-            sl = slice(slot, slot + 1)
-        return np.array(
-            [
-                np.count_nonzero(self.occ_regions[sl]),
-                self.leaf_count[sl, 0].sum(),
-                np.count_nonzero(self.gidx_regions[sl]),
-                self.leaf_count[sl, 1].sum(),
-            ],
-            np.int64,
-        )
+            slots = range(slot, slot + 1)
+        out = np.zeros(4, np.int64)
+        for s in slots:
+            out += self._slot_nodes(s)
+        return out
+
+    def _slot_nodes(self, slot: int) -> np.ndarray:
+        # Kernels flag a region only when they create a leaf in it, so a slot's region
+        # counts change only with its leaf counts (or when the slot is emptied: forget).
+        key = (int(self.leaf_count[slot, 0]), int(self.leaf_count[slot, 1]))
+        hit = self._counts.get(slot)
+        if hit is None or hit[0] != key:
+            regions = (np.count_nonzero(self.occ_regions[slot]), np.count_nonzero(self.gidx_regions[slot]))
+            hit = self._counts[slot] = (key, np.array([regions[0], key[0], regions[1], key[1]], np.int64))
+        return hit[1]
+
+    def forget(self, slot: int) -> None:
+        """Drop the cached node counts of an emptied slot."""
+        self._counts.pop(slot, None)
 
     def slot_bytes(self, slot: int) -> int:
         """Bytes of nodes one map holds (without chunk rounding)."""

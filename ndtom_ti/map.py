@@ -78,6 +78,10 @@ def _as_points(points: Any) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=arr.dtype if arr.dtype in (np.float32, np.float64) else np.float64)
 
 
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
+_EYE3 = np.eye(3)
+
+
 def as_pose(T: Any, name: str = "T_world_sensor") -> np.ndarray:
     """Validate a rigid 4x4 transform and return it as float64."""
     try:
@@ -88,11 +92,12 @@ def as_pose(T: Any, name: str = "T_world_sensor") -> np.ndarray:
         raise ValueError(f"{name} must have shape (4, 4), got {M.shape}")
     if not np.isfinite(M).all():
         raise ValueError(f"{name} contains NaN or Inf")
-    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+    if np.abs(M[3] - _BOTTOM).max() > 1e-9:
         raise ValueError(f"{name} bottom row must be [0, 0, 0, 1], got {M[3].tolist()}")
     R = M[:3, :3]
-    err = np.abs(R.T @ R - np.eye(3)).max()
-    if err > 1e-5 or np.linalg.det(R) < 0.0:
+    err = np.abs(R.T @ R - _EYE3).max()
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if err > 1e-5 or a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
         raise ValueError(
             f"{name} is not a rigid transform: its 3x3 block must be a rotation "
             f"(|R^T R - I| = {err:.2e}, det = {np.linalg.det(R):.4f})"

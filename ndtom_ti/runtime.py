@@ -187,5 +187,6 @@ def release_slot(st, slot: int) -> None:
     st.leaf_count[slot] = 0
     st.occ_regions[slot] = 0
     st.gidx_regions[slot] = 0
+    st.forget(slot)
     with _lock:
         st.free_slots.append(slot)

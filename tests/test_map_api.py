@@ -356,6 +356,27 @@ def test_leaf_counters_are_exact_and_slots_are_emptied(rng):
     assert slot in st.free_slots
 
 
+def test_cached_node_counts_follow_the_regions_of_reused_slots(rng):
+    """Storage caches a slot's region counts by its leaf counts: an emptied slot reused by
+    a new map must be counted anew."""
+    st = runtime.storage(ndtom_ti.Layout())
+
+    def fresh(slot):
+        return [np.count_nonzero(st.occ_regions[slot]), st.leaf_count[slot, 0],
+                np.count_nonzero(st.gidx_regions[slot]), st.leaf_count[slot, 1]]  # fmt: skip
+
+    m, _ = scene_map(rng, scans=2)
+    slot = m._slot
+    assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
+    del m
+    gc.collect()
+    assert st.nodes(slot).tolist() == [0, 0, 0, 0]
+    m = NdtOmMap(0.5)  # the emptied slot again, far from the last scene
+    assert m._slot == slot
+    m.insert_scan(rng.normal(size=(500, 3)) * 3.0 + [300.0, -200.0, 5.0], np.eye(4))
+    assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
+
+
 def test_map_refuses_updates_past_the_pool_budget_and_stays_unchanged(rng):
     st = runtime.storage(ndtom_ti.Layout())
     old = runtime.pool_limit()
