@@ -51,8 +51,9 @@ def total(ctr, which: int) -> int:
 
 
 # The occupancy tree's per-cell i32 ``ne``: the rays that passed the cell in this scan
-# (low bits, zero between scans) and whether the cell has a Gaussian record (NE_GAUSS, set
-# once and kept): eq. (12) then walks the Gaussian index tree only for such cells.
+# (low bits, zero between scans) and whether the cell may hold a Gaussian (NE_GAUSS: set by
+# a hit and by loading, cleared when eq. (12) erases it): eq. (12) walks the Gaussian index
+# tree only for such cells.
 NE_GAUSS = 1 << 30
 NE_COUNT = NE_GAUSS - 1
 
@@ -222,6 +223,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     # Mean and scatter are overwritten by the next first merge.
                     rec_n[r] = 0
                     ti.atomic_add(ctr[C_ERASED], 1)
+            # Nothing left to erase: later passes skip the index tree until a hit sets it.
+            ne[at(slot, c)] = ne[at(slot, c)] & NE_COUNT
 
     @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):

@@ -325,6 +325,13 @@ def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path
     i = g["index"].tolist().index([5, 0, 0])
     assert g["n"][i] == 3
     np.testing.assert_allclose(g["mean"][i], [5.7, 0.5, 0.5], atol=1e-9)
+    # It leaves again: the new Gaussian is erased too (the hit re-armed the cell).
+    erased = scans = 0
+    while m.gaussians(min_probability=0.0, min_points=1)["index"].tolist().count([5, 0, 0]):
+        erased += m.insert_scan(far, T).gaussians_erased
+        scans += 1
+        assert scans < 20
+    assert erased == 1 and m.occupancy(np.array([[5.5, 0.5, 0.5]]))[0] < 0.5
 
 
 def _in_box(pts, lo, hi, pad):
