@@ -37,9 +37,10 @@ C_EXPORT = 4
 C_RECORDS = 5  # records in use (copied in and out by the caller)
 C_BLOCK_CELLS = 6  # cells of the dense block that took the free-space update
 C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
-COUNTERS = 8
+C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
+COUNTERS = 16
 # Sums that every thread adds to (visits, block cells) go to STRIPES copies of the
-# counters, one 64-byte line each, picked by the work item: one atomic counter shared by
+# counters, two 64-byte lines each, picked by the work item: one atomic counter shared by
 # all threads costs ~15 ns per add on the CPU. ``total`` adds the copies up.
 STRIPES = 64
 CTR_SIZE = COUNTERS * (1 + STRIPES)
@@ -211,9 +212,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     SHIFT = leaf.bit_length() - 1  # leaf is a power of two
 
     @ti.func
-    def free_update(slot, c, k, g, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+    def free_update(slot, c, k, g, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
+                    rec_free: ti.template()):  # fmt: skip
         # eq. (12) for a cell that k rays passed and no endpoint hit; reset of its Gaussian
-        # (g: NE_GAUSS set) at l <= 0.
+        # (g: NE_GAUSS set) at l <= 0: its record goes on the free stack for the next new
+        # Gaussian of any cell, so records follow the Gaussians alive, not all ever made.
         l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
         lo[at(slot, c)] = l
         if l <= 0.0 and g != 0:
@@ -223,17 +226,20 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     # Mean and scatter are overwritten by the next first merge.
                     rec_n[r] = 0
                     ti.atomic_add(ctr[C_ERASED], 1)
+                    gslot[at(slot, c)] = 0
+                    rec_free[ti.cast(ti.atomic_add(ctr[C_FREE], 1), ti.i32)] = r
             # Nothing left to erase: later passes skip the index tree until a hit sets it.
             ne[at(slot, c)] = ne[at(slot, c)] & NE_COUNT
 
     @ti.func
-    def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template()):
+    def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
+                         rec_free: ti.template()):  # fmt: skip
         # Hit cells were updated by merge, which cleared their ray count: skipped.
         v = ne[at(slot, c)]
         k = v & NE_COUNT
         if k > 0:
             ne[at(slot, c)] = v & NE_GAUSS
-            free_update(slot, c, k, v & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
+            free_update(slot, c, k, v & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr, rec_free)
 
     def block_kernels(bt):
         """The kernels that read or write the scan's dense ray-count block, for block
@@ -331,6 +337,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             order: i32_1d,  # [N] (dense_hits)
             off: i32_1d,  # [H] (dense_hits)
             res: ti.f64,
+            rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
@@ -339,7 +346,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 c = row(hitlist, s)
                 r = gslot[at(slot, c)] - 1
                 if r < 0:
-                    r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                    # A record from the free stack, else a new one. Pops only here (pushes
+                    # only in eq. 12's kernels): a pop that finds it empty puts its count back.
+                    k = ti.atomic_sub(ctr[C_FREE], 1) - 1
+                    if k >= 0:
+                        r = rec_free[ti.cast(k, ti.i32)]
+                    else:
+                        ti.atomic_add(ctr[C_FREE], 1)
+                        r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
                     if dense_hits != 0:  # hits_count did not touch the index tree
                         note_leaf(glm, slot, c, gregions, leaves, 1)
                     gslot[at(slot, c)] = r + 1
@@ -541,6 +555,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ctr: i64_1d,
             regions: i8_4d,
             leaves: i64_2d,
+            rec_free: i32_1d,
         ):
             # eq. (12) for the cells of the dense block, straight from their counts (hit cells
             # were zeroed by merge). One leaf of the tree per iteration, so its cells are
@@ -560,7 +575,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                 c = b0 + ti.Vector([i, j, k])
                                 if cells == 0:
                                     note_leaf(olm, slot, c, regions, leaves, 0)
-                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
+                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr,
+                                            rec_free)  # fmt: skip
                                 cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
@@ -581,6 +597,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ctr: i64_1d,
             regions: i8_4d,
             leaves: i64_2d,
+            rec_free: i32_1d,
         ):
             # block_apply for a block the rays filled densely (no row flags): every column
             # of cells along z read in memory order, a word of `lanes` cells at a time, so
@@ -604,7 +621,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                 if k >> SHIFT != last:  # a new leaf of the tree
                                     note_leaf(olm, slot, c, regions, leaves, 0)
                                     last = k >> SHIFT
-                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr)
+                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr,
+                                            rec_free)  # fmt: skip
                                 cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
@@ -632,16 +650,18 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         l_max: ti.f32,
         rec_n: i32_1d,
         ctr: i64_1d,
+        rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
     ):
         for t in range(nt):
-            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr)
+            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free)
 
     @ti.kernel
-    def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d):
+    def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d,
+                       rec_free: i32_1d):  # fmt: skip
         # Fallback when the touched list overflowed: visit every known cell.
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] & NE_COUNT > 0:
-                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr)
+                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free)
 
     @ti.kernel
     def count_new_nodes(

@@ -19,6 +19,7 @@ from .kernels.ndt import (
     C_BLOCK_CELLS,
     C_ERASED,
     C_EXPORT,
+    C_FREE,
     C_HIT_CELLS,
     C_HIT_PASSED,
     C_RECORDS,
@@ -160,8 +161,10 @@ class NdtOmMap:
         self._group_hits = True  # endpoints grouped in the block where it can (see _insert)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
-        # Gaussian records (dense; numpy, outside Taichi's pool), grown by doubling.
+        # Gaussian records (dense; numpy, outside Taichi's pool), grown by a quarter; those of
+        # erased Gaussians wait on a free stack for new ones.
         self._nrec = 0
+        self._nfree = 0
         self._alloc_records(1024)
 
     # ------------------------------------------------------------------ properties
@@ -388,6 +391,7 @@ class NdtOmMap:
         cfg, res = self.config, self.resolution
         k, ctr, fs, slot = self._k, self._ctr, self._st, self._slot
         ctr[:] = 0
+        ctr[C_FREE] = self._nfree
         lmin, lmax = float(cfg.logodds_min), float(cfg.logodds_max)
         dense = None
         if self.occupancy_enabled and n:
@@ -416,26 +420,28 @@ class NdtOmMap:
             ctr[C_RECORDS] = self._nrec
             kb.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
                     cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
-                    hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res)  # fmt: skip
+                    hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free)  # fmt: skip
             self._nrec = int(ctr[C_RECORDS])
         if dense is not None:
             if flagged:
-                kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count)
+                kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count,
+                               self._rec_free)  # fmt: skip
             else:
                 kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
-                                  self._rec_n, ctr, fs.occ_regions, fs.leaf_count)  # fmt: skip
+                                  self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free)  # fmt: skip
         if self.occupancy_enabled and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
-                k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr)
+                k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free)
             elif nt:
-                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr)
+                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free)
                 self._touched = np.empty((2 * nt, 3), np.int32)
             rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
         fs.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = total(ctr, C_VISITS)
         rep.gaussians_erased = int(ctr[C_ERASED])
+        self._nfree = int(ctr[C_FREE])
         self.scans_inserted += 1
         self.points_inserted += n_hit
         rep.seconds = time.perf_counter() - t0
@@ -449,10 +455,12 @@ class NdtOmMap:
         cell = np.zeros((capacity, 3), np.int32)
         mean = np.zeros((capacity, 3), np.float64)
         scat = np.zeros((capacity, 6), np.float64)
+        free = np.zeros(capacity, np.int32)
         if old is not None:
             k = self._nrec
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
-        self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat = n_, cell, mean, scat
+            free[: self._nfree] = self._rec_free[: self._nfree]
+        self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, self._rec_free = n_, cell, mean, scat, free
 
     def _scan_bound(
         self,

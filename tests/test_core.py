@@ -334,6 +334,38 @@ def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path
     assert erased == 1 and m.occupancy(np.array([[5.5, 0.5, 0.5]]))[0] < 0.5
 
 
+@pytest.mark.parametrize("block_cells", [None, 0])
+def test_records_of_erased_gaussians_are_reused(block_cells):
+    """Objects that come and go do not grow the records: a new Gaussian takes an erased
+    one's record, also when a scan brings more new cells than there are free records."""
+    m = NdtOmMap(1.0)
+    set_block(m, block_cells)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.5, 0.5]
+    far = np.array([[9.5, 0.5, 0.5]] * 10) - T[:3, 3]
+    blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
+    for x in (5, 6, 7, 8):  # an object in cell x, then gone
+        m.insert_scan(blob + [x, 0.0, 0.0], T)
+        for _ in range(20):
+            m.insert_scan(far, T)
+            if [x, 0, 0] not in m.gaussians(min_probability=0.0)["index"].tolist():
+                break
+        else:
+            raise AssertionError(f"the Gaussian of cell {x} was not erased")
+        assert m._nrec == 2  # cell 9's and the one reused by each object in turn
+    # Five new cells at once, one free record: one takes it, four get new records.
+    cells = np.array([[2, 2, 0], [2, -2, 0], [-2, 2, 0], [-2, -2, 0], [0, 3, 0]])
+    m.insert_scan(np.repeat(cells + 0.5, 3, axis=0) + np.tile(blob, (5, 1)) * 0.5 - T[:3, 3], T)
+    assert m._nrec == 6
+    g = m.gaussians(min_probability=0.0)
+    got = {tuple(i): (n, mu) for i, n, mu in zip(g["index"].tolist(), g["n"].tolist(), g["mean"])}
+    assert set(got) == {(9, 0, 0), *map(tuple, cells.tolist())}
+    for c in cells:
+        n, mu = got[tuple(c)]
+        assert n == 3
+        np.testing.assert_allclose(mu, c + 0.5 + blob.mean(axis=0) * 0.5, atol=1e-9)
+
+
 def _in_box(pts, lo, hi, pad):
     return ((pts >= lo - pad) & (pts <= hi + pad)).all(axis=1)
 
