@@ -241,6 +241,15 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ne[at(slot, c)] = v & NE_GAUSS
             free_update(slot, c, k, v & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr, rec_free)
 
+    @ti.func
+    def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
+                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template()):  # fmt: skip
+        # eq. (12) for a cell of the dense block that v rays passed; new_leaf: the first
+        # such cell of its tree leaf in this pass, which counts the leaf if it creates it.
+        if new_leaf:
+            note_leaf(olm, slot, c, regions, leaves, 0)
+        free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr, rec_free)
+
     def block_kernels(bt):
         """The kernels that read or write the scan's dense ray-count block, for block
         dtype ``bt``: u16 halves its memory traffic and holds any count of a scan of at
@@ -572,11 +581,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             v = ti.cast(block[i, j, k], ti.i32)
                             if v != 0:
                                 block[i, j, k] = ti.cast(0, bt)
-                                c = b0 + ti.Vector([i, j, k])
-                                if cells == 0:
-                                    note_leaf(olm, slot, c, regions, leaves, 0)
-                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr,
-                                            rec_free)  # fmt: skip
+                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max, rec_n, ctr,
+                                           regions, leaves, rec_free)  # fmt: skip
                                 cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
@@ -617,12 +623,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
                             if v != 0:
                                 k = kw * lanes + lane
-                                c = b0 + ti.Vector([i, j, k])
-                                if k >> SHIFT != last:  # a new leaf of the tree
-                                    note_leaf(olm, slot, c, regions, leaves, 0)
-                                    last = k >> SHIFT
-                                free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr,
-                                            rec_free)  # fmt: skip
+                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
+                                           rec_n, ctr, regions, leaves, rec_free)  # fmt: skip
+                                last = k >> SHIFT
                                 cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
