@@ -421,7 +421,9 @@ class NdtOmMap:
             kb.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
                     cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
                     hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free)  # fmt: skip
-            self._nrec = int(ctr[C_RECORDS])
+            # At once, like the record count: an update cut short later must not hand out
+            # the records merge took from the free stack again.
+            self._nrec, self._nfree = int(ctr[C_RECORDS]), int(ctr[C_FREE])
         if dense is not None:
             if flagged:
                 kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count,

@@ -366,6 +366,35 @@ def test_records_of_erased_gaussians_are_reused(block_cells):
         np.testing.assert_allclose(mu, c + 0.5 + blob.mean(axis=0) * 0.5, atol=1e-9)
 
 
+def test_interrupt_after_merge_does_not_hand_out_a_record_twice(monkeypatch):
+    """A record merge took from the free stack stays taken when the update is cut short
+    after merge (Ctrl-C between kernels)."""
+    m = NdtOmMap(1.0)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.5, 0.5]
+    blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
+    m.insert_scan(blob + [5.0, 0.0, 0.0], T)
+    far = np.array([[9.5, 0.5, 0.5]] * 10) - T[:3, 3]
+    while [5, 0, 0] in m.gaussians(min_probability=0.0)["index"].tolist():
+        m.insert_scan(far, T)
+    assert m._nfree == 1
+
+    def interrupt(*a):
+        raise KeyboardInterrupt
+
+    for kb in m._k.block.values():  # after merge took the free record for cell (0, 3, 0)
+        monkeypatch.setattr(kb, "block_apply", interrupt)
+        monkeypatch.setattr(kb, "block_apply_all", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        m.insert_scan(blob + [0.0, 3.0, -0.5], T)
+    monkeypatch.undo()
+    m.insert_scan(blob + [0.0, -3.0, -0.5], T)  # another new Gaussian: a new record
+    g = m.gaussians(min_probability=0.0)
+    got = {tuple(i): mu for i, mu in zip(g["index"].tolist(), g["mean"])}
+    for c, shift in (([0, 3, 0], [0.0, 3.0, -0.5]), ([0, -3, 0], [0.0, -3.0, -0.5])):
+        np.testing.assert_allclose(got[tuple(c)], blob.mean(axis=0) + shift + T[:3, 3], atol=1e-9)
+
+
 def _in_box(pts, lo, hi, pad):
     return ((pts >= lo - pad) & (pts <= hi + pad)).all(axis=1)
 
