@@ -38,6 +38,7 @@ C_RECORDS = 5  # records in use (copied in and out by the caller)
 C_BLOCK_CELLS = 6  # cells of the dense block that took the free-space update
 C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
+C_NO_RECORD = 9  # hit cells merge left for want of a record (see merge's ``left``)
 COUNTERS = 16
 # Sums that every thread adds to (visits, block cells) go to STRIPES copies of the
 # counters, two 64-byte lines each, picked by the work item: one atomic counter shared by
@@ -347,8 +348,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             off: i32_1d,  # [H] (dense_hits)
             res: ti.f64,
             rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
+            left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
+            # Records are not reserved for the worst case (every hit cell new): a cell that
+            # finds none is left as it was, for the caller to grow the records and merge it.
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
             bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
             for s in range(nh):
@@ -363,6 +367,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     else:
                         ti.atomic_add(ctr[C_FREE], 1)
                         r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                    if r >= rec_n.shape[0]:
+                        left[ti.atomic_add(ctr[C_NO_RECORD], 1)] = s
+                        continue
                     if dense_hits != 0:  # hits_count did not touch the index tree
                         note_leaf(glm, slot, c, gregions, leaves, 1)
                     gslot[at(slot, c)] = r + 1

@@ -22,6 +22,7 @@ from .kernels.ndt import (
     C_FREE,
     C_HIT_CELLS,
     C_HIT_PASSED,
+    C_NO_RECORD,
     C_RECORDS,
     C_TOUCHED,
     C_VISITS,
@@ -415,15 +416,28 @@ class NdtOmMap:
                 nh = int(ctr[C_HIT_CELLS])
                 acc = np.zeros((nh, 9), np.float64)
                 k.hits_sum(slot, world, cells, n_hit, acc, res)
-            if self._nrec + nh > len(self._rec_n):
-                self._alloc_records(max(len(self._rec_n) * 5 // 4, self._nrec + nh))
-            ctr[C_RECORDS] = self._nrec
-            kb.merge(slot, hitlist, acc, nh, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, ctr,
-                    cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
-                    hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free)  # fmt: skip
-            # At once, like the record count: an update cut short later must not hand out
-            # the records merge took from the free stack again.
-            self._nrec, self._nfree = int(ctr[C_RECORDS]), int(ctr[C_FREE])
+            left, todo = np.empty(nh, np.int32), nh
+            while True:
+                cap = len(self._rec_n)
+                ctr[C_RECORDS], ctr[C_NO_RECORD] = self._nrec, 0
+                kb.merge(slot, hitlist, acc, todo, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat,
+                         ctr, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
+                         hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left)  # fmt: skip
+                # At once, like the record count: an update cut short later must not hand
+                # out the records merge took from the free stack again.
+                self._nrec, self._nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
+                todo = int(ctr[C_NO_RECORD])
+                if not todo:
+                    break
+                # Records grow by an eighth, only when new cells found none: the records
+                # held follow the Gaussians, as the memory should follow the place.
+                self._alloc_records(cap + max(cap // 8, todo))
+                s = np.sort(left[:todo])
+                hitlist = hitlist[s]
+                if dense_hits:
+                    hcnt, off = hcnt[s], off[s]
+                else:
+                    acc = acc[s]
         if dense is not None:
             if flagged:
                 kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count,
@@ -538,6 +552,7 @@ class NdtOmMap:
             "total_bytes": total,
             "node_bytes": self._st.slot_bytes(self._slot),
             "record_bytes": len(self._rec_n) * RECORD_BYTES,
+            "records_in_use": self._nrec - self._nfree,
             "occupancy_regions": int(nodes[0]),
             "occupancy_leaves": int(nodes[1]),
             "index_regions": int(nodes[2]),

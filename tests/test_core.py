@@ -366,6 +366,35 @@ def test_records_of_erased_gaussians_are_reused(block_cells):
         np.testing.assert_allclose(mu, c + 0.5 + blob.mean(axis=0) * 0.5, atol=1e-9)
 
 
+@pytest.mark.parametrize("block_cells", [None, 0])
+def test_records_grow_only_for_cells_that_need_one(block_cells):
+    """The records held follow the Gaussians: a scan that hits many known cells and a few
+    new ones grows them only when the new ones do not fit, and by a fraction; the cells
+    that found no record are merged after the growth."""
+    m = NdtOmMap(1.0)
+    set_block(m, block_cells)
+    cap0 = len(m._rec_n)
+    blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]]) - 0.1
+    # A wall of cells facing the sensor: every ray ends in its own cell.
+    wall = np.array([[30, y, z] for y in range(-20, 20) for z in range(-13, 13)])
+    wall = wall[: cap0 - 24]
+    extra = np.array([[30, y, z] for y in range(20, 26) for z in range(-12, 12)])
+
+    def scan(cells):
+        return (np.repeat(cells + 0.5, 3, axis=0) + np.tile(blob, (len(cells), 1))).astype(np.float64)
+
+    m.insert_scan(scan(wall), np.eye(4))
+    m.insert_scan(scan(np.vstack([wall, extra[:20]])), np.eye(4))  # all known cells hit again
+    assert (m._nrec, len(m._rec_n)) == (cap0 - 4, cap0)
+    m.insert_scan(scan(np.vstack([wall, extra[20:60]])), np.eye(4))
+    assert m._nrec == cap0 + 36
+    assert cap0 + 36 <= len(m._rec_n) <= cap0 * 9 // 8 + 1
+    g = m.gaussians(min_probability=0.0)
+    got = dict(zip(map(tuple, g["index"].tolist()), g["n"].tolist()))
+    assert got == {**{tuple(c): 9 for c in wall.tolist()}, **{tuple(c): 3 for c in extra[:60].tolist()}}
+    np.testing.assert_allclose(g["mean"], g["index"] + 0.5 + blob.mean(axis=0), atol=1e-9)
+
+
 def test_interrupt_after_merge_does_not_hand_out_a_record_twice(monkeypatch):
     """A record merge took from the free stack stays taken when the update is cut short
     after merge (Ctrl-C between kernels)."""

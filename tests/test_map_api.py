@@ -17,6 +17,7 @@ from test_core import assert_matches_batch, random_pose, to_world
 import ndtom_ti
 from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap
 from ndtom_ti import runtime
+from ndtom_ti.kernels.layout import RECORD_BYTES
 from ndtom_ti.map import BLOCK_CELLS
 
 
@@ -287,6 +288,9 @@ def test_len_repr_and_memory_report(rng):
     assert rep["total_bytes"] == m.memory_bytes() > 0
     assert rep["gaussians"] == len(m) and rep["known_cells"] == len(m.known_cells()["index"])
     assert rep["bytes_per_gaussian"] > 0 and rep["process_pool_bytes"] <= rep["process_pool_budget_bytes"]
+    # every cell with points holds a record: at least the Gaussians, at most what is held
+    assert len(m) <= rep["records_in_use"] <= rep["record_bytes"] // RECORD_BYTES
+    assert rep["records_in_use"] == len(m.gaussians(min_probability=0.0, min_points=1)["n"])
     # the dense ray-count block: at least this scene's box, at most its cap (+ row flags)
     assert 0 < rep["process_scratch_bytes"] <= BLOCK_CELLS * (4 + 1 / 8)
     assert not m._st.block_buf.any() and not m._st.bflag_buf.any()  # zero between updates
