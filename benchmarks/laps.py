@@ -8,20 +8,6 @@ scans), so only the range noise differs; --speed 1 lets the poses drift 0.15 m p
 (a 102.85 m loop), so each lap also sees surface the earlier ones missed.
 
     python benchmarks/laps.py --laps 3 --res 0.2
-"""Memory follows the place, not the run: map several laps of the synthetic hall (dense
-HDL-32-like scans, ../shared/tools/simworld.py --stride 10 --static) and print the map's
-memory at the end of every lap. The paper's promise: no growth after the first lap.
-
-    python benchmarks/laps.py --laps 3 --res 0.2
-"""Memory follows the place, not the run: map several laps of the synthetic hall (dense
-HDL-32-like scans, ../shared/tools/simworld.py --stride 10 --static) and print the map's
-memory at the end of every lap. The paper's promise: no growth after the first lap.
-
-By default every lap drives the same poses (the speed makes one lap exactly --lap-scans
-scans), so only the range noise differs; --speed 1 lets the poses drift 0.15 m per lap
-(a 102.85 m loop), so each lap also sees surface the earlier ones missed.
-
-    python benchmarks/laps.py --laps 3 --res 0.2
 """
 
 import argparse
