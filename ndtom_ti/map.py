@@ -429,9 +429,10 @@ class NdtOmMap:
                 todo = int(ctr[C_NO_RECORD])
                 if not todo:
                     break
-                # Records grow by an eighth, only when new cells found none: the records
-                # held follow the Gaussians, as the memory should follow the place.
-                self._alloc_records(cap + max(cap // 8, todo))
+                # Records grow only when new cells found none, by an eighth (or a scan's
+                # hit cells, fewer copies while a small map explores): the records held
+                # follow the Gaussians, as the memory should follow the place.
+                self._alloc_records(cap + max(cap // 8, nh))
                 s = np.sort(left[:todo])
                 hitlist = hitlist[s]
                 if dense_hits:
