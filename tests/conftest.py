@@ -30,13 +30,21 @@ def arch():
     return ndtom_ti.current_arch()
 
 
-def _simworld(out: Path, *args: str) -> Path:
-    """Run shared/tools/simworld.py into ``out`` and make the module importable."""
+def _import_simworld():
+    """The shared/tools/simworld module (skips the test where it is missing)."""
     if not SIMWORLD.exists():
         pytest.skip(f"simworld not found at {SIMWORLD}")
-    subprocess.run([sys.executable, str(SIMWORLD), *args, "--out", str(out)], check=True, capture_output=True)
     if str(SIMWORLD.parent) not in sys.path:
         sys.path.insert(0, str(SIMWORLD.parent))
+    import simworld
+
+    return simworld
+
+
+def _simworld(out: Path, *args: str) -> Path:
+    """Run shared/tools/simworld.py into ``out`` and make the module importable."""
+    _import_simworld()
+    subprocess.run([sys.executable, str(SIMWORLD), *args, "--out", str(out)], check=True, capture_output=True)
     return out
 
 

@@ -509,13 +509,9 @@ def test_memory_follows_the_place_not_the_run(tmp_path):
     """Three laps of a static hall on the same poses (only the range noise differs):
     after the first lap, memory grows < 5%. (HDL-32-like scans every 5 m; benchmarks/laps.py
     maps ten laps with a scan every metre.)"""
-    from conftest import SIMWORLD, _simworld
+    from conftest import _import_simworld, _simworld
 
-    if not SIMWORLD.exists():
-        pytest.skip(f"simworld not found at {SIMWORLD}")
-    sys.path.insert(0, str(SIMWORLD.parent))
-    import simworld
-
+    simworld = _import_simworld()
     lap = 21  # scans 5 s apart (stride 50 at 10 Hz), one lap of the loop exactly
     speed = simworld.build_hall(0).path.length / (5.0 * lap)
     _simworld(tmp_path, "--scans", str(3 * lap), "--stride", "50", "--static", "--no-bags", "--speed", repr(speed))
