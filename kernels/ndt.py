@@ -25,7 +25,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
+from . import launch
 from .layout import Storage
 
 # Counter slots of the per-call int64 counter array.
@@ -40,6 +42,8 @@ C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
 C_NO_RECORD = 9  # hit cells merge left for want of a record (see merge's ``left``)
 COUNTERS = 16
+HIT_CHUNKS = 1024  # chunks of points of hits_dense's prefix sum (Taichi runs <= 512 iterations on one thread)
+SPREAD_K = 4  # sectors per CPU thread and per scan in the rays kernels (see spread)
 # Sums that every thread adds to (visits, block cells) go to STRIPES copies of the
 # counters, two 64-byte lines each, picked by the work item: one atomic counter shared by
 # all threads costs ~15 ns per add on the CPU. ``total`` adds the copies up.
@@ -80,6 +84,44 @@ i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)
 u64_1d = ti.types.ndarray(dtype=ti.u64, ndim=1)
 
 
+def cpu_threads() -> int:
+    """Threads of Taichi's CPU range-for loops (1 on a GPU, where order does not matter)."""
+    cfg = impl.current_cfg()
+    return max(1, int(cfg.cpu_max_num_threads)) if cfg.arch in (ti.x64, ti.arm64) else 1
+
+
+def make_spread(threads: int):
+    """The ray order for ``threads`` CPU threads: ``spread(i, n, q, inv_q)`` is the ray that
+    iteration i of n traces, with q = n // sectors and inv_q = 1 / max(q, 1).
+
+    Taichi 1.7 splits a CPU range-for into one contiguous run of iterations per thread,
+    and scans come in azimuth order, so each thread traced one side of the scan: the side
+    with the longer rays kept its thread busy after the other had finished (~11% more
+    visits on the hall; twice the work beside a wall). Here each thread's run covers
+    SPREAD_K sectors spread all around the scan, and at any moment the threads trace
+    sectors 360/threads degrees apart, so they rarely count into the same cells. A
+    permutation: the counts are the same in any order.
+    """
+    TH = threads
+    KS = SPREAD_K * TH  # sectors per thread; a multiple of TH keeps KS + 1 prime to TH
+    SEC = TH * KS
+
+    @ti.func
+    def spread(i, n, q, inv_q):
+        # The last n % SEC rays keep their place. j = i // q by a multiply and a
+        # correction: an integer division costs ~40 cycles a ray.
+        r = i
+        if ti.static(TH > 1) and i < q * SEC:
+            j = ti.cast(ti.cast(i, ti.f64) * inv_q, ti.i32)
+            j += ti.select((j + 1) * q <= i, 1, 0) - ti.select(j * q > i, 1, 0)
+            c = j // KS  # the thread whose run holds iteration i
+            m = j - c * KS  # and how far along its run
+            r = ((m * TH + c * (KS + 1)) % SEC) * q + (i - j * q)
+        return r
+
+    return spread, SEC
+
+
 def make_kernels(f: Storage) -> SimpleNamespace:
     """Build (once) and return the kernels bound to the storage ``f``."""
     if f.kernels is not None:
@@ -93,6 +135,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     grid_n = ti.Vector(list(L.cells))
     occ_l1, gidx_l1 = f.l1_nodes
     occ_l2, gidx_l2 = f.l2_nodes
+    # The kernels of every scan get a lighter call (launch.py); queries keep Taichi's.
+    fast = launch.Launcher if launch.enabled() else (lambda k: k)
 
     @ti.func
     def row(a: ti.template(), i) -> ti.types.vector(3, ti.i32):
@@ -212,6 +256,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     SHIFT = leaf.bit_length() - 1  # leaf is a power of two
 
+    spread, SEC = make_spread(cpu_threads())
+
     @ti.func
     def free_update(slot, c, k, g, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
                     rec_free: ti.template()):  # fmt: skip
@@ -288,6 +334,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ctr: i64_1d,
             block: b3d,  # the scan's ray counts, covering every cell of the scan
             base: i32_1d,
+            first: i32_1d,  # [HIT_CHUNKS + 1] scratch: first hit-list slot of each chunk
         ):
             # Points grouped by hit cell without the tree, for a block that holds every hit
             # cell (an entry holds any count or slot: at most one per ray): a hit cell's ray
@@ -295,25 +342,40 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             # then holds its slot.
             # merge then sums each cell's points itself (no atomics per point).
             b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            size = (n + HIT_CHUNKS - 1) // HIT_CHUNKS
             for i in range(n):
                 q = row(cells, i) - b0
                 block[q[0], q[1], q[2]] = ti.cast(0, bt)
             for i in range(n):
                 q = row(cells, i) - b0
-                k = ti.cast(ti.atomic_add(block[q[0], q[1], q[2]], ti.cast(1, bt)), ti.i32)
-                rank[i] = k
-                if k == 0:
-                    s = ti.atomic_add(ctr[C_HIT_CELLS], 1)
-                    for a in ti.static(range(3)):
-                        hitlist[s, a] = cells[i, a]
-            for s in range(n):
-                if s < ctr[C_HIT_CELLS]:
-                    q = row(hitlist, s) - b0
-                    hcnt[s] = ti.cast(block[q[0], q[1], q[2]], ti.i32)
-                    block[q[0], q[1], q[2]] = ti.cast(s, bt)
+                rank[i] = ti.cast(ti.atomic_add(block[q[0], q[1], q[2]], ti.cast(1, bt)), ti.i32)
+            # Hit-list slots by a prefix sum over chunks of points: a counter shared by the
+            # threads cost a cache-line transfer per hit cell. The hit list comes out in
+            # the order of the cells' first points.
+            for c in range(HIT_CHUNKS):
+                k = 0
+                for i in range(c * size, ti.min(n, (c + 1) * size)):
+                    if rank[i] == 0:
+                        k += 1
+                first[c + 1] = k
             for _ in range(1):  # prefix sums, one thread
+                first[0] = 0
+                for c in range(HIT_CHUNKS):
+                    first[c + 1] += first[c]
+                ctr[C_HIT_CELLS] = first[HIT_CHUNKS]
+            for c in range(HIT_CHUNKS):
+                s = first[c]
+                for i in range(c * size, ti.min(n, (c + 1) * size)):
+                    if rank[i] == 0:
+                        q = row(cells, i) - b0
+                        for a in ti.static(range(3)):
+                            hitlist[s, a] = cells[i, a]
+                        hcnt[s] = ti.cast(block[q[0], q[1], q[2]], ti.i32)
+                        block[q[0], q[1], q[2]] = ti.cast(s, bt)
+                        s += 1
+            for _ in range(1):
                 run = 0
-                for s in range(ti.cast(ctr[C_HIT_CELLS], ti.i32)):
+                for s in range(first[HIT_CHUNKS]):
                     off[s] = run
                     run += hcnt[s]
             for i in range(n):
@@ -459,7 +521,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
                 bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32) * use_block
                 co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
-                for i in range(n):
+                q = n // SEC
+                inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
+                for it in range(n):
+                    i = spread(it, n, q, inv_q)
                     ce = row(cells, i)
                     d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
                     cur = co
@@ -638,14 +703,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
 
         return SimpleNamespace(
-            hits_dense=hits_dense,
-            merge=merge,
-            rays=make_rays("full"),
-            rays_dense=make_rays("dense"),
-            rays_dense_unflagged=make_rays("dense", flags=False),
-            block_apply=block_apply,
-            block_apply_all=block_apply_all,
-            rays_floor=make_rays("floor"),
+            hits_dense=fast(hits_dense),
+            merge=fast(merge),
+            rays=fast(make_rays("full")),
+            rays_dense=fast(make_rays("dense")),
+            rays_dense_unflagged=fast(make_rays("dense", flags=False)),
+            block_apply=fast(block_apply),
+            block_apply_all=fast(block_apply_all),
+            rays_floor=fast(make_rays("floor")),
         )
 
     by_dtype = {np.dtype(np.uint16): block_kernels(ti.u16), np.dtype(np.int32): block_kernels(ti.i32)}
@@ -784,14 +849,14 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     ti.deactivate(l1, [slot, i, j, k])
 
     f.kernels = SimpleNamespace(
-        prepare=prepare,
-        hits_count=hits_count,
-        hits_sum=hits_sum,
+        prepare=fast(prepare),
+        hits_count=fast(hits_count),
+        hits_sum=fast(hits_sum),
         block=by_dtype,  # by the block's numpy dtype
         rays_floor=by_dtype[np.dtype(np.int32)].rays_floor,
-        apply_free=apply_free,
-        apply_free_all=apply_free_all,
-        reset_rays=reset_rays,
+        apply_free=fast(apply_free),
+        apply_free_all=fast(apply_free_all),
+        reset_rays=fast(reset_rays),
         count_new_nodes=count_new_nodes,
         reset_rays_all=reset_rays_all,
         query=query,

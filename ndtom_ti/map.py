@@ -27,6 +27,7 @@ from .kernels.ndt import (
     C_TOUCHED,
     C_VISITS,
     CTR_SIZE,
+    HIT_CHUNKS,
     make_kernels,
     total,
 )
@@ -153,6 +154,7 @@ class NdtOmMap:
         weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(CTR_SIZE, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
+        self._chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
         # On CUDA a numpy block is copied to the device and back at every launch: keep it
         # to the 1M cells nearest the sensor there.
         self.block_cells = BLOCK_CELLS if self.arch == "cpu" else 1 << 20
@@ -409,7 +411,7 @@ class NdtOmMap:
         if n_hit:
             if dense_hits:
                 acc = np.empty((1, 9), np.float64)
-                kb.hits_dense(cells, n_hit, hitlist, hcnt, off, np.empty(n_hit, np.int32), order, ctr, block, base)
+                kb.hits_dense(cells, n_hit, hitlist, hcnt, off, np.empty(n_hit, np.int32), order, ctr, block, base, self._chunks)
                 nh = int(ctr[C_HIT_CELLS])
             else:
                 k.hits_count(slot, cells, n_hit, hitlist, ctr, fs.gidx_regions, fs.leaf_count)

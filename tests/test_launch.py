@@ -1,0 +1,129 @@
+"""The lighter kernel call (kernels/launch.py) and the CPU ray order (make_spread)."""
+
+import types
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from ndtom_ti import NdtOmMap
+from ndtom_ti.kernels import launch
+from ndtom_ti.kernels.ndt import make_spread
+
+F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+
+
+@ti.kernel
+def _mix(a: F64, b: I32_2, out: F64, k: ti.i32, u: ti.u32, x: ti.f64, pts: ti.types.ndarray(ndim=1)):
+    for i in range(a.shape[0]):
+        out[i] = a[i] * x + b[i, 0] - b[i, 1] + k + ti.cast(u, ti.f64) + ti.cast(pts[i], ti.f64)
+
+
+def _args(rng, n, pts_dtype=np.float64):
+    return [rng.normal(size=n), rng.integers(-9, 9, (n, 2)).astype(np.int32), np.zeros(n), -3, 7, 0.5,
+            rng.normal(size=n).astype(pts_dtype)]  # fmt: skip
+
+
+def _expect(a, b, out, k, u, x, pts):
+    return a * x + b[:, 0] - b[:, 1] + k + u + pts.astype(np.float64)
+
+
+def test_launcher_computes_what_taichi_computes(rng):
+    fast = launch.Launcher(_mix)
+    assert fast._kinds is not None, "the launcher fell back to Taichi's call for plain arguments"
+    for call in range(3):  # the first call of a signature goes through Taichi, then the plan
+        args = _args(rng, 50)
+        fast(*args)
+        np.testing.assert_allclose(args[2], _expect(*args), rtol=1e-12)
+    assert len(fast._plans) == 1
+    # Another dtype of the dtype-free argument: a second specialisation, both right.
+    args = _args(rng, 40, np.float32)
+    for call in range(2):
+        fast(*args)
+        np.testing.assert_allclose(args[2], _expect(*args), rtol=1e-6)
+    assert len(fast._plans) == 2
+
+
+def test_launcher_hands_what_it_cannot_pass_to_taichi(rng):
+    fast = launch.Launcher(_mix)
+    args = _args(rng, 30)
+    fast(*args)
+    # A strided view: Taichi's call and its error, not a pointer to the wrong elements.
+    wide = np.zeros((30, 2))
+    args[2] = wide[:, 0]
+    with pytest.raises(ValueError, match="contiguous"):
+        fast(*args)
+    assert not wide.any()
+    # Wrong dtype: Taichi's own error, not a wrong result.
+    args = _args(rng, 30)
+    args[1] = args[1].astype(np.int64)
+    with pytest.raises(Exception, match="i32|int32|dtype"):
+        fast(*args)
+
+
+def test_plain_launch_switch(monkeypatch):
+    monkeypatch.setenv("NDTOM_PLAIN_LAUNCH", "1")
+    assert not launch.enabled()
+    monkeypatch.setenv("NDTOM_PLAIN_LAUNCH", "0")
+    assert launch.enabled() or ti.lang.impl.current_cfg().debug
+
+
+def _plain(ns):
+    """A copy of a kernel namespace with every Launcher replaced by Taichi's call."""
+    out = types.SimpleNamespace()
+    for k, v in vars(ns).items():
+        if isinstance(v, launch.Launcher):
+            v = v.kernel
+        elif isinstance(v, dict):
+            v = {kk: _plain(vv) for kk, vv in v.items()}
+        setattr(out, k, v)
+    return out
+
+
+def test_maps_through_both_calls_are_identical(sim_hall_dynamic):
+    a, b = NdtOmMap(0.4), NdtOmMap(0.4)
+    b._k = _plain(a._k)
+    assert isinstance(a._k.prepare, launch.Launcher) == launch.enabled()
+    assert not isinstance(b._k.block[np.dtype(np.uint16)].merge, launch.Launcher)
+    d = sim_hall_dynamic
+    for i in range(0, 8, 2):
+        pts, T = d.scan(i), d.poses[i]
+        ra, rb = a.insert_scan(pts, T), b.insert_scan(pts, T)
+        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
+    ka, kb = a.known_cells(), b.known_cells()
+    np.testing.assert_array_equal(ka["index"], kb["index"])
+    np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
+    ga, gb = a.gaussians(min_probability=0), b.gaussians(min_probability=0)
+    np.testing.assert_array_equal(ga["index"], gb["index"])
+    np.testing.assert_array_equal(ga["n"], gb["n"])
+    np.testing.assert_allclose(ga["cov"], gb["cov"], rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 4, 6, 16])
+def test_ray_order_is_a_permutation_spread_over_the_scan(threads):
+    spread, sec = make_spread(threads)
+
+    @ti.kernel
+    def order(out: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32):
+        q = n // sec
+        inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
+        for it in range(n):
+            out[it] = spread(it, n, q, inv_q)
+
+    for n in (0, 1, sec - 1, sec, sec + 5, 1000, 57455):
+        out = np.full(n, -1, np.int32)
+        order(out, n)
+        np.testing.assert_array_equal(np.sort(out), np.arange(n))
+    # Each thread's contiguous run of iterations covers sectors all around the scan, and
+    # the threads start in different places.
+    n = 57455
+    out = np.empty(n, np.int32)
+    order(out, n)
+    runs = np.array_split(out[: (n // sec) * sec], threads)
+    for run in runs:
+        sectors = np.unique(run * threads // n)
+        assert len(sectors) == threads, sectors
+    if threads > 1:
+        starts = [run[0] for run in runs]
+        assert len(set(s * threads // n for s in starts)) == threads
