@@ -1,7 +1,7 @@
 """A lighter way to call the per-scan kernels.
 
 Taichi 1.7's ``Kernel.__call__`` re-derives, on every call, how each argument is passed:
-~13 us per numpy array on the project's 2-core VM, ~0.6 ms per scan over the update's
+~13 us per numpy array on the project's 2-core VM, ~0.7 ms per scan over the update's
 ~55 array arguments. ``Launcher`` works that out once per argument signature (through
 Taichi's own compile path) and then only hands over pointers and scalars. Anything it
 was not built for (a non-contiguous array, a non-numpy argument, debug mode, a Taichi
@@ -78,7 +78,13 @@ class Launcher:
             # The first call of a signature runs through Taichi (its type checks, its
             # compile); the compiled kernel then serves the next calls.
             self.kernel(*args)
-            self._plans[sig] = self._k.compiled_kernels[self._k.ensure_compiled(*args)]
+            t_kernel = self._k.compiled_kernels[self._k.ensure_compiled(*args)]
+            prog = impl.get_runtime().prog
+            if not all(hasattr(o, a) for o, a in ((t_kernel, "make_launch_context"), (prog, "compile_kernel"),
+                                                   (prog, "launch_kernel"))):  # fmt: skip
+                self._kinds = None  # not the Taichi this was written for: its call from now on
+                return None
+            self._plans[sig] = t_kernel
             return None
         ctx = t_kernel.make_launch_context()
         for i, (a, kd) in enumerate(zip(args, kinds)):

@@ -91,7 +91,7 @@ def cpu_threads() -> int:
 
 
 def make_spread(threads: int):
-    """The ray order for ``threads`` CPU threads: ``spread(i, n, q, inv_q)`` is the ray that
+    """The ray order for ``threads`` CPU threads: ``spread(i, q, inv_q)`` is the ray that
     iteration i of n traces, with q = n // sectors and inv_q = 1 / max(q, 1).
 
     Taichi 1.7 splits a CPU range-for into one contiguous run of iterations per thread,
@@ -107,7 +107,7 @@ def make_spread(threads: int):
     SEC = TH * KS
 
     @ti.func
-    def spread(i, n, q, inv_q):
+    def spread(i, q, inv_q):
         # The last n % SEC rays keep their place. j = i // q by a multiply and a
         # correction: an integer division costs ~40 cycles a ray.
         r = i
@@ -524,7 +524,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 q = n // SEC
                 inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
                 for it in range(n):
-                    i = spread(it, n, q, inv_q)
+                    i = spread(it, q, inv_q)
                     ce = row(cells, i)
                     d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
                     cur = co

@@ -1,5 +1,6 @@
 """The lighter kernel call (kernels/launch.py) and the CPU ray order (make_spread)."""
 
+import collections
 import types
 
 import numpy as np
@@ -62,6 +63,25 @@ def test_launcher_hands_what_it_cannot_pass_to_taichi(rng):
         fast(*args)
 
 
+def test_launcher_without_the_taichi_internals_it_uses_keeps_taichis_call(rng):
+    fast = launch.Launcher(_mix)
+    real = fast._k
+
+    class OtherTaichi:  # compiled kernels without make_launch_context
+        arguments = real.arguments
+        compiled_kernels = collections.defaultdict(object)
+
+        def ensure_compiled(self, *args):
+            return real.ensure_compiled(*args)
+
+    fast._k = OtherTaichi()
+    for call in range(2):
+        args = _args(rng, 20)
+        fast(*args)
+        np.testing.assert_allclose(args[2], _expect(*args), rtol=1e-12)
+    assert fast._kinds is None and not fast._plans
+
+
 def test_plain_launch_switch(monkeypatch):
     monkeypatch.setenv("NDTOM_PLAIN_LAUNCH", "1")
     assert not launch.enabled()
@@ -109,7 +129,7 @@ def test_ray_order_is_a_permutation_spread_over_the_scan(threads):
         q = n // sec
         inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
         for it in range(n):
-            out[it] = spread(it, n, q, inv_q)
+            out[it] = spread(it, q, inv_q)
 
     for n in (0, 1, sec - 1, sec, sec + 5, 1000, 57455):
         out = np.full(n, -1, np.int32)
@@ -126,4 +146,4 @@ def test_ray_order_is_a_permutation_spread_over_the_scan(threads):
         assert len(sectors) == threads, sectors
     if threads > 1:
         starts = [run[0] for run in runs]
-        assert len(set(s * threads // n for s in starts)) == threads
+        assert len({s * threads // n for s in starts}) == threads
