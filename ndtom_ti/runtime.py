@@ -26,6 +26,7 @@ class _State:
     arch: str | None = None
     pool_limit: int = CPU_POOL_LIMIT_BYTES
     max_maps: int = DEFAULT_MAX_MAPS
+    pinned: tuple = ()  # (thread id, cpu) of each pinned Taichi worker
 
 
 _state = _State()
@@ -41,6 +42,7 @@ def init(
     max_maps: int | None = None,
     offline_cache: bool = True,
     cpu_max_num_threads: int | None = None,
+    pin_threads: bool | None = None,
     debug: bool = False,
 ) -> str:
     """Initialise Taichi for ndtom_ti and return the arch in use ("cpu" or "cuda").
@@ -53,6 +55,9 @@ def init(
         default 0.875. On CUDA it defaults to 90% of the device pool.
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
+    pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
+        its own (affinity.py: short loops then run on all of them). Default: on, unless
+        the environment variable NDTOM_PIN_THREADS is 0.
 
     Calling it again with the same arch (or "auto") is a no-op; another arch is an error
     because Taichi cannot change arch without destroying every existing map.
@@ -100,6 +105,12 @@ def init(
         if _state.arch is None:
             ti.init(arch=ti.cpu, **kwargs)
             _state.arch = "cpu"
+            if pin_threads is None:
+                pin_threads = os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
+            if pin_threads:
+                from .affinity import pin_pool
+
+                _state.pinned = pin_pool(int(ti.lang.impl.current_cfg().cpu_max_num_threads))
         _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
         return _state.arch
 
@@ -132,6 +143,11 @@ def _check_limit(limit_gb: float | None, arch: str, pool_gb: float | None) -> in
 
 def current_arch() -> str | None:
     return _state.arch
+
+
+def pinned_threads() -> list[tuple[int, int]]:
+    """(thread id, cpu) of the Taichi workers fixed to a CPU by init (empty if none)."""
+    return list(_state.pinned)
 
 
 def ensure_init() -> str:
