@@ -14,6 +14,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from . import runtime
 from .map import NdtOmMap, as_pose
 
 Scan = tuple[np.ndarray, np.ndarray]  # (points (N,3) sensor frame, T_world_sensor (4,4))
@@ -162,6 +163,7 @@ def machine_tags(arch: str) -> dict:
         "python": platform.python_version(),
         "taichi": ".".join(str(v) for v in ti.__version__),
         "numpy": np.__version__,
+        "pinned_threads": len(runtime.pinned_threads()),  # Taichi workers fixed to a CPU (affinity.py)
     }
     try:
         import pyoctomap

@@ -43,6 +43,9 @@ def test_cli_sweep_synthetic_with_octomap(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "sw" / "sweep.csv")))
     assert [r["mapper"] for r in rows] == ["ndtom", "ndtom-floor", "octomap"]
     assert all(r["arch"] and r["taichi"] and r["machine"] for r in rows)
+    from ndtom_ti import runtime
+
+    assert all(int(r["pinned_threads"]) == len(runtime.pinned_threads()) for r in rows)
     assert float(rows[2]["ratio_to_ndtom"]) > 0
     assert (tmp_path / "sw" / "sweep.png").stat().st_size > 5000
 
