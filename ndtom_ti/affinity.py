@@ -2,8 +2,8 @@
 
 Taichi 1.7's pool wakes all its workers for every parallel loop, and a worker takes the
 next run of iterations as soon as it is free. Left to the scheduler on the project's
-2-core VM, a loop of ~1 ms ran on both CPUs (0.5 ms) or, by chance, all on one (0.9 ms):
-the second worker started only after the first had done both halves. Most loops of a
+2-core VM, a loop of ~1 ms ran on both CPUs (0.5 ms) or, by chance, as if on one
+(0.9 ms), as when one worker does both halves before the other starts. Most loops of a
 scan are that short. Fixed to a CPU of its own, each worker is woken there: hall scans
 at 0.4 m took 8.8 ms instead of 9.5 (median) and 9.7 instead of 15 (p90).
 ``NDTOM_PIN_THREADS=0`` (or ``init(pin_threads=False)``) leaves the threads to the

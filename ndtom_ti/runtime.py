@@ -110,7 +110,7 @@ def init(
             if pin_threads:
                 from .affinity import pin_pool
 
-                _state.pinned = pin_pool(int(ti.lang.impl.current_cfg().cpu_max_num_threads))
+                _state.pinned = tuple(pin_pool(int(ti.lang.impl.current_cfg().cpu_max_num_threads)))
         _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
         return _state.arch
 
