@@ -164,8 +164,8 @@ class NdtOmMap:
         self._group_hits = True  # endpoints grouped in the block where it can (see _insert)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
-        # Gaussian records (dense; numpy, outside Taichi's pool), grown by a quarter; those of
-        # erased Gaussians wait on a free stack for new ones.
+        # Gaussian records (dense; numpy, outside Taichi's pool), grown when new cells find
+        # none (see _insert); those of erased Gaussians wait on a free stack for new ones.
         self._nrec = 0
         self._nfree = 0
         self._alloc_records(1024)

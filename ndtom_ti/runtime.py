@@ -109,8 +109,9 @@ def init(
                 pin_threads = os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
             if pin_threads:
                 from .affinity import pin_pool
+                from .kernels.ndt import cpu_threads
 
-                _state.pinned = tuple(pin_pool(int(ti.lang.impl.current_cfg().cpu_max_num_threads)))
+                _state.pinned = tuple(pin_pool(cpu_threads()))
         _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
         return _state.arch
 

@@ -9,16 +9,11 @@ import pytest
 
 import ndtom_ti
 from ndtom_ti import affinity, runtime
+from ndtom_ti.kernels.ndt import cpu_threads
 
 linux_cpu = pytest.mark.skipif(
     not sys.platform.startswith("linux") or ndtom_ti.current_arch() != "cpu", reason="Linux CPU backend only"
 )
-
-
-def _threads() -> int:
-    import taichi as ti
-
-    return int(ti.lang.impl.current_cfg().cpu_max_num_threads)
 
 
 def _cpus() -> list[int]:
@@ -27,17 +22,17 @@ def _cpus() -> list[int]:
 
 @linux_cpu
 def test_workers_pinned_one_per_cpu():
-    if os.environ.get("NDTOM_PIN_THREADS", "1") in ("0", "") or _threads() != len(_cpus()) or _threads() < 2:
+    if os.environ.get("NDTOM_PIN_THREADS", "1") in ("0", "") or cpu_threads() != len(_cpus()) or cpu_threads() < 2:
         pytest.skip("pinning is off in this process, or Taichi's threads are not one per CPU")
     pinned = runtime.pinned_threads()
-    assert len(pinned) == _threads()
+    assert len(pinned) == cpu_threads()
     tids, cpus = zip(*pinned)
     assert sorted(cpus) == _cpus()
     assert threading.get_native_id() not in tids
     for tid, cpu in pinned:
         assert os.sched_getaffinity(tid) == {cpu}
     # The probe finds the same threads again: they are the ones that run Taichi's loops.
-    assert affinity.pool_threads(_threads()) == sorted(tids)
+    assert affinity.pool_threads(cpu_threads()) == sorted(tids)
 
 
 @linux_cpu
@@ -53,7 +48,7 @@ def test_no_pinning_unless_one_thread_per_cpu():
 @linux_cpu
 def test_workers_not_found_pins_nothing(monkeypatch):
     monkeypatch.setattr(affinity, "_run_times", lambda: {})
-    assert affinity.pool_threads(_threads()) == []
+    assert affinity.pool_threads(cpu_threads()) == []
 
 
 @pytest.mark.parametrize("env, expect", [("0", False), ("1", True)])
