@@ -63,6 +63,15 @@ def total(ctr, which: int) -> int:
 NE_GAUSS = 1 << 30
 NE_COUNT = NE_GAUSS - 1
 
+# The NDT miss model (config.MapConfig.miss_model == "ndt") sums each ray's log-odds change
+# of a cell holding a Gaussian as a fixed-point integer: the sum is exact and does not depend
+# on the order of the threads' atomic adds. 2^-32 per ray is far below f32 log-odds' ulp.
+MISS_SCALE = float(2**32)
+# Block entry of a cell holding a usable Gaussian (set by mark_gaussians before the rays):
+# ray counts never reach it (scans of at most 65534 rays use u16 blocks).
+MARK_U16 = 0xFFFF
+MARK_I32 = -1
+
 # Finite in f32 too: kernel float literals are f32, and 1e300 would become inf, which
 # fast math assumes never occurs. Ray parameters that matter are <= 1.
 BIG = 1.0e30
@@ -241,12 +250,15 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         ti.atomic_add(ctr[COUNTERS * (1 + (key & (STRIPES - 1))) + which], v)
 
     @ti.func
-    def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()):
-        if ti.atomic_add(ne[at(slot, c)], 1) & NE_COUNT == 0:
+    def visit(slot, c, touched: ti.template(), cap, ctr: ti.template()) -> ti.i32:
+        # Counts a ray passing cell c in the tree; returns the cell's NE_GAUSS bit.
+        v = ti.atomic_add(ne[at(slot, c)], 1)
+        if v & NE_COUNT == 0:
             t = ti.atomic_add(ctr[C_TOUCHED], 1)
             if t < cap:
                 for a in ti.static(range(3)):
                     touched[t, a] = c[a]
+        return v & NE_GAUSS
 
     @ti.func
     def next_t(c, step, rem, res, o, d):
@@ -259,12 +271,13 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     spread, SEC = make_spread(cpu_threads())
 
     @ti.func
-    def free_update(slot, c, k, g, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
+    def free_update(slot, c, dl, g, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
                     rec_free: ti.template()):  # fmt: skip
-        # eq. (12) for a cell that k rays passed and no endpoint hit; reset of its Gaussian
-        # (g: NE_GAUSS set) at l <= 0: its record goes on the free stack for the next new
-        # Gaussian of any cell, so records follow the Gaussians alive, not all ever made.
-        l = ti.min(ti.max(lo[at(slot, c)] + ti.cast(k * l_free, ti.f32), l_min), l_max)
+        # eq. (12) (or the NDT miss model) for a cell that rays passed and no endpoint hit:
+        # dl is its log-odds change; reset of its Gaussian (g: NE_GAUSS set) at l <= 0: its
+        # record goes on the free stack for the next new Gaussian of any cell, so records
+        # follow the Gaussians alive, not all ever made.
+        l = ti.min(ti.max(lo[at(slot, c)] + dl, l_min), l_max)
         lo[at(slot, c)] = l
         if l <= 0.0 and g != 0:
             r = gslot[at(slot, c)] - 1
@@ -279,23 +292,107 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             ne[at(slot, c)] = ne[at(slot, c)] & NE_COUNT
 
     @ti.func
+    def take_miss(r, rec_miss: ti.template()) -> ti.f32:
+        # The NDT miss model's summed change of record r's cell, consumed.
+        v = rec_miss[r]
+        rec_miss[r] = ti.i64(0)
+        return ti.cast(ti.cast(v, ti.f64) * (1.0 / MISS_SCALE), ti.f32)
+
+    @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                         rec_free: ti.template()):  # fmt: skip
-        # Hit cells were updated by merge, which cleared their ray count: skipped.
+                         rec_free: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
+        # Hit cells were updated by merge, which cleared their ray count: skipped. With the
+        # NDT miss model (ndt_minp > 0) a cell whose Gaussian has >= ndt_minp points takes
+        # the rays' summed likelihood terms instead of the count's.
         v = ne[at(slot, c)]
         k = v & NE_COUNT
         if k > 0:
-            ne[at(slot, c)] = v & NE_GAUSS
-            free_update(slot, c, k, v & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr, rec_free)
+            g = v & NE_GAUSS
+            ne[at(slot, c)] = g
+            dl = ti.cast(k * l_free, ti.f32)
+            if ndt_minp > 0 and g != 0:
+                r = gslot[at(slot, c)] - 1
+                if r >= 0 and rec_n[r] >= ndt_minp:
+                    dl = take_miss(r, rec_miss)
+            free_update(slot, c, dl, g, l_min, l_max, rec_n, ctr, rec_free)
 
     @ti.func
     def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template()):  # fmt: skip
-        # eq. (12) for a cell of the dense block that v rays passed; new_leaf: the first
+                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template(), rec_miss: ti.template(),
+                   mark) -> ti.i32:  # fmt: skip
+        # eq. (12) for a cell of the dense block that v rays passed (v == mark: a cell
+        # holding a Gaussian, which takes the NDT miss model's sum); new_leaf: the first
         # such cell of its tree leaf in this pass, which counts the leaf if it creates it.
+        # Returns 1 if the cell changed.
         if new_leaf:
             note_leaf(olm, slot, c, regions, leaves, 0)
-        free_update(slot, c, v, ne[at(slot, c)] & NE_GAUSS, l_free, l_min, l_max, rec_n, ctr, rec_free)
+        changed = 1
+        if v == mark:
+            dl = take_miss(gslot[at(slot, c)] - 1, rec_miss)
+            if dl != 0.0:
+                free_update(slot, c, dl, NE_GAUSS, l_min, l_max, rec_n, ctr, rec_free)
+            else:
+                changed = 0
+        else:
+            free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, rec_n, ctr,
+                        rec_free)  # fmt: skip
+        return changed
+
+    @ti.func
+    def ndt_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
+                  rec_scat: ti.template(), rec_miss: ti.template()):  # fmt: skip
+        # A ray passing a cell of the block marked as holding a usable Gaussian.
+        r = gslot[at(slot, c)] - 1
+        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_n, rec_mean, rec_scat))
+
+    @ti.func
+    def ndt_tree_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
+                       rec_scat: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
+        # A ray passing a cell of the tree that may hold a Gaussian (NE_GAUSS).
+        r = gslot[at(slot, c)] - 1
+        if r >= 0 and rec_n[r] >= ndt_minp:
+            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_n, rec_mean, rec_scat))
+
+    @ti.func
+    def ndt_miss(r, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
+                 rec_scat: ti.template()) -> ti.i64:  # fmt: skip
+        # The NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for one ray o -> z
+        # passing cell c, whose Gaussian (record r, as at the scan's start) it tests: the
+        # ray's point of highest likelihood x_ML, p = 0.5 - eta p(x_ML|N) (1 - p(x_ML|z)),
+        # and the log-odds change logit(p), in fixed point. Coordinates relative to the
+        # cell centre keep f64 exact enough far from the origin.
+        # prm: [eta, 1 / (2 sigma_s^2), eigenvalue floor as a share of the trace].
+        centre = (c.cast(ti.f64) + 0.5) * res
+        oc = o - centre
+        d = z - o
+        length = d.norm()
+        u = d / length
+        k = 1.0 / ti.max(ti.cast(rec_n[r], ti.f64) - 1.0, 1.0)
+        s0, s1, s2 = rec_scat[r, 0] * k, rec_scat[r, 1] * k, rec_scat[r, 2] * k
+        s3, s4, s5 = rec_scat[r, 3] * k, rec_scat[r, 4] * k, rec_scat[r, 5] * k
+        # A flat (or degenerate) covariance gets a floor on every axis before inverting.
+        eps = prm[2] * (s0 + s3 + s5) + 1e-12
+        a00, a11, a22 = s0 + eps, s3 + eps, s5 + eps
+        c00 = a11 * a22 - s4 * s4
+        c01 = s2 * s4 - s1 * a22
+        c02 = s1 * s4 - s2 * a11
+        c11 = a00 * a22 - s2 * s2
+        c12 = s1 * s2 - a00 * s4
+        c22 = a00 * a11 - s1 * s1
+        det = a00 * c00 + s1 * c01 + s2 * c02
+        inv = ti.Matrix([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]], dt=ti.f64) / det
+        mu = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+        a = inv @ u
+        # x_ML on the ray's line, kept on the segment the ray travelled.
+        t = ti.min(ti.max(a.dot(mu - oc) / a.dot(u), 0.0), length)
+        e = oc + t * u - mu
+        p_n = ti.exp(-0.5 * e.dot(inv @ e))
+        p_z = ti.f64(0.0)
+        if hit:
+            w = oc + t * u - (z - centre)
+            p_z = ti.exp(-w.dot(w) * prm[1])
+        p = 0.5 - prm[0] * p_n * (1.0 - p_z)
+        return ti.cast(ti.round(ti.log(p / (1.0 - p)) * MISS_SCALE), ti.i64)
 
     def block_kernels(bt):
         """The kernels that read or write the scan's dense ray-count block, for block
@@ -304,6 +401,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         b3d = ti.types.ndarray(dtype=bt, ndim=3)
         b1d = ti.types.ndarray(dtype=bt, ndim=1)
         bits = 16 if bt == ti.u16 else 32
+        mark = MARK_U16 if bt == ti.u16 else MARK_I32  # as the i32 that block_cell compares
 
         @ti.func
         def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
@@ -411,6 +509,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             res: ti.f64,
             rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
             left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
+            rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             # Records are not reserved for the worst case (every hit cell new): a cell that
@@ -484,15 +583,19 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rec_scat[r, a] = rec_scat[r, a] * k
                     tot_i = n_max
                 rec_n[r] = tot_i
+                rec_miss[r] = ti.i64(0)
                 hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
-        def make_rays(mode: str, flags: bool = True):
+        def make_rays(mode: str, flags: bool = True, ndt: bool = False):
             # "full": counts in the dense block where it covers the cell, else in the tree.
             # "dense": the block covers every cell of the scan: no bounds checks, no tree;
             # with flags=False no row flags either (a second cache line per visit), for
             # blocks that rays fill densely: block_apply_all then reads every cell.
             # "floor": the benchmark floor: the same traversal through the tree, one integer
             # atomic per visited cell and nothing else.
+            # ndt: the NDT miss model: a visit to a cell holding a usable Gaussian (its block
+            # entry marked, or NE_GAUSS in the tree and enough points) adds the ray's
+            # likelihood term to the Gaussian's record; other visits only count.
             full = mode != "floor"
             @ti.kernel
             def rays(
@@ -515,6 +618,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 block1: b1d,  # the same block and flags, flat ("dense" steps a flat index)
                 bflag1: i8_1d,
                 use_block: ti.i32,
+                rec_n: i32_1d,  # [C] Gaussian records (ndt): points
+                rec_mean: f64_2d,  # [C, 3] mean minus cell centre
+                rec_scat: f64_2d,  # [C, 6] scatter
+                rec_miss: i64_1d,  # [C] out: summed log-odds changes, fixed point (MISS_SCALE)
+                prm: f64_1d,  # [3] eta, 1 / (2 sigma_s^2), covariance floor (see ndt_miss)
+                ndt_minp: ti.i32,  # points a Gaussian needs for the NDT miss model
             ):
                 o = ti.Vector([origin[0], origin[1], origin[2]])
                 strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
@@ -526,7 +635,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 for it in range(n):
                     i = spread(it, q, inv_q)
                     ce = row(cells, i)
-                    d = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - o
+                    z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
+                    d = z - o
                     cur = co
                     step = ti.Vector([0, 0, 0], dt=ti.i32)
                     rem = ti.Vector([0, 0, 0], dt=ti.i32)
@@ -550,13 +660,19 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     while left > 0:
                         rel = cur - b0
                         if ti.static(mode == "dense"):
-                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                            if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
+                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                            else:
+                                ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
                                 bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                         elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                             # Near the sensor every ray passes: count in the dense block,
                             # applied to the tree once per cell by block_apply.
-                            ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
+                            if ti.static(ndt) and block[rel[0], rel[1], rel[2]] == ti.cast(mark, bt):
+                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                            else:
+                                ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
                             lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                             if (lb != last_leaf).any():
                                 bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
@@ -567,7 +683,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                 note_leaf(olm, slot, cur, regions, leaves, 0)
                                 last_leaf = lf
                             if ti.static(full):
-                                visit(slot, cur, touched, cap, ctr)
+                                g = visit(slot, cur, touched, cap, ctr)
+                                if ti.static(ndt) and g != 0:
+                                    ndt_tree_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat,
+                                                   rec_miss, ndt_minp)  # fmt: skip
                             else:
                                 ti.atomic_add(ne[at(slot, cur)], 1)
                         visits += 1
@@ -612,12 +731,18 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                     tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                     if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                         if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                            if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
+                                ndt_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                            else:
+                                ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
                                 bflag1[li >> SHIFT] = ti.i8(1)
                         else:
                             note_leaf(olm, slot, ce, regions, leaves, 0)
-                            visit(slot, ce, touched, cap, ctr)
+                            g = visit(slot, ce, touched, cap, ctr)
+                            if ti.static(ndt) and g != 0:
+                                ndt_tree_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_scat, rec_miss,
+                                               ndt_minp)  # fmt: skip
                         visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
 
@@ -637,6 +762,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             regions: i8_4d,
             leaves: i64_2d,
             rec_free: i32_1d,
+            rec_miss: i64_1d,  # [C] NDT miss sums of marked cells, consumed here
         ):
             # eq. (12) for the cells of the dense block, straight from their counts (hit cells
             # were zeroed by merge). One leaf of the tree per iteration, so its cells are
@@ -653,9 +779,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             v = ti.cast(block[i, j, k], ti.i32)
                             if v != 0:
                                 block[i, j, k] = ti.cast(0, bt)
-                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max, rec_n, ctr,
-                                           regions, leaves, rec_free)  # fmt: skip
-                                cells += 1
+                                cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max,
+                                                    rec_n, ctr, regions, leaves, rec_free, rec_miss, mark)  # fmt: skip
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
 
@@ -676,6 +801,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             regions: i8_4d,
             leaves: i64_2d,
             rec_free: i32_1d,
+            rec_miss: i64_1d,
         ):
             # block_apply for a block the rays filled densely (no row flags): every column
             # of cells along z read in memory order, a word of `lanes` cells at a time, so
@@ -695,19 +821,44 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
                             if v != 0:
                                 k = kw * lanes + lane
-                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
-                                           rec_n, ctr, regions, leaves, rec_free)  # fmt: skip
+                                cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min,
+                                                    l_max, rec_n, ctr, regions, leaves, rec_free, rec_miss, mark)  # fmt: skip
                                 last = k >> SHIFT
-                                cells += 1
                 if cells > 0:
                     tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
 
+        @ti.kernel
+        def mark_gaussians(
+            nrec: ti.i32,
+            rec_n: i32_1d,  # [C] records: points
+            rec_cell: i32_2d,  # [C, 3] records: cell index
+            ndt_minp: ti.i32,
+            block: b3d,  # [Bx, By, Bz] the scan's zeroed ray counts
+            bflag: i8_3d,  # [Bx, By, Bz/leaf] row flags
+            base: i32_1d,  # [3]
+        ):
+            # Before the rays of the NDT miss model: the block entries of cells holding a
+            # Gaussian of >= ndt_minp points get the mark (their rows flagged, so that
+            # block_apply visits and clears them).
+            b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+            bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+            for r in range(nrec):
+                if rec_n[r] >= ndt_minp:
+                    rel = row(rec_cell, r) - b0
+                    if (rel >= 0).all() and (rel < bsize).all():
+                        block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt)
+                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+
         return SimpleNamespace(
+            mark_gaussians=fast(mark_gaussians),
             hits_dense=fast(hits_dense),
             merge=fast(merge),
             rays=fast(make_rays("full")),
             rays_dense=fast(make_rays("dense")),
             rays_dense_unflagged=fast(make_rays("dense", flags=False)),
+            ndt_rays=fast(make_rays("full", ndt=True)),
+            ndt_rays_dense=fast(make_rays("dense", ndt=True)),
+            ndt_rays_dense_unflagged=fast(make_rays("dense", flags=False, ndt=True)),
             block_apply=fast(block_apply),
             block_apply_all=fast(block_apply_all),
             rays_floor=fast(make_rays("floor")),
@@ -726,17 +877,20 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rec_n: i32_1d,
         ctr: i64_1d,
         rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
+        rec_miss: i64_1d,  # [C] NDT miss sums, consumed here
+        ndt_minp: ti.i32,  # 0: the paper's eq. (12) for every cell
     ):
         for t in range(nt):
-            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free)
+            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp)
 
     @ti.kernel
     def apply_free_all(slot: ti.i32, l_free: ti.f64, l_min: ti.f32, l_max: ti.f32, rec_n: i32_1d, ctr: i64_1d,
-                       rec_free: i32_1d):  # fmt: skip
+                       rec_free: i32_1d, rec_miss: i64_1d, ndt_minp: ti.i32):  # fmt: skip
         # Fallback when the touched list overflowed: visit every known cell.
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] & NE_COUNT > 0:
-                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free)
+                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss,
+                                 ndt_minp)  # fmt: skip
 
     @ti.kernel
     def count_new_nodes(

@@ -6,6 +6,9 @@ import math
 from dataclasses import asdict, dataclass, fields
 
 
+MISS_MODELS = ("ndt", "paper")
+
+
 @dataclass(frozen=True)
 class MapConfig:
     """Options of an NDT-OM.
@@ -27,6 +30,12 @@ class MapConfig:
     max_range: float = math.inf  # points farther are dropped, or carved as free rays
     max_range_mode: str = "drop"  # "drop" | "free": free rays clipped at max_range, no hit
     n_max: int = 0  # cap on N (adaptive Gaussians, method.md sec. 2); 0 disables
+    # How a ray passing a cell that holds a Gaussian of >= min_points points lowers it:
+    # "ndt": by how squarely it passes the Gaussian (Saarinen et al., IJRR 2013, eqs.
+    # 22-24); "paper": by p_empty per ray, as every other cell (ICRA 2013, eq. 12).
+    miss_model: str = "paper"
+    sigma_s: float = 0.05  # range noise of the sensor (m), NDT miss model; ohm's default
+    eta: float = 0.2  # strongest miss evidence per ray, NDT miss model; ohm's default (p_miss 0.4)
 
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:
@@ -52,6 +61,12 @@ class MapConfig:
             bad("max_range_mode='free' needs a finite max_range")
         if int(self.n_max) != self.n_max or self.n_max < 0 or self.n_max == 1:
             bad(f"n_max must be 0 (off) or an integer >= 2, got {self.n_max}")
+        if self.miss_model not in MISS_MODELS:
+            bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
+        if not (isinstance(self.sigma_s, (int, float)) and math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
+            bad(f"sigma_s must be a positive number of metres, got {self.sigma_s!r}")
+        if not (isinstance(self.eta, (int, float)) and 0.0 < self.eta < 0.5):
+            bad(f"eta must be in (0, 0.5), got {self.eta!r}")
 
     @property
     def l_hit(self) -> float:
@@ -60,6 +75,10 @@ class MapConfig:
     @property
     def l_free(self) -> float:
         return math.log(self.p_empty / (1.0 - self.p_empty))
+
+    @property
+    def ndt_misses(self) -> bool:
+        return self.miss_model == "ndt"
 
     def to_dict(self) -> dict:
         d = asdict(self)

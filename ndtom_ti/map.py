@@ -39,6 +39,10 @@ _TOUCHED_START = 1 << 20
 # the part nearest the sensor, where rays are densest, and the rest counts in the tree.
 BLOCK_CELLS = 1 << 25
 _SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
+# NDT miss model: a Gaussian's covariance gets this share of its trace added on every axis
+# before it is inverted, so flat (planar) Gaussians stay invertible: no axis is thinner than
+# ~3% of the Gaussian's spread.
+NDT_COV_FLOOR = 1e-3
 
 
 @dataclass
@@ -159,8 +163,9 @@ class NdtOmMap:
         # to the 1M cells nearest the sensor there.
         self.block_cells = BLOCK_CELLS if self.arch == "cpu" else 1 << 20
         self._block_density = 0.0  # ray visits per cell of the last scan's dense block
-        # A ray passes a cell once: u16 ray counts hold any scan of up to 65535 rays.
-        self._u16_rays = 65535
+        # A ray passes a cell once: u16 ray counts hold any scan of up to 65534 rays
+        # (65535 marks a cell holding a Gaussian for the NDT miss model).
+        self._u16_rays = 65534
         self._group_hits = True  # endpoints grouped in the block where it can (see _insert)
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
@@ -169,6 +174,8 @@ class NdtOmMap:
         self._nrec = 0
         self._nfree = 0
         self._alloc_records(1024)
+        c = self.config
+        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR])
 
     # ------------------------------------------------------------------ properties
 
@@ -294,10 +301,17 @@ class NdtOmMap:
         # 16-bit counts on the CPU only: NVIDIA GPUs have no 16-bit atomics.
         dtype = np.uint16 if self.arch == "cpu" and len(world) <= self._u16_rays else np.int32
         kb = self._k.block[np.dtype(dtype)]
-        kernel = kb.rays if mode == "full" else kb.rays_floor
+        ndt = mode == "full" and self.config.ndt_misses
+        pre = "ndt_" if ndt else ""
+        kernel = getattr(kb, pre + "rays") if mode == "full" else kb.rays_floor
         block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
+        minp = int(self.config.min_points)
+        # The Gaussians the rays test are those of the scan's start: merge runs after them.
+        recs = (self._rec_n, self._rec_mean, self._rec_scat, self._rec_miss, self._ndt_prm, minp)
+        if ndt and block.size:
+            kb.mark_gaussians(self._nrec, self._rec_n, self._rec_cell, minp, block, bflag, base)
         n = len(world)
         if one_pass:
             lo, hi = np.minimum(box[0], ocell), np.maximum(box[1], ocell)
@@ -308,8 +322,8 @@ class NdtOmMap:
                 # rays leave most rows empty: the last scan made few visits per block cell
                 # (measured on the hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15).
                 flagged = self._block_density < 0.2
-                kernel = kb.rays_dense if flagged else kb.rays_dense_unflagged
-            kernel(slot, world, cells, n_hit, n, *args, int(dense))
+                kernel = getattr(kb, pre + ("rays_dense" if flagged else "rays_dense_unflagged"))
+            kernel(slot, world, cells, n_hit, n, *args, int(dense), *recs)
             st.note_usage()
             if not (dense and block.size):
                 return None
@@ -327,7 +341,7 @@ class NdtOmMap:
             bound = self._scan_bound(cs[a:b], 0, ocell, tight=True, rays=True)
             if st.pool_bytes(bound) <= limit:
                 # No dense block here: its cells would reach the tree outside this batch's bound.
-                kernel(slot, np.ascontiguousarray(ws[a:b]), np.ascontiguousarray(cs[a:b]), max(0, min(n_hit - a, b - a)), b - a, *args, 0)
+                kernel(slot, np.ascontiguousarray(ws[a:b]), np.ascontiguousarray(cs[a:b]), max(0, min(n_hit - a, b - a)), b - a, *args, 0, *recs)
                 st.note_usage()
             elif b - a > 1:
                 mid = (a + b) // 2
@@ -382,9 +396,11 @@ class NdtOmMap:
             try:
                 return self._insert(points, T_world_sensor)
             except BaseException:
-                # Interrupted between kernels (Ctrl-C): keep the shared block zero.
+                # Interrupted between kernels (Ctrl-C) or refused: keep the shared block and
+                # the NDT miss sums zero.
                 self._st.block_buf[:] = 0
                 self._st.bflag_buf[:] = 0
+                self._rec_miss[:] = 0
                 raise
 
     def _insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
@@ -424,7 +440,8 @@ class NdtOmMap:
                 ctr[C_RECORDS], ctr[C_NO_RECORD] = self._nrec, 0
                 kb.merge(slot, hitlist, acc, todo, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat,
                          ctr, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
-                         hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left)  # fmt: skip
+                         hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left,
+                         self._rec_miss)  # fmt: skip
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
                 self._nrec, self._nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
@@ -444,16 +461,18 @@ class NdtOmMap:
         if dense is not None:
             if flagged:
                 kb.block_apply(slot, block, bflag, base, cfg.l_free, lmin, lmax, self._rec_n, ctr, fs.occ_regions, fs.leaf_count,
-                               self._rec_free)  # fmt: skip
+                               self._rec_free, self._rec_miss)  # fmt: skip
             else:
                 kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
-                                  self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free)  # fmt: skip
+                                  self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free, self._rec_miss)  # fmt: skip
         if self.occupancy_enabled and n:
+            ndt_minp = int(cfg.min_points) if cfg.ndt_misses else 0
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
-                k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free)
+                k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss,
+                             ndt_minp)  # fmt: skip
             elif nt:
-                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free)
+                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss, ndt_minp)
                 self._touched = np.empty((2 * nt, 3), np.int32)
             rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
         fs.note_usage()
@@ -475,11 +494,14 @@ class NdtOmMap:
         mean = np.zeros((capacity, 3), np.float64)
         scat = np.zeros((capacity, 6), np.float64)
         free = np.zeros(capacity, np.int32)
+        miss = np.zeros(capacity, np.int64)  # NDT miss sums, zero between updates
         if old is not None:
             k = self._nrec
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
+            miss[:k] = self._rec_miss[:k]  # grown mid-update: the rays' sums are not applied yet
             free[: self._nfree] = self._rec_free[: self._nfree]
         self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, self._rec_free = n_, cell, mean, scat, free
+        self._rec_miss = miss
 
     def _scan_bound(
         self,

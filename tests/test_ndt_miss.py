@@ -1,0 +1,255 @@
+"""The NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) against a float64 reference,
+ray by ray and cell by cell, and on hand-computable cases."""
+
+import math
+
+import numpy as np
+import pytest
+from conftest import DATA
+from reference import ndt_miss_term, ndt_om_logodds
+from test_core import BLOCKS, set_block
+
+from ndtom_ti import MapConfig, NdtOmMap, runtime
+
+NDT = dict(miss_model="ndt")
+L_HIT = math.log(0.6 / 0.4)
+L_FREE = math.log(0.49 / 0.51)
+
+
+def insert_world(m, origin, world, block_cells=None):
+    """Insert world points seen from ``origin`` (identity rotation)."""
+    set_block(m, block_cells)
+    T = np.eye(4)
+    T[:3, 3] = origin
+    m.insert_scan(np.asarray(world, np.float64) - origin, T)
+
+
+def logodds_of(m) -> dict:
+    k = m.known_cells()
+    return {tuple(c): v for c, v in zip(k["index"].tolist(), k["logodds"])}
+
+
+def assert_matches(m, ref_lo, ref_pts, atol=2e-6):
+    got = logodds_of(m)
+    assert set(got) == set(ref_lo), (
+        f"cells differ: missing {list(set(ref_lo) - set(got))[:5]}, extra {list(set(got) - set(ref_lo))[:5]}"
+    )
+    worst = max(abs(got[c] - v) for c, v in ref_lo.items())
+    assert worst <= atol, f"worst log-odds difference {worst:.2e}"
+    g = m.gaussians(min_points=1, min_probability=0.0)
+    assert {tuple(c): int(n) for c, n in zip(g["index"].tolist(), g["n"])} == {c: len(p) for c, p in ref_pts.items()}
+
+
+def blob(rng, centre, n=40, sd=(0.02, 0.02, 0.02)):
+    return np.asarray(centre) + rng.normal(size=(n, 3)) * sd
+
+
+# --------------------------------------------------------------------------- hand cases
+
+
+def test_ray_through_the_mean_far_from_its_endpoint(rng):
+    """x_ML is the mean itself: p(x_ML|N) = 1, p(x_ML|z) ~ 0: l falls by logit(0.5 - eta)."""
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    pts = blob(rng, (2.25, 0.25, 0.25))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
+    g = m.gaussians()
+    mu = g["mean"][0]
+    before = logodds_of(m)[(4, 0, 0)]
+    assert before == pytest.approx(40 * L_HIT, rel=1e-6)
+    # From below the cell, through the mean, to an endpoint 3 m past it.
+    o = mu - np.array([0.0, 0.0, 3.0])
+    insert_world(m, o, [mu + np.array([0.0, 0.0, 3.0])])
+    after = logodds_of(m)[(4, 0, 0)]
+    eta = 0.2
+    assert after - before == pytest.approx(math.log((0.5 - eta) / (0.5 + eta)), abs=1e-5)
+    assert after - before == pytest.approx(-0.8473, abs=1e-4)
+
+
+def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
+    """A floor Gaussian (flat in z) and a ray parallel to it h above its mean: x_ML lies
+    straight above the mean, p(x_ML|N) = exp(-h^2 / (2 s_z^2)) with the floored variance."""
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT))  # clamped at 2: f32 log-odds exact to 2e-7
+    xy = rng.uniform(0.02, 0.48, size=(200, 2))
+    z = 0.2 + rng.normal(size=200) * 0.01
+    pts = np.column_stack([xy, z]) + [5.0, 0.0, 0.0]
+    insert_world(m, np.array([5.25, 0.25, 3.0]), pts)
+    g = m.gaussians()
+    assert len(g["n"]) == 1
+    mu, C = g["mean"][0], g["cov"][0]
+    h = 3.0 * math.sqrt(C[2, 2])
+    before = logodds_of(m)[(10, 0, 0)]
+    # Along x through the cell, h above the mean, endpoint far beyond.
+    o = mu + np.array([-4.0, 0.0, h])
+    insert_world(m, o, [mu + np.array([6.0, 0.0, h])])
+    after = logodds_of(m)[(10, 0, 0)]
+    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, 0.2, 0.05)
+    assert after - before == pytest.approx(expected, abs=2e-6)
+    # A few sigma above: small evidence, far from the paper's constant rate per ray.
+    assert -0.05 < expected < 0.0
+    # The same ray through the plane's mean height takes the strong update.
+    insert_world(m, mu + np.array([-4.0, 0.0, 0.0]), [mu + np.array([6.0, 0.0, 0.0])])
+    assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(-0.8473, abs=2e-3)
+
+
+def test_ray_ending_inside_the_cell_takes_the_hit_update_only(rng):
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    pts = blob(rng, (2.25, 0.25, 0.25))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
+    before = logodds_of(m)[(4, 0, 0)]
+    # One ray ends in the cell, another passes through its mean from the same origin.
+    o = np.array([2.25, 0.25, -3.0])
+    insert_world(m, o, [[2.25, 0.25, 0.2], [2.25, 0.25, 4.0]])
+    assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(L_HIT, abs=1e-6)
+
+
+def test_cell_with_fewer_than_min_points_keeps_the_count_update(rng):
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])  # 2 < 3 points
+    before = logodds_of(m)[(4, 0, 0)]
+    o = np.array([2.25, 0.25, -3.0])
+    insert_world(m, o, [[2.25, 0.25, 4.0]] * 3)
+    assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(3 * L_FREE, abs=1e-6)
+
+
+def test_paper_model_keeps_eq12_for_gaussian_cells(rng):
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(miss_model="paper", logodds_min=-100, logodds_max=100))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25)))
+    before = logodds_of(m)[(4, 0, 0)]
+    insert_world(m, np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]] * 5)
+    assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(5 * L_FREE, abs=1e-6)
+
+
+# --------------------------------------------------------------------------- references
+
+
+def random_scans(rng, n_scans=5, n=500):
+    """Scans of a noisy wall and blobs, from origins around them: many rays pass cells
+    that hold Gaussians, at all angles; free rays too."""
+    scans = []
+    for k in range(n_scans):
+        o = rng.uniform(-1.0, 1.0, 3)
+        wall = np.column_stack([np.full(n, 4.0) + rng.normal(size=n) * 0.03, rng.uniform(-3, 3, n), rng.uniform(-1, 2, n)])
+        blobs = rng.normal(size=(n // 2, 3)) * 0.15 + rng.choice([[2.0, 0.5, 0.3], [2.5, -1.0, 0.0]], n // 2)
+        ends = np.concatenate([wall, blobs])
+        hit = rng.uniform(size=len(ends)) > 0.1
+        scans.append((o, ends, hit))
+    return scans
+
+
+def build(scans, res, cfg, block_cells=None):
+    m = NdtOmMap(res, config=cfg)
+    for o, ends, hit in scans:
+        set_block(m, block_cells)
+        T = np.eye(4)
+        T[:3, 3] = o
+        # Free rays: beyond max_range, carved up to it (their endpoint cell is passed).
+        local = ends - o
+        local[~hit] *= (cfg.max_range * 1.5) / np.linalg.norm(local[~hit], axis=1, keepdims=True)
+        m.insert_scan(local, T)
+    return m
+
+
+def reference_scans(scans, max_range):
+    """What the map makes of ``build``'s scans: every ray past max_range (the free ones,
+    and hits that far) is a free ray clipped there."""
+    out = []
+    for o, ends, hit in scans:
+        e = ends.copy()
+        far = ~hit | (np.linalg.norm(e - o, axis=1) > max_range)
+        d = e[far] - o
+        e[far] = o + d * (max_range / np.linalg.norm(d, axis=1, keepdims=True))
+        out.append((o, e, ~far))
+    return out
+
+
+@pytest.mark.parametrize("block_cells", BLOCKS)
+def test_logodds_match_the_float64_reference_in_every_ray_path(rng, block_cells):
+    """Every touched cell's log-odds and every Gaussian's N after 5 scans, through the
+    dense block (flagged or not, u16 or i32), a block split with the tree, and the tree."""
+    res = 0.25
+    cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
+    scans = random_scans(rng)
+    m = build(scans, res, cfg, block_cells)
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res)
+    assert_matches(m, ref_lo, ref_pts)
+    # The scans test the model: the paper's eq. (12) gives other log-odds.
+    paper, _ = ndt_om_logodds(reference_scans(scans, 6.0), res, miss_model="paper")
+    assert sum(abs(paper.get(c, 0.0) - v) > 0.1 for c, v in ref_lo.items()) > 20
+
+
+def test_batched_tracing_matches_the_reference(rng):
+    """Under memory pressure the rays are traced in batches through the tree only."""
+    res = 0.25
+    cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
+    scans = random_scans(rng, n_scans=3)
+    m = NdtOmMap(res, config=cfg)
+    passes = []
+    orig_trace, orig_bound = m._trace, m._scan_bound
+    m._trace = lambda *args: passes.append(args[-1]) or orig_trace(*args)
+    m._scan_bound = lambda *a, tight=False, **k: orig_bound(*a, tight=tight, **k) * (1 if tight else 10**9)
+    old = runtime.pool_limit()
+    try:
+        runtime._state.pool_limit = 2**30 - 1  # the one-pass bound (x 1e9) never fits
+        for o, ends, hit in reference_scans(scans, 6.0):
+            T = np.eye(4)
+            T[:3, 3] = o
+            local = ends - o
+            local[~hit] *= 1.5
+            m.insert_scan(local, T)
+    finally:
+        runtime._state.pool_limit = old
+    assert passes == [False, False, False]  # batched every time
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res)
+    assert_matches(m, ref_lo, ref_pts)
+
+
+def test_result_does_not_depend_on_thread_order(rng):
+    """Integer sums: two maps of the same scans are bit-identical."""
+    scans = random_scans(rng, n_scans=3, n=2000)
+    cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
+    a, b = build(scans, 0.2, cfg), build(scans, 0.2, cfg)
+    ka, kb = a.known_cells(), b.known_cells()
+    assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
+
+
+def test_synthetic_lidar_scans_match_the_reference(sim_hall_dynamic):
+    """Hall scans with moving objects (subsampled: the reference is pure Python)."""
+    sim = sim_hall_dynamic
+    res = 0.4
+    rng = np.random.default_rng(7)
+    m = NdtOmMap(res, config=MapConfig(**NDT))
+    scans = []
+    for i in range(0, 12, 2):
+        world = sim.scan(i, frame="world")
+        world = world[rng.choice(len(world), 1500, replace=False)]
+        o = sim.origin(i)
+        insert_world(m, o, world)
+        scans.append((o, world))
+    ref_lo, ref_pts = ndt_om_logodds(scans, res)
+    assert_matches(m, ref_lo, ref_pts, atol=5e-6)
+
+
+@pytest.mark.skipif(not (DATA / "balm_hall_every4").exists(), reason="shared data not found")
+def test_real_lidar_scans_match_the_reference():
+    from ndtom_ti.io import open_recording
+
+    rec = open_recording(DATA / "balm_hall_every4")
+    rng = np.random.default_rng(3)
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT))
+    scans = []
+    for k, scan in enumerate(rec.scans()):
+        if k == 3:
+            break
+        p = scan.points[np.isfinite(scan.points).all(axis=1)]
+        p = p[rng.choice(len(p), 1500, replace=False)].astype(np.float64)
+        T = scan.T_world_sensor
+        m.insert_scan(p, T)
+        scans.append((T[:3, 3].copy(), p @ T[:3, :3].T + T[:3, 3]))
+    ref_lo, ref_pts = ndt_om_logodds(scans, res)
+    assert_matches(m, ref_lo, ref_pts, atol=5e-6)
