@@ -340,38 +340,50 @@ def make_kernels(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def ndt_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
-                  rec_scat: ti.template(), rec_miss: ti.template()):  # fmt: skip
+                  rec_icov: ti.template(), rec_miss: ti.template()):  # fmt: skip
         # A ray passing a cell of the block marked as holding a usable Gaussian.
         r = gslot[at(slot, c)] - 1
-        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_n, rec_mean, rec_scat))
+        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_mean, rec_icov))
 
     @ti.func
     def ndt_tree_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
-                       rec_scat: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
+                       rec_icov: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
         # A ray passing a cell of the tree that may hold a Gaussian (NE_GAUSS).
         r = gslot[at(slot, c)] - 1
         if r >= 0 and rec_n[r] >= ndt_minp:
-            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_n, rec_mean, rec_scat))
+            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_mean, rec_icov))
 
     @ti.func
-    def ndt_miss(r, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
-                 rec_scat: ti.template()) -> ti.i64:  # fmt: skip
-        # The NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for one ray o -> z
-        # passing cell c, whose Gaussian (record r, as at the scan's start) it tests: the
-        # ray's point of highest likelihood x_ML, p = 0.5 - eta p(x_ML|N) (1 - p(x_ML|z)),
-        # and the log-odds change logit(p), in fixed point. Coordinates relative to the
-        # cell centre keep f64 exact enough far from the origin.
-        # prm: [eta, 1 / (2 sigma_s^2), eigenvalue floor as a share of the trace].
-        centre = (c.cast(ti.f64) + 0.5) * res
-        oc = o - centre
-        d = z - o
-        length = d.norm()
-        u = d / length
+    def ndt_floor(s0, s1, s2, s3, s4, s5, prm: ti.template()) -> ti.f64:
+        # Variance added on every axis of a Gaussian (xx xy xz yy yz zz) before it is
+        # inverted: a share prm[2] of its largest eigenvalue always (flat ones stay
+        # invertible), and for a line-like Gaussian (middle eigenvalue < prm[3] x the
+        # largest: one scan line across the cell) up to prm[4] x the largest, so that it
+        # stands for the surface the line samples, not for the line alone.
+        q = (s0 + s3 + s5) / 3.0
+        p1 = s1 * s1 + s2 * s2 + s4 * s4
+        p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * p1
+        l1, l2, l3 = q, q, q
+        if p2 > 1e-30 * q * q:
+            p = ti.sqrt(p2 / 6.0)
+            b0, b3, b5 = (s0 - q) / p, (s3 - q) / p, (s5 - q) / p
+            b1, b2, b4 = s1 / p, s2 / p, s4 / p
+            hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
+            phi = ti.acos(ti.min(ti.max(hdet, -1.0), 1.0)) / 3.0
+            l3 = q + 2.0 * p * ti.cos(phi)
+            l1 = q + 2.0 * p * ti.cos(phi + 2.0943951023931957)
+            l2 = 3.0 * q - l1 - l3
+        return prm[2] * l3 + prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3] + 1e-12
+
+    @ti.func
+    def ndt_icov(r, rec_n: ti.template(), rec_scat: ti.template(), prm: ti.template(), rec_icov: ti.template()):
+        # The inverse of record r's regularised covariance (xx xy xz yy yz zz), kept with
+        # the record: computed when its points change (merge) or the map is loaded, so a
+        # ray visit only reads it.
         k = 1.0 / ti.max(ti.cast(rec_n[r], ti.f64) - 1.0, 1.0)
         s0, s1, s2 = rec_scat[r, 0] * k, rec_scat[r, 1] * k, rec_scat[r, 2] * k
         s3, s4, s5 = rec_scat[r, 3] * k, rec_scat[r, 4] * k, rec_scat[r, 5] * k
-        # A flat (or degenerate) covariance gets a floor on every axis before inverting.
-        eps = prm[2] * (s0 + s3 + s5) + 1e-12
+        eps = ndt_floor(s0, s1, s2, s3, s4, s5, prm)
         a00, a11, a22 = s0 + eps, s3 + eps, s5 + eps
         c00 = a11 * a22 - s4 * s4
         c01 = s2 * s4 - s1 * a22
@@ -380,19 +392,45 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         c12 = s1 * s2 - a00 * s4
         c22 = a00 * a11 - s1 * s1
         det = a00 * c00 + s1 * c01 + s2 * c02
-        inv = ti.Matrix([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]], dt=ti.f64) / det
+        rec_icov[r, 0] = c00 / det
+        rec_icov[r, 1] = c01 / det
+        rec_icov[r, 2] = c02 / det
+        rec_icov[r, 3] = c11 / det
+        rec_icov[r, 4] = c12 / det
+        rec_icov[r, 5] = c22 / det
+
+    @ti.func
+    def ndt_miss(r, c, o, z, hit, res, prm: ti.template(), rec_mean: ti.template(), rec_icov: ti.template()) -> ti.i64:
+        # The NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for one ray o -> z
+        # passing cell c, whose Gaussian (record r, as at the scan's start) it tests: the
+        # ray's point of highest likelihood x_ML, p = 0.5 - eta p(x_ML|N) (1 - p(x_ML|z)),
+        # and the log-odds change logit(p), in fixed point. Coordinates relative to the
+        # cell centre keep f64 exact enough far from the origin.
+        # prm: [eta, 1 / (2 sigma_s^2), covariance floors (see ndt_floor)].
+        centre = (c.cast(ti.f64) + 0.5) * res
+        oc = o - centre
+        d = z - o
+        length = d.norm()
+        u = d / length
+        i0, i1, i2, i3, i4, i5 = rec_icov[r, 0], rec_icov[r, 1], rec_icov[r, 2], rec_icov[r, 3], rec_icov[r, 4], rec_icov[r, 5]
+        inv = ti.Matrix([[i0, i1, i2], [i1, i3, i4], [i2, i4, i5]], dt=ti.f64)
         mu = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
         a = inv @ u
         # x_ML on the ray's line, kept on the segment the ray travelled.
         t = ti.min(ti.max(a.dot(mu - oc) / a.dot(u), 0.0), length)
         e = oc + t * u - mu
-        p_n = ti.exp(-0.5 * e.dot(inv @ e))
-        p_z = ti.f64(0.0)
-        if hit:
-            w = oc + t * u - (z - centre)
-            p_z = ti.exp(-w.dot(w) * prm[1])
-        p = 0.5 - prm[0] * p_n * (1.0 - p_z)
-        return ti.cast(ti.round(ti.log(p / (1.0 - p)) * MISS_SCALE), ti.i64)
+        m2 = e.dot(inv @ e)
+        out = ti.i64(0)
+        # Past m2 = 48, |logit(p)| < 4 eta exp(-24) < 2^-33: the term rounds to zero.
+        if m2 < 48.0:
+            p_n = ti.exp(-0.5 * m2)
+            p_z = ti.f64(0.0)
+            if hit:
+                w = oc + t * u - (z - centre)
+                p_z = ti.exp(-w.dot(w) * prm[1])
+            p = 0.5 - prm[0] * p_n * (1.0 - p_z)
+            out = ti.cast(ti.round(ti.log(p / (1.0 - p)) * MISS_SCALE), ti.i64)
+        return out
 
     def block_kernels(bt):
         """The kernels that read or write the scan's dense ray-count block, for block
@@ -510,6 +548,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
             left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
             rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
+            rec_icov: f64_2d,  # [C, 6] out (ndt != 0): inverse regularised covariance of changed records
+            prm: f64_1d,  # [5] NDT miss model parameters (see ndt_miss)
+            ndt: ti.i32,  # 1: the map uses the NDT miss model
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             # Records are not reserved for the worst case (every hit cell new): a cell that
@@ -584,6 +625,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     tot_i = n_max
                 rec_n[r] = tot_i
                 rec_miss[r] = ti.i64(0)
+                if ndt != 0:
+                    ndt_icov(r, rec_n, rec_scat, prm, rec_icov)
                 hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
         def make_rays(mode: str, flags: bool = True, ndt: bool = False):
@@ -620,9 +663,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 use_block: ti.i32,
                 rec_n: i32_1d,  # [C] Gaussian records (ndt): points
                 rec_mean: f64_2d,  # [C, 3] mean minus cell centre
-                rec_scat: f64_2d,  # [C, 6] scatter
+                rec_icov: f64_2d,  # [C, 6] inverse regularised covariance (see ndt_icov)
                 rec_miss: i64_1d,  # [C] out: summed log-odds changes, fixed point (MISS_SCALE)
-                prm: f64_1d,  # [3] eta, 1 / (2 sigma_s^2), covariance floor (see ndt_miss)
+                prm: f64_1d,  # [5] eta, 1 / (2 sigma_s^2), covariance floors (see ndt_floor)
                 ndt_minp: ti.i32,  # points a Gaussian needs for the NDT miss model
             ):
                 o = ti.Vector([origin[0], origin[1], origin[2]])
@@ -661,7 +704,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rel = cur - b0
                         if ti.static(mode == "dense"):
                             if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
@@ -670,7 +713,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             # Near the sensor every ray passes: count in the dense block,
                             # applied to the tree once per cell by block_apply.
                             if ti.static(ndt) and block[rel[0], rel[1], rel[2]] == ti.cast(mark, bt):
-                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
                             lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
@@ -685,7 +728,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             if ti.static(full):
                                 g = visit(slot, cur, touched, cap, ctr)
                                 if ti.static(ndt) and g != 0:
-                                    ndt_tree_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_scat,
+                                    ndt_tree_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov,
                                                    rec_miss, ndt_minp)  # fmt: skip
                             else:
                                 ti.atomic_add(ne[at(slot, cur)], 1)
@@ -732,7 +775,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                         if ti.static(mode == "dense"):  # li is the endpoint cell's now
                             if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                                ndt_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_scat, rec_miss)
+                                ndt_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
@@ -741,7 +784,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             note_leaf(olm, slot, ce, regions, leaves, 0)
                             g = visit(slot, ce, touched, cap, ctr)
                             if ti.static(ndt) and g != 0:
-                                ndt_tree_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_scat, rec_miss,
+                                ndt_tree_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_icov, rec_miss,
                                                ndt_minp)  # fmt: skip
                         visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
@@ -893,6 +936,13 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                  ndt_minp)  # fmt: skip
 
     @ti.kernel
+    def ndt_refresh(nrec: ti.i32, rec_n: i32_1d, rec_scat: f64_2d, prm: f64_1d, rec_icov: f64_2d):
+        # ndt_icov of every record (after a load: merge keeps them current afterwards).
+        for r in range(nrec):
+            if rec_n[r] > 0:
+                ndt_icov(r, rec_n, rec_scat, prm, rec_icov)
+
+    @ti.kernel
     def count_new_nodes(
         slot: ti.i32,
         cells: i32_2d,
@@ -1010,6 +1060,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rays_floor=by_dtype[np.dtype(np.int32)].rays_floor,
         apply_free=fast(apply_free),
         apply_free_all=fast(apply_free_all),
+        ndt_refresh=ndt_refresh,
         reset_rays=fast(reset_rays),
         count_new_nodes=count_new_nodes,
         reset_rays_all=reset_rays_all,

@@ -63,6 +63,11 @@ class Arch(str, Enum):
     cuda = "cuda"
 
 
+class MissModel(str, Enum):
+    ndt = "ndt"
+    paper = "paper"
+
+
 class Format(str, Enum):
     ply = "ply"
     npz = "npz"
@@ -468,10 +473,14 @@ def map_(
     min_range: Annotated[float | None, typer.Option(help="Drop points closer than this (m).")] = None,
     occupancy: Annotated[bool, typer.Option(
         "--occupancy/--no-occupancy", help="Ray-trace free space (NDT-OM); --no-occupancy: Gaussians only.")] = True,
+    miss_model: Annotated[MissModel | None, typer.Option(
+        "--miss-model", help="How rays lower cells holding a Gaussian: ndt (by how squarely they pass it, "
+        "IJRR 2013) or paper (a constant per ray, eq. 12). Default: the config's.")] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
     config: Annotated[Path | None, typer.Option(
         help="JSON or TOML file of MapConfig options (p_occupied, p_empty, logodds_min, logodds_max, "
-        "min_points, min_range, max_range, max_range_mode, n_max); -r, --min-range, --max-range win.")] = None,
+        "min_points, min_range, max_range, max_range_mode, n_max, miss_model, sigma_s, eta); -r, --min-range, "
+        "--max-range, --miss-model win.")] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
     view: Annotated[bool, typer.Option(
         "--view", help="Map live in the browser viewer (play/pause/step); the map is saved on Ctrl-C.")] = False,
@@ -501,7 +510,8 @@ def map_(
         cfg = load_config_file(config) if config is not None else None
         from .pipeline import config_with_ranges
 
-        mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range)
+        mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range,
+                                    miss_model=miss_model.value if miss_model else None)  # fmt: skip
         out_path = _check_writable(output if output is not None else default_output(bag), "map file")
         if view:
             from .io import open_recording

@@ -56,7 +56,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -76,8 +76,13 @@ __all__ = [
     "run_experiments",
 ]
 
-MAPPERS = ("rcu", "ndtom", "er")
-LABELS = {"rcu": "Recursive NDT (RCU)", "ndtom": "NDT-OM", "er": "error refinement (ER)"}
+MAPPERS = ("rcu", "ndtom", "ndtom_ndt", "er")
+LABELS = {
+    "rcu": "Recursive NDT (RCU)",
+    "ndtom": "NDT-OM (eq. 12)",
+    "ndtom_ndt": "NDT-OM, NDT miss model",
+    "er": "error refinement (ER)",
+}
 CONFLICT_DEFINITION = (
     "conflicting = cells with a Gaussian (n >= min_points) in Recursive NDT but none "
     "(n < min_points or l <= 0) in NDT-OM; fraction = conflicting / NDT-OM Gaussians"
@@ -395,7 +400,10 @@ def run_experiments(
     mp = int(cfg.min_points)
 
     rcu = NdtOmMap(resolution, occupancy=False, config=cfg)
-    ndt = NdtOmMap(resolution, occupancy=True, config=cfg)
+    # The paper's mapper (eq. 12 for every cell) and the same map with the NDT miss model
+    # of the authors' journal version, whatever the config chose.
+    ndt = NdtOmMap(resolution, occupancy=True, config=replace(cfg, miss_model="paper"))
+    ndt2 = NdtOmMap(resolution, occupancy=True, config=replace(cfg, miss_model="ndt"))
     er = ErrorRefinementMap(resolution, eps_min=er_eps_min, min_points=mp)
 
     worlds: list[np.ndarray] = []
@@ -410,7 +418,7 @@ def run_experiments(
             d = np.asarray(pts, np.float64)[data.dynamic[i]]
             dw = _world_hits(d, T, cfg)
             dyn_cells.append(np.unique(np.floor(dw / resolution).astype(np.int64), axis=0))
-        for name, m in (("rcu", rcu), ("ndtom", ndt)):
+        for name, m in (("rcu", rcu), ("ndtom", ndt), ("ndtom_ndt", ndt2)):
             _sync()
             t0 = time.perf_counter()
             m.insert_scan(pts, T)
@@ -424,6 +432,7 @@ def run_experiments(
         gauss = {
             "rcu": rcu.gaussians(min_points=mp, min_probability=0.0),
             "ndtom": ndt.gaussians(),
+            "ndtom_ndt": ndt2.gaussians(),
             "er": er.gaussians(),
         }
         scores = {m: mean_l2_score(gauss[m], batch) for m in MAPPERS}
@@ -454,6 +463,8 @@ def run_experiments(
 
         conflict = ~_in(gauss["rcu"]["index"], gauss["ndtom"]["index"])
         n_c, n_nd, n_rc = int(conflict.sum()), len(gauss["ndtom"]["index"]), len(gauss["rcu"]["index"])
+        n_c2 = int((~_in(gauss["rcu"]["index"], gauss["ndtom_ndt"]["index"])).sum())
+        n_nd2 = len(gauss["ndtom_ndt"]["index"])
         fig4b.append(
             {
                 "scan": i,
@@ -462,6 +473,8 @@ def run_experiments(
                 "rcu_gaussians": n_rc,
                 "fraction": n_c / n_nd if n_nd else math.nan,
                 "fraction_of_rcu": n_c / n_rc if n_rc else math.nan,
+                "conflicting_ndt": n_c2,
+                "fraction_ndt": n_c2 / n_nd2 if n_nd2 else math.nan,
             }
         )
         say(
@@ -519,6 +532,8 @@ def run_experiments(
         "other_fraction": _f((~horizontal).sum() / last["ndtom_gaussians"]) if last["ndtom_gaussians"] else None,
         "ndtom_gaussians": last["ndtom_gaussians"],
         "rcu_gaussians": last["rcu_gaussians"],
+        "count_ndt_miss_model": last["conflicting_ndt"],
+        "fraction_ndt_miss_model": _f(last["fraction_ndt"]),
         "definition": CONFLICT_DEFINITION,
         "horizontal_definition": HORIZONTAL_DEFINITION,
     }
@@ -620,7 +635,7 @@ def run_experiments(
         files += _plots(out, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, resolution, fig4d, data.description)
 
     # free every map before the sweep (it makes its own)
-    del rcu, ndt, coarse, er, gauss, cg, rcg
+    del rcu, ndt, ndt2, coarse, er, gauss, cg, rcg
     gc.collect()
 
     if sweep:
@@ -684,7 +699,7 @@ def _plots(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, res, fig
     import matplotlib.pyplot as plt
 
     files = []
-    styles = {"rcu": "o-", "ndtom": "s-", "er": "^-"}
+    styles = {"rcu": "o-", "ndtom": "s-", "ndtom_ndt": "d-", "er": "^-"}
 
     def save(fig, name: str) -> None:
         fig.tight_layout()
@@ -718,6 +733,7 @@ def _plots(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, res, fig
     x = [r["scan"] + 1 for r in fig4b]
     ax.plot(x, [100 * r["fraction"] for r in fig4b], "o-", ms=3, label="% of NDT-OM Gaussians")
     ax.plot(x, [100 * r["fraction_of_rcu"] for r in fig4b], "s--", ms=3, label="% of RCU Gaussians")
+    ax.plot(x, [100 * r["fraction_ndt"] for r in fig4b], "d-", ms=3, label="NDT miss model: % of its Gaussians")
     _finish(ax, "clouds inserted", "conflicting cells (%)", f"Fig. 4b: Gaussian in RCU, none in NDT-OM (final {fig4b[-1]['conflicting']} cells)")
     save(fig, "fig4b_conflicting.png")
 
@@ -764,7 +780,7 @@ def format_summary(s: dict) -> str:
     lines = [
         f"source: {s['source']}",
         f"resolution {s['resolution']:g} m, {s['scans']} scans, {s['points']} points ({s['arch']})",
-        f"{'':28s}{'RCU':>10s}{'NDT-OM':>10s}{'ER':>10s}",
+        f"{'':28s}{'RCU':>10s}{'NDT-OM':>10s}{'NDT miss':>10s}{'ER':>10s}",
         f"{'Fig. 1 score vs batch (final)':28s}" + "".join(f"{num(f1[m]):>10s}" for m in MAPPERS),
         f"{'Fig. 1 score vs batch (min)':28s}" + "".join(f"{num(s['fig1_min_score'][m]):>10s}" for m in MAPPERS),
         f"{'Fig. 2 self-test (mean)':28s}" + "".join(f"{num(f2[m]):>10s}" for m in MAPPERS),
@@ -782,7 +798,8 @@ def format_summary(s: dict) -> str:
             f"Fig. 4b: conflicting cells {c['count']} = {pct(c['fraction'])}% of NDT-OM's {c['ndtom_gaussians']} "
             f"Gaussians ({pct(c['fraction_of_rcu'])}% of RCU's {c['rcu_gaussians']}); {c['count_empty']} of them "
             f"seen empty (l < 0); {c['horizontal']} on horizontal surfaces, {c['other']} other "
-            f"({pct(c['other_fraction'])}%)"
+            f"({pct(c['other_fraction'])}%); with the NDT miss model {c['count_ndt_miss_model']} "
+            f"({pct(c['fraction_ndt_miss_model'])}%)"
             + (f"; {c['with_dynamic_points']} hold points of moving objects" if "with_dynamic_points" in c else "")
         ),
         (

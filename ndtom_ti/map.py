@@ -43,6 +43,9 @@ _SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
 # before it is inverted, so flat (planar) Gaussians stay invertible: no axis is thinner than
 # ~3% of the Gaussian's spread.
 NDT_COV_FLOOR = 1e-3
+NDT_LINE = 0.1
+NDT_LINE_FLOOR = 0.25
+NDT_MIN_POINTS = 0
 
 
 @dataclass
@@ -175,7 +178,7 @@ class NdtOmMap:
         self._nfree = 0
         self._alloc_records(1024)
         c = self.config
-        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR])
+        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR])
 
     # ------------------------------------------------------------------ properties
 
@@ -307,9 +310,9 @@ class NdtOmMap:
         block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
-        minp = int(self.config.min_points)
+        minp = NDT_MIN_POINTS or int(self.config.min_points)
         # The Gaussians the rays test are those of the scan's start: merge runs after them.
-        recs = (self._rec_n, self._rec_mean, self._rec_scat, self._rec_miss, self._ndt_prm, minp)
+        recs = (self._rec_n, self._rec_mean, self._rec_icov, self._rec_miss, self._ndt_prm, minp)
         if ndt and block.size:
             kb.mark_gaussians(self._nrec, self._rec_n, self._rec_cell, minp, block, bflag, base)
         n = len(world)
@@ -441,7 +444,7 @@ class NdtOmMap:
                 kb.merge(slot, hitlist, acc, todo, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat,
                          ctr, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
                          hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left,
-                         self._rec_miss)  # fmt: skip
+                         self._rec_miss, self._rec_icov, self._ndt_prm, int(cfg.ndt_misses))  # fmt: skip
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
                 self._nrec, self._nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
@@ -466,7 +469,7 @@ class NdtOmMap:
                 kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
                                   self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free, self._rec_miss)  # fmt: skip
         if self.occupancy_enabled and n:
-            ndt_minp = int(cfg.min_points) if cfg.ndt_misses else 0
+            ndt_minp = (NDT_MIN_POINTS or int(cfg.min_points)) if cfg.ndt_misses else 0
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
                 k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss,
@@ -495,13 +498,15 @@ class NdtOmMap:
         scat = np.zeros((capacity, 6), np.float64)
         free = np.zeros(capacity, np.int32)
         miss = np.zeros(capacity, np.int64)  # NDT miss sums, zero between updates
+        icov = np.zeros((capacity, 6), np.float64)  # NDT miss model: inverse regularised covariances
         if old is not None:
             k = self._nrec
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
             miss[:k] = self._rec_miss[:k]  # grown mid-update: the rays' sums are not applied yet
+            icov[:k] = self._rec_icov[:k]
             free[: self._nfree] = self._rec_free[: self._nfree]
         self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, self._rec_free = n_, cell, mean, scat, free
-        self._rec_miss = miss
+        self._rec_miss, self._rec_icov = miss, icov
 
     def _scan_bound(
         self,
@@ -742,6 +747,8 @@ class NdtOmMap:
             self._rec_mean[: len(g_idx)] = st["g_mean_rel"]
             self._rec_scat[: len(g_idx)] = st["g_scatter"]
             self._nrec = len(g_idx)
+            if self.config.ndt_misses:
+                self._k.ndt_refresh(self._nrec, self._rec_n, self._rec_scat, self._ndt_prm, self._rec_icov)
             self._k.load_slots(self._slot, g_idx, len(g_idx), fs.gidx_regions, fs.occ_regions, fs.leaf_count)
         fs.note_usage()
 

@@ -162,9 +162,13 @@ def load_config_file(path: str | Path) -> dict:
 
 
 def config_with_ranges(
-    config: MapConfig | dict | None, *, min_range: float | None = None, max_range: float | None = None
+    config: MapConfig | dict | None,
+    *,
+    min_range: float | None = None,
+    max_range: float | None = None,
+    miss_model: str | None = None,
 ) -> MapConfig:
-    """A MapConfig from ``config`` with ``min_range``/``max_range`` overriding it."""
+    """A MapConfig from ``config`` with ``min_range``/``max_range``/``miss_model`` overriding it."""
     if config is None:
         base = MapConfig()
     elif isinstance(config, MapConfig):
@@ -176,6 +180,8 @@ def config_with_ranges(
         changes["min_range"] = float(min_range)
     if max_range is not None:
         changes["max_range"] = float(max_range)
+    if miss_model is not None:
+        changes["miss_model"] = miss_model
     return replace(base, **changes) if changes else base
 
 

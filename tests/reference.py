@@ -251,17 +251,30 @@ def eq12_logodds(
     return logodds
 
 
-def ndt_miss_term(o, z, hit: bool, mean, cov, eta: float, sigma_s: float, floor: float = 1e-3) -> float:
+def ndt_cov_floor(cov, floor: float, line: float, line_floor: float) -> float:
+    """Variance the map adds on every axis of a Gaussian's covariance before inverting it:
+    ``floor * l3``, plus ``line_floor * max(0, line * l3 - l2) / line`` for a line-like one
+    (eigenvalues ``l1 <= l2 <= l3``)."""
+    l1, l2, l3 = np.linalg.eigvalsh(np.asarray(cov, np.float64))
+    return floor * l3 + line_floor * max(0.0, line * l3 - l2) / line + 1e-12
+
+
+def ndt_miss_term(o, z, hit: bool, mean, cov, eta: float, sigma_s: float, floors=None) -> float:
     """Log-odds change of the NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for
     one ray ``o -> z`` passing a cell whose Gaussian is ``(mean, cov)``.
 
     ``x_ML`` is the point of the ray of highest likelihood under the Gaussian, kept on the
     segment ``[o, z]``; ``p = 0.5 - eta p(x_ML | N) (1 - p(x_ML | z))`` with
     ``p(x_ML | z) = 0`` for a ray without a hit; the change is ``log(p / (1 - p))``. The
-    covariance gets ``floor * trace`` added on its diagonal first (the map's choice).
+    covariance gets :func:`ndt_cov_floor` added on its diagonal first (the map's choice;
+    ``floors``: (floor, line, line_floor), default the map's constants).
     """
+    if floors is None:
+        from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR
+
+        floors = (NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR)
     o, z, mu = (np.asarray(v, np.float64) for v in (o, z, mean))
-    C = np.asarray(cov, np.float64) + (floor * np.trace(cov) + 1e-12) * np.eye(3)
+    C = np.asarray(cov, np.float64) + ndt_cov_floor(cov, *floors) * np.eye(3)
     inv = np.linalg.inv(C)
     d = z - o
     length = float(np.linalg.norm(d))
@@ -314,7 +327,8 @@ def ndt_om_logodds(
         for c, pts in points.items():
             if len(pts) >= min_points:
                 P = np.asarray(pts)
-                gauss[c] = (P.mean(axis=0), np.cov(P.T, ddof=1))
+                d = P - P.mean(axis=0)
+                gauss[c] = (P.mean(axis=0), d.T @ d / max(len(P) - 1, 1))
         passes: dict[Cell, list] = {}
         for i in range(len(ends)):
             cells = ray_cells(origin, ends[i], r)

@@ -70,7 +70,7 @@ def test_help_and_version() -> None:
     assert r.exit_code == 0
     for opt in ("--resolution", "--output", "--cloud-topic", "--fixed-frame", "--poses", "--pose-topic",
                 "--sensor-frame", "--every", "--every-distance", "--start", "--end", "--max-scans",
-                "--max-range", "--min-range", "--no-occupancy", "--arch", "--config"):
+                "--max-range", "--min-range", "--no-occupancy", "--miss-model", "--arch", "--config"):
         assert opt in r.output, opt
     r = run("--version")
     assert r.exit_code == 0 and ndtom_ti.__version__ in r.output
@@ -148,6 +148,21 @@ def test_map_options_and_config_file(bags, tmp_path: Path) -> None:
     assert run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", js, "--max-scans", "1",
                "--no-progress").exit_code == 0
     assert read_header(out)["config"]["p_empty"] == 0.4
+
+
+def test_miss_model_option_wins_over_the_config_file(bags, tmp_path: Path) -> None:
+    cfg = tmp_path / "map.toml"
+    cfg.write_text('miss_model = "ndt"\nsigma_s = 0.1\n')
+    out = tmp_path / "m.ndtom"
+    r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--max-scans", "2", "--no-progress")
+    assert r.exit_code == 0, r.output
+    assert read_header(out)["config"]["miss_model"] == "ndt" and read_header(out)["config"]["sigma_s"] == 0.1
+    r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--miss-model", "paper", "--max-scans",
+            "2", "--no-progress")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert read_header(out)["config"]["miss_model"] == "paper"
+    r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--miss-model", "octomap")
+    assert r.exit_code == 2 and "octomap" in r.output
 
 
 @pytest.mark.parametrize("args, texts", [

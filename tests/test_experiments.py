@@ -213,21 +213,24 @@ def test_outputs_exist_and_parse(static_run):
     ):
         assert key in j, key
     for key in ("fig1_final_score", "fig2_mean_score", "time_per_scan_ms"):
-        assert set(j[key]) == {"rcu", "ndtom", "er"}
+        assert set(j[key]) == {"rcu", "ndtom", "ndtom_ndt", "er"}
     assert {"count", "fraction"} <= set(j["conflicting_cells"])
     assert {"fine_resolution", "fine_gaussians", "coarse_resolution", "coarse_gaussians"} <= set(j["fig4d"])
     d = j["fig4d"]
     assert d["coarse_resolution"] == pytest.approx(3 * RES) and 0 < d["coarse_gaussians"] < d["fine_gaussians"]
-    assert all(0.0 < j["fig2_mean_score"][m] <= 1.0 for m in ("rcu", "ndtom", "er"))
+    assert all(0.0 < j["fig2_mean_score"][m] <= 1.0 for m in ("rcu", "ndtom", "ndtom_ndt", "er"))
+    # The NDT miss model beside the paper's mapper: its own conflicting cells.
+    c = j["conflicting_cells"]
+    assert 0 <= c["count_ndt_miss_model"] and 0.0 <= c["fraction_ndt_miss_model"] < 1.0
     f3 = j["fig3_final"]
     assert f3["mean_logodds_occupied"] > 0 > f3["mean_logodds_empty"]
     assert f3["occupied_cells"] > 0 and f3["empty_cells"] > 0
 
     columns = {
-        "fig1_vs_batch.csv": ["scan", "batch_gaussians", "score_rcu", "score_ndtom", "score_er", "ms_ndtom"],
+        "fig1_vs_batch.csv": ["scan", "batch_gaussians", "score_rcu", "score_ndtom", "score_ndtom_ndt", "score_er", "ms_ndtom"],
         "fig2_self_test.csv": ["cloud", "cloud_gaussians", "score_rcu", "score_ndtom", "score_er", "coverage_rcu"],
         "fig3_logodds.csv": ["scan", "mean_logodds_occupied", "mean_logodds_empty", "occupied_cells", "empty_cells"],
-        "fig4b_conflicting.csv": ["scan", "conflicting", "ndtom_gaussians", "rcu_gaussians", "fraction"],
+        "fig4b_conflicting.csv": ["scan", "conflicting", "ndtom_gaussians", "rcu_gaussians", "fraction", "fraction_ndt"],
         "conflicting_cells.csv": ["i", "j", "k", "x", "y", "z", "rcu_n", "ndtom_logodds", "horizontal"],
         "fig5_sweep.csv": ["mapper", "resolution", "ms_median"],
     }
