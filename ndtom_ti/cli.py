@@ -65,8 +65,11 @@ class Arch(str, Enum):
 
 class Format(str, Enum):
     ply = "ply"
+    pcd = "pcd"
     npz = "npz"
     csv = "csv"
+    bt = "bt"
+    grid = "grid"
 
 
 # ---------------------------------------------------------------------------- output helpers
@@ -741,44 +744,66 @@ def view(
 
 
 # ---------------------------------------------------------------------------- export
-@app.command()
+@app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or a 2-D grid.")
 def export(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
     fmt: Annotated[Format | None, typer.Option(
-        "-f", "--format", help="ply (occupied cells as points), npz (all arrays) or csv (one row per Gaussian). "
-        "Default: from the -o suffix, else ply.", show_default=False)] = None,
+        "-f", "--format", help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
+        "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
+        "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
+        "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml), else ply.",
+        show_default=False)] = None,
     output: Annotated[Path | None, typer.Option(
         "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False)] = None,
     min_probability: Annotated[float, typer.Option(
-        help="Export Gaussians with occupancy probability above this (0: all Gaussians).")] = 0.5,
+        help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
+        "Gaussians above it (0: all Gaussians).")] = 0.5,
+    z_min: Annotated[float | None, typer.Option(
+        help="grid: lowest height of the band (m). Default: 0.3 m (at least a cell) above the floor, the floor "
+        "taken as the 5th percentile of the Gaussians' heights.", show_default=False)] = None,
+    z_max: Annotated[float | None, typer.Option(
+        help="grid: highest height of the band (m). Default: 2 m above the floor.", show_default=False)] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
-    """Export a map's Gaussians (means, covariances, point counts, occupancy)."""
-    from .export import FORMATS, export_map
+    """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
+    or a 2-D occupancy grid of a height band (grid: PGM + YAML as ROS map_server reads)."""
+    from .export import DEFAULT_SUFFIX, export_file, format_for, grid_paths
 
     with _user_errors(map_file="give a map file written by `ndtom map` or `ndtom demo`"):
-        if fmt is None:
-            suffix = output.suffix.lstrip(".").lower() if output is not None else ""
-            fmt = Format(suffix) if suffix in FORMATS else Format.ply
+        try:
+            fmt_name = format_for(output, fmt.value if fmt is not None else None)
+        except ValueError as exc:
+            _fail(str(exc), "name the format with --format, or use its suffix: e.g. -o map.bt, -o map.pgm")
         if not (0.0 <= min_probability < 1.0):
             raise ValueError(f"--min-probability must be in [0, 1), got {min_probability}")
+        for name, z in (("--z-min", z_min), ("--z-max", z_max)):
+            if z is not None and not math.isfinite(z):
+                raise ValueError(f"{name} must be a finite height in metres, got {z}")
+        if z_min is not None and z_max is not None and not z_min < z_max:
+            raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
+        if (z_min is not None or z_max is not None) and fmt_name != "grid":
+            raise ValueError("--z-min/--z-max choose the height band of --format grid only")
         if not map_file.exists():
             _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = _check_writable(output if output is not None else map_file.with_suffix("." + fmt.value),
-                                   f"{fmt.value} file")
-        if out_path.resolve() == map_file.resolve():
-            _fail(f"the output {out_path} is the map file itself", "choose another path with -o")
+        out_path = _check_writable(output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]),
+                                   f"{fmt_name} file")
+        for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
+            if t.resolve() == map_file.resolve():
+                _fail(f"the output {t} is the map file itself", "choose another path with -o")
         _init(arch)
         from .map import NdtOmMap
 
         m = NdtOmMap.load(map_file)
         try:
-            path, k = export_map(m, out_path, fmt.value, min_probability=min_probability)
+            done = export_file(m, out_path, fmt_name, min_probability=min_probability, z_min=z_min, z_max=z_max)
         finally:
             del m
-        _out().print(Text(f"Exported {k:,} Gaussians (p_occ > {min_probability:g}) to {path} ({fmt.value}, "
-                          f"{_mib(path.stat().st_size)})", style="green"), soft_wrap=True)
+        size = sum(p.stat().st_size for p in done.paths)
+        size_text = _mib(size) if size >= 2**20 else f"{size / 1024:.1f} KiB"
+        _out().print(Text(f"Exported {done.summary} ({fmt_name}, {size_text})", style="green"), soft_wrap=True)
+        for note in done.notes:
+            _err().print(Text(f"note: {note}", style="dim"), soft_wrap=True)
 
 
 def main() -> None:
