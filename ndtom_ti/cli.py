@@ -89,6 +89,26 @@ def _fail(message: str, hint: str | None = None, code: int = EXIT_USAGE) -> NoRe
     raise typer.Exit(code)
 
 
+def _need_extra(module: str, purpose: str, code: int = EXIT_FAILURE) -> None:
+    """Stop before any work when an optional package is missing, naming its extra and
+    how to install it."""
+    from .extras import available, extra_of, install_hint, missing_message
+
+    if not available(module):
+        _fail(missing_message(module, purpose), f"install it with: {install_hint(extra_of(module))}", code)
+
+
+def _without_extra(module: str, skipped: str) -> bool:
+    """True (after a note saying what is skipped and how to get it) when ``module`` is missing."""
+    from .extras import available, extra_of, install_hint
+
+    if available(module):
+        return False
+    _err().print(Text(f"note: {module} is not installed (extra [{extra_of(module)}]): {skipped}; to get it: "
+                      f"{install_hint(extra_of(module))}", style="yellow"), soft_wrap=True)
+    return True
+
+
 _MEMORY_HINT = ("use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
                 "or a CUDA device (--arch cuda)")
 
@@ -507,6 +527,7 @@ def map_(
         mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range)
         out_path = _check_writable(output if output is not None else default_output(bag), "map file")
         if view:
+            _need_extra("viser", "the live viewer (--view)")
             from .io import open_recording
             from .viewer.cli import live_command
 
@@ -557,6 +578,7 @@ def demo(
         if not (math.isfinite(resolution) and resolution > 0):
             raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
         if view:
+            _need_extra("viser", "the live viewer (--view)")
             from .viewer.cli import live_demo_command
 
             _init(arch)
@@ -611,7 +633,7 @@ def sweep(
     resolutions: Annotated[str, typer.Option(help="Comma-separated cell sizes in metres.")] = "0.1,0.2,0.4,0.8",
     scans: Annotated[int, typer.Option(min=1, help="Scans to time at each resolution.")] = 20,
     baseline: Annotated[str | None, typer.Option(
-        help="Also time OctoMap (pyoctomap, `pip install ndtom_ti[bench]`) on the same points: octomap.",
+        help="Also time OctoMap on the same points: octomap (needs pyoctomap, the [bench] extra).",
         show_default=False)] = None,
     floor: Annotated[bool, typer.Option(
         "--floor/--no-floor", help="Also time the floor mode (traversal and one atomic per cell).")] = True,
@@ -636,8 +658,9 @@ def sweep(
             _fail("give either a recording BAG or --synthetic", "e.g. `ndtom sweep --synthetic --scans 10`")
         if baseline not in (None, "octomap"):
             _fail(f"unknown baseline {baseline!r}", "the supported baseline is `--baseline octomap`")
-        if baseline == "octomap" and not sw.octomap_available():
-            _fail("the OctoMap baseline needs pyoctomap", "pip install 'ndtom_ti[bench]'")
+        if baseline == "octomap":
+            _need_extra("pyoctomap", "the OctoMap baseline (--baseline octomap)", EXIT_USAGE)
+        no_plot = _without_extra("matplotlib", "the sweep writes sweep.csv and the table but no sweep.png")
         out = out.expanduser()
         out.mkdir(parents=True, exist_ok=True)
         _check_writable(out / "sweep.csv", "CSV file")
@@ -658,27 +681,29 @@ def sweep(
                 _fail(f"no scans with poses in {bag}", "`ndtom info BAG` shows the pose sources")
         rows = sw.run_sweep(data, res, floor=floor, baseline=baseline,
                             progress=lambda msg: _err().print(Text(msg, style="cyan")))
-        tags = {**sw.machine_tags(used), "data": name, "scans": len(data)}
+        tags = {**sw.machine_tags(used), "data": name}  # the rows hold the number of scans
         csv_path = sw.write_csv(rows, out / "sweep.csv", tags)
-        png_path = sw.plot(rows, out / "sweep.png", f"{name}: {len(data)} scans, {used}, {tags['cores']} cores")
+        png_path = None if no_plot else sw.plot(rows, out / "sweep.png",
+                                                f"{name}: {len(data)} scans, {used}, {tags['cores']} cores")
         t = _table(f"Sweep: {name}, {len(data)} scans of {sum(len(p) for p, _ in data) // len(data):,} points, "
                    f"{used}", "mapper", "res (m)", "median ms", "p95 ms", "Mpoints/s", "Mvisits/s",
                    "x NDT-OM", "Gaussians", "memory")
         for r in rows:
             t.add_row(r.mapper, f"{r.resolution:g}", f"{r.ms_median:.1f}", f"{r.ms_p95:.1f}",
                       f"{r.points_per_s / 1e6:.2f}", "-" if math.isnan(r.visits_per_s) else f"{r.visits_per_s / 1e6:.0f}",
-                      "-" if math.isnan(r.ratio_to_ndtom) else f"{r.ratio_to_ndtom:.2f}", _count(r.gaussians),
-                      _mib(r.memory_bytes))
+                      "-" if math.isnan(r.ratio_to_ndtom) else f"{r.ratio_to_ndtom:.2f}",
+                      "-" if r.gaussians is None else _count(r.gaussians), _mib(r.memory_bytes))
         _out().print(t)
-        _out().print(f"Wrote {csv_path} and {png_path}", soft_wrap=True, markup=False)
+        wrote = f"Wrote {csv_path} and {png_path}" if png_path else f"Wrote {csv_path} (no plot: matplotlib missing)"
+        _out().print(wrote, soft_wrap=True, markup=False)
 
 
 # ---------------------------------------------------------------------------- experiments
 @app.command()
 def experiments(
     source: Annotated[str, typer.Argument(
-        metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (needs "
-        "../shared/tools/simworld.py).", show_default=False)],
+        metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (the synthetic hall "
+        "of simworld.py, see --simworld).", show_default=False)],
     resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.",
                                               show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="Folder for CSVs, PNGs and summary.json.")] = Path(
@@ -692,6 +717,9 @@ def experiments(
         show_default=False)] = None,
     sim_scans: Annotated[int, typer.Option(min=2, help="Scans of a sim: source.")] = 30,
     sim_stride: Annotated[int, typer.Option(min=1, help="Stride of a sim: source.")] = 10,
+    simworld: Annotated[Path | None, typer.Option(
+        help="simworld.py (or its folder) for sim: sources. Default: $NDTOM_SHARED/tools, else ../shared/tools.",
+        show_default=False)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = True,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
@@ -708,13 +736,23 @@ def experiments(
                 sweep_list = [float(x) for x in sweep_res.split(",") if x.strip()]
             except ValueError:
                 raise ValueError(f"--sweep must be numbers separated by commas, got {sweep_res!r}") from None
+        if source.startswith("sim:"):
+            try:
+                ex.find_simworld(simworld)
+            except FileNotFoundError as exc:
+                _fail(str(exc), "give it with --simworld PATH, or set NDTOM_SHARED")
+        if plots and _without_extra("matplotlib", "no PNG plots (the CSVs and summary.json are written)"):
+            plots = False
+        if sweep_list:
+            _without_extra("pyoctomap", "the --sweep times NDT-OM and its floor but not OctoMap")
         out = out.expanduser()
         out.mkdir(parents=True, exist_ok=True)
         _check_writable(out / "summary.json", "summary file")
         _init(arch)
         summary = ex.run_experiments(
             source, resolution, out, every=every, max_scans=max_scans, sensor_frame_only=sensor_frame,
-            coarsen=coarsen, sweep=sweep_list, sim_scans=sim_scans, sim_stride=sim_stride, plots=plots,
+            coarsen=coarsen, sweep=sweep_list, sim_scans=sim_scans, sim_stride=sim_stride, tools_dir=simworld,
+            plots=plots,
             progress=lambda msg: _err().print(Text(msg, style="cyan")),
         )
         _out().print(ex.format_summary(summary), soft_wrap=True, markup=False, highlight=False)
@@ -737,6 +775,7 @@ def view(
 ) -> None:
     """Look at a map in the browser: Gaussians as ellipsoids or splats, occupied and free
     cells, coarser levels, occupancy threshold. Prints the URL; Ctrl-C stops."""
+    _need_extra("viser", "ndtom view")
     from .viewer.cli import view_command
 
     _init(arch)
