@@ -241,7 +241,9 @@ def _info_map(path: Path) -> None:
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
         if key in md:
             t.add_row(key.replace("_", " "), escape(str(md[key])))
-    t.add_row("config", escape(", ".join(f"{k}={v}" for k, v in (h.get("config") or {}).items())))
+    # max_range is stored as null when there is no limit
+    t.add_row("config", escape(", ".join(f"{k}={'inf' if k == 'max_range' and v is None else v}"
+                                         for k, v in (h.get("config") or {}).items())))
     out.print(t)
 
 
@@ -331,7 +333,7 @@ def _info_recording(path: Path) -> None:
         out.print(Text(f"note: {note}", style="dim"), soft_wrap=True)
 
 
-@app.command()
+@app.command(short_help="What a recording (topics, TF tree, poses) or a map file holds.")
 def info(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.",
                                          show_default=False)],
@@ -397,6 +399,14 @@ class _Bar:
             self.progress = None
 
 
+# Why clouds were not mapped, in words (the pipeline's reasons are short keys).
+_SKIP_WORDS = {"every": "left out by --every", "every_distance": "left out by --every-distance (sensor moved less)"}
+
+
+def _skip_reason(reason: str) -> str:
+    return _SKIP_WORDS.get(reason, reason)
+
+
 def _summary_table(summary: Any, output: Path | None) -> Table:
     t = _table("Mapping summary", "", "", header=False)
     t.add_row("source", escape(summary.source))
@@ -407,7 +417,7 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
         t.add_row("map frame", escape(str(summary.fixed_frame)))
     t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
     t.add_row("scans used", f"{_count(summary.scans_used)} of {_count(summary.clouds_seen)} clouds read")
-    skipped = ", ".join(f"{_count(n)} {reason}" for reason, n in summary.skipped.items()) or "none"
+    skipped = ", ".join(f"{_count(n)} {_skip_reason(reason)}" for reason, n in summary.skipped.items()) or "none"
     t.add_row("scans skipped", escape(skipped))
     t.add_row("points", f"{_count(summary.points_in)} in, {_count(summary.points_used)} inserted"
               + (f", {_count(summary.free_rays)} free rays" if summary.free_rays else ""))
@@ -455,14 +465,14 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
         err.print(Text.assemble(("Hint: ", "bold"), f"{saved} To map it all, {_MEMORY_HINT}."))
         return EXIT_FAILURE
     if not summary.scans_used:
-        why = ", ".join(f"{n} {r}" for r, n in summary.skipped.items()) or "the selection is empty"
+        why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
         _fail(f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
               "check --start/--end/--every and the pose source (`ndtom info BAG`)")
     out.print(Text(f"Map written to {wrote} ({_mib(wrote.stat().st_size)})", style="green"), soft_wrap=True)
     return EXIT_OK
 
 
-@app.command("map")
+@app.command("map", short_help="Map a recording (ROS1 bag or ROS2 folder) into a map file.")
 def map_(
     bag: Annotated[Path, typer.Argument(metavar="BAG", help="A ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap).",
                                         show_default=False)],
@@ -558,7 +568,7 @@ def map_(
 
 
 # ---------------------------------------------------------------------------- demo
-@app.command()
+@app.command(short_help="Map a built-in synthetic room; check it against the truth.")
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Folder for the map (created if missing).")] = Path("ndtom_demo"),
     resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.")] = 0.2,
@@ -624,7 +634,7 @@ def demo(
 
 
 # ---------------------------------------------------------------------------- sweep
-@app.command()
+@app.command(short_help="Time per scan against resolution, beside OctoMap (Fig. 5).")
 def sweep(
     bag: Annotated[Path | None, typer.Argument(metavar="[BAG]", help="A recording (omit with --synthetic).",
                                                show_default=False)] = None,
@@ -699,7 +709,7 @@ def sweep(
 
 
 # ---------------------------------------------------------------------------- experiments
-@app.command()
+@app.command(short_help="Reproduce the paper's evaluation (Figs. 1-5).")
 def experiments(
     source: Annotated[str, typer.Argument(
         metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (the synthetic hall "
@@ -760,7 +770,7 @@ def experiments(
 
 
 # ---------------------------------------------------------------------------- view
-@app.command()
+@app.command(short_help="Look at a map in the browser, or write an HTML page.")
 def view(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
@@ -783,7 +793,7 @@ def view(
 
 
 # ---------------------------------------------------------------------------- export
-@app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or a 2-D grid.")
+@app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or 2-D grid.")
 def export(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],

@@ -31,7 +31,8 @@ def ndtom(cwd: Path, *args: object, hide: tuple[str, ...] = OPTIONAL) -> subproc
             f"sys.argv = ['ndtom'] + {[str(a) for a in args]!r}\n"
             "from ndtom_ti.cli import main\nmain()\n")
     env = {**os.environ, "COLUMNS": "250", "NDTOM_PIN_THREADS": "0"}
-    r = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300,
+                       check=False)
     r.output = r.stdout + r.stderr  # type: ignore[attr-defined]
     assert "Traceback" not in r.output and "internal error" not in r.output, r.output
     return r
@@ -54,7 +55,7 @@ def test_the_optional_packages_are_hidden(tmp_path: Path) -> None:
     code = ("import sys\nfor n in ('viser', 'matplotlib', 'pyoctomap'):\n    sys.modules[n] = None\n"
             "from ndtom_ti import extras\nprint([extras.available(n) for n in ('viser', 'matplotlib', 'pyoctomap')])\n"
             "import matplotlib\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert r.stdout.strip() == "[False, False, False]" and "ModuleNotFoundError" in r.stderr
 
 
