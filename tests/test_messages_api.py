@@ -148,3 +148,22 @@ def test_occupancy_of_one_point() -> None:
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         m.occupancy([1.0, 2.0])
     del m
+
+
+def test_readme_reads_a_bag_with_ndtom_ti_io() -> None:
+    """The README's example of mapping a recording from Python runs as printed."""
+    from conftest import DATA, ROOT
+
+    if not (DATA / "balm_hall_every4").exists():
+        pytest.skip("shared data not present")
+    text = (ROOT / "README.md").read_text()
+    at = text.index("from ndtom_ti.io import open_recording")
+    code = text[text.rindex("```python", 0, at) + len("```python"):text.index("```", at)]
+    code = code.replace("../shared/data", str(DATA))
+    env = {**os.environ, "NDTOM_PIN_THREADS": "0"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env,
+                       cwd=ROOT, check=False)
+    assert p.returncode == 0, p.stderr
+    first, second = p.stdout.splitlines()
+    assert "scans=23, gaussians=37622" in first and "[-23.4, -45. ,  -3.6]" in first
+    assert abs(float(second) - 0.1192) < 1e-3
