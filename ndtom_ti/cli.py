@@ -766,7 +766,8 @@ def experiments(
             progress=lambda msg: _err().print(Text(msg, style="cyan")),
         )
         _out().print(ex.format_summary(summary), soft_wrap=True, markup=False, highlight=False)
-        _out().print(f"Wrote {out / 'summary.json'} and the figures in {out}", soft_wrap=True, markup=False)
+        _out().print(f"Wrote {out / 'summary.json'} and the {'CSVs and figures' if plots else 'CSVs'} in {out}",
+                     soft_wrap=True, markup=False)
 
 
 # ---------------------------------------------------------------------------- view

@@ -179,7 +179,11 @@ def machine_tags(arch: str) -> dict:
 
 
 def write_csv(rows: Sequence[SweepRow], path: Path, tags: dict) -> Path:
-    names = [f.name for f in fields(SweepRow)] + sorted(tags)
+    """One line per row, then the ``tags`` (machine, versions, data) in every line; a tag
+    named like a row field (e.g. ``scans``) is left out: the row's value stands."""
+    own = [f.name for f in fields(SweepRow)]
+    tags = {k: v for k, v in tags.items() if k not in own}
+    names = own + sorted(tags)
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=names)
         w.writeheader()

@@ -70,3 +70,13 @@ def test_cli_sweep_synthetic_with_octomap(tmp_path):
 def test_cli_sweep_bad_options(tmp_path, args, message):
     res = CliRunner().invoke(app, ["sweep", *args, "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and message in res.output, res.output
+
+
+def test_write_csv_holds_each_column_once(tmp_path):
+    row = sweep.SweepRow("octomap", 0.5, 3, 100.0, 1.0, 2.0, 3.0, float("nan"), 10, None, 1000)
+    path = sweep.write_csv([row], tmp_path / "s.csv", {"scans": 99, "machine": "m"})
+    with open(path) as fh:
+        header = next(csv.reader(fh))
+    assert header.count("scans") == 1 and header[-1] == "machine"
+    (line,) = csv.DictReader(open(path))
+    assert line["scans"] == "3" and line["gaussians"] == "" and line["machine"] == "m"
