@@ -2,7 +2,7 @@
 
 Commands: ``info`` (what is in a recording or a map file), ``map`` (recording -> map
 file), ``demo`` (a built-in synthetic scene -> map file), ``export`` (map file -> PLY,
-npz or CSV). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.export`;
+PCD, npz, CSV, OctoMap .bt or a 2-D occupancy grid). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.export`;
 this module parses options, shows progress and tables, and turns errors into one red
 line and a hint.
 
