@@ -78,5 +78,6 @@ def test_write_csv_holds_each_column_once(tmp_path):
     with open(path) as fh:
         header = next(csv.reader(fh))
     assert header.count("scans") == 1 and header[-1] == "machine"
-    (line,) = csv.DictReader(open(path))
+    with open(path) as fh:
+        (line,) = csv.DictReader(fh)
     assert line["scans"] == "3" and line["gaussians"] == "" and line["machine"] == "m"
