@@ -802,7 +802,8 @@ def export(
         "-f", "--format", help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
         "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
         "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
-        "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml), else ply.",
+        "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml; another suffix is "
+        "refused), else ply.",
         show_default=False)] = None,
     output: Annotated[Path | None, typer.Option(
         "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False)] = None,
@@ -810,10 +811,10 @@ def export(
         help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
         "Gaussians above it (0: all Gaussians).")] = 0.5,
     z_min: Annotated[float | None, typer.Option(
-        help="grid: lowest height of the band (m). Default: 0.3 m (at least a cell) above the floor, the floor "
-        "taken as the 5th percentile of the Gaussians' heights.", show_default=False)] = None,
+        help="grid: bottom of the height band (m, map frame), with --z-max. Default: the band from 0.3 m (at "
+        "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.", show_default=False)] = None,
     z_max: Annotated[float | None, typer.Option(
-        help="grid: highest height of the band (m). Default: 2 m above the floor.", show_default=False)] = None,
+        help="grid: top of the height band (m, map frame), with --z-min.", show_default=False)] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
     """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
@@ -830,10 +831,12 @@ def export(
         for name, z in (("--z-min", z_min), ("--z-max", z_max)):
             if z is not None and not math.isfinite(z):
                 raise ValueError(f"{name} must be a finite height in metres, got {z}")
-        if z_min is not None and z_max is not None and not z_min < z_max:
-            raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
         if (z_min is not None or z_max is not None) and fmt_name != "grid":
             raise ValueError("--z-min/--z-max choose the height band of --format grid only")
+        if (z_min is None) != (z_max is None):
+            raise ValueError("give --z-min and --z-max together (or neither: 0.3 to 2 m above the floor)")
+        if z_min is not None and z_max is not None and not z_min < z_max:
+            raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
         if not map_file.exists():
             _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
         out_path = _check_writable(output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]),

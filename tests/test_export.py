@@ -169,10 +169,11 @@ def test_default_output_and_min_probability(map_file: Path, tmp_path: Path) -> N
     (lambda t, m: m, ["-f", "ply", "-o", "{t}/h.csv"], ["suffix of the csv format", "asked for is ply"]),
     (lambda t, m: m, ["-o", "{t}/h.ply", "--z-min", "1"], ["height band of --format grid only"]),
     (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "2", "--z-max", "1"], ["--z-min (2.0) must be below"]),
+    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-max", "1"], ["give --z-min and --z-max together"]),
     (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "40", "--z-max", "41"], ["no known cells in the height band",
                                                                           "known cells span z"]),
 ], ids=["missing", "not-a-map", "truncated", "no-folder", "probability", "format", "overwrite-map", "unknown-suffix",
-        "no-suffix", "suffix-conflict", "band-not-grid", "band-order", "band-empty"])
+        "no-suffix", "suffix-conflict", "band-not-grid", "band-order", "band-half", "band-empty"])
 def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts) -> None:
     path = setup(tmp_path, map_file)
     args = [a.format(t=tmp_path, m=map_file) for a in args]
