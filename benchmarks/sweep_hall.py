@@ -58,13 +58,14 @@ def main() -> None:
     rows = sweep.run_sweep(scans, res, baseline=baseline, progress=lambda s: print(s, file=sys.stderr))
     a.out.mkdir(parents=True, exist_ok=True)
     name = Path(a.bag).stem if a.bag else "hall"
-    tags = {**sweep.machine_tags(arch), "data": name, "scans": len(scans)}
+    tags = {**sweep.machine_tags(arch), "data": name}  # the rows hold the number of scans
     sweep.write_csv(rows, a.out / f"sweep_{name}.csv", tags)
     sweep.plot(rows, a.out / f"sweep_{name}.png", f"{name}, {len(scans)} scans, {arch}, {tags['cores']} cores")
     print(f"{'mapper':12} {'res':>5} {'median ms':>10} {'p95 ms':>8} {'Mvisits/s':>9} {'x ndtom':>8} {'Gaussians':>9} {'MiB':>7}")
     for r in rows:
         print(f"{r.mapper:12} {r.resolution:5.2f} {r.ms_median:10.1f} {r.ms_p95:8.1f} {r.visits_per_s / 1e6:9.1f} "
-              f"{r.ratio_to_ndtom:8.2f} {r.gaussians:9d} {r.memory_bytes / 2**20:7.1f}")  # fmt: skip
+              f"{r.ratio_to_ndtom:8.2f} {'-' if r.gaussians is None else r.gaussians:>9} "
+              f"{r.memory_bytes / 2**20:7.1f}")  # fmt: skip
     print(f"points/scan {np.mean([len(p) for p, _ in scans]):.0f}; csv and png in {a.out}")
 
 

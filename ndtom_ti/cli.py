@@ -2,7 +2,7 @@
 
 Commands: ``info`` (what is in a recording or a map file), ``map`` (recording -> map
 file), ``demo`` (a built-in synthetic scene -> map file), ``export`` (map file -> PLY,
-npz or CSV). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.export`;
+PCD, npz, CSV, OctoMap .bt or a 2-D occupancy grid). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.export`;
 this module parses options, shows progress and tables, and turns errors into one red
 line and a hint.
 
@@ -70,8 +70,11 @@ class MissModel(str, Enum):
 
 class Format(str, Enum):
     ply = "ply"
+    pcd = "pcd"
     npz = "npz"
     csv = "csv"
+    bt = "bt"
+    grid = "grid"
 
 
 # ---------------------------------------------------------------------------- output helpers
@@ -89,6 +92,26 @@ def _fail(message: str, hint: str | None = None, code: int = EXIT_USAGE) -> NoRe
     if hint:
         err.print(Text.assemble(("Hint: ", "bold"), hint))
     raise typer.Exit(code)
+
+
+def _need_extra(module: str, purpose: str, code: int = EXIT_FAILURE) -> None:
+    """Stop before any work when an optional package is missing, naming its extra and
+    how to install it."""
+    from .extras import available, extra_of, install_hint, missing_message
+
+    if not available(module):
+        _fail(missing_message(module, purpose), f"install it with: {install_hint(extra_of(module))}", code)
+
+
+def _without_extra(module: str, skipped: str) -> bool:
+    """True (after a note saying what is skipped and how to get it) when ``module`` is missing."""
+    from .extras import available, extra_of, install_hint
+
+    if available(module):
+        return False
+    _err().print(Text(f"note: {module} is not installed (extra [{extra_of(module)}]): {skipped}; to get it: "
+                      f"{install_hint(extra_of(module))}", style="yellow"), soft_wrap=True)
+    return True
 
 
 _MEMORY_HINT = ("use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
@@ -223,7 +246,9 @@ def _info_map(path: Path) -> None:
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
         if key in md:
             t.add_row(key.replace("_", " "), escape(str(md[key])))
-    t.add_row("config", escape(", ".join(f"{k}={v}" for k, v in (h.get("config") or {}).items())))
+    # max_range is stored as null when there is no limit
+    t.add_row("config", escape(", ".join(f"{k}={'inf' if k == 'max_range' and v is None else v}"
+                                         for k, v in (h.get("config") or {}).items())))
     out.print(t)
 
 
@@ -313,7 +338,7 @@ def _info_recording(path: Path) -> None:
         out.print(Text(f"note: {note}", style="dim"), soft_wrap=True)
 
 
-@app.command()
+@app.command(short_help="What a recording (topics, TF tree, poses) or a map file holds.")
 def info(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.",
                                          show_default=False)],
@@ -379,6 +404,14 @@ class _Bar:
             self.progress = None
 
 
+# Why clouds were not mapped, in words (the pipeline's reasons are short keys).
+_SKIP_WORDS = {"every": "left out by --every", "every_distance": "left out by --every-distance (sensor moved less)"}
+
+
+def _skip_reason(reason: str) -> str:
+    return _SKIP_WORDS.get(reason, reason)
+
+
 def _summary_table(summary: Any, output: Path | None) -> Table:
     t = _table("Mapping summary", "", "", header=False)
     t.add_row("source", escape(summary.source))
@@ -389,7 +422,7 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
         t.add_row("map frame", escape(str(summary.fixed_frame)))
     t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
     t.add_row("scans used", f"{_count(summary.scans_used)} of {_count(summary.clouds_seen)} clouds read")
-    skipped = ", ".join(f"{_count(n)} {reason}" for reason, n in summary.skipped.items()) or "none"
+    skipped = ", ".join(f"{_count(n)} {_skip_reason(reason)}" for reason, n in summary.skipped.items()) or "none"
     t.add_row("scans skipped", escape(skipped))
     t.add_row("points", f"{_count(summary.points_in)} in, {_count(summary.points_used)} inserted"
               + (f", {_count(summary.free_rays)} free rays" if summary.free_rays else ""))
@@ -437,14 +470,14 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
         err.print(Text.assemble(("Hint: ", "bold"), f"{saved} To map it all, {_MEMORY_HINT}."))
         return EXIT_FAILURE
     if not summary.scans_used:
-        why = ", ".join(f"{n} {r}" for r, n in summary.skipped.items()) or "the selection is empty"
+        why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
         _fail(f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
               "check --start/--end/--every and the pose source (`ndtom info BAG`)")
     out.print(Text(f"Map written to {wrote} ({_mib(wrote.stat().st_size)})", style="green"), soft_wrap=True)
     return EXIT_OK
 
 
-@app.command("map")
+@app.command("map", short_help="Map a recording (ROS1 bag or ROS2 folder) into a map file.")
 def map_(
     bag: Annotated[Path, typer.Argument(metavar="BAG", help="A ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap).",
                                         show_default=False)],
@@ -514,6 +547,7 @@ def map_(
                                     miss_model=miss_model.value if miss_model else None)  # fmt: skip
         out_path = _check_writable(output if output is not None else default_output(bag), "map file")
         if view:
+            _need_extra("viser", "the live viewer (--view)")
             from .io import open_recording
             from .viewer.cli import live_command
 
@@ -544,7 +578,7 @@ def map_(
 
 
 # ---------------------------------------------------------------------------- demo
-@app.command()
+@app.command(short_help="Map a built-in synthetic room; check it against the truth.")
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Folder for the map (created if missing).")] = Path("ndtom_demo"),
     resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.")] = 0.2,
@@ -564,6 +598,7 @@ def demo(
         if not (math.isfinite(resolution) and resolution > 0):
             raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
         if view:
+            _need_extra("viser", "the live viewer (--view)")
             from .viewer.cli import live_demo_command
 
             _init(arch)
@@ -609,7 +644,7 @@ def demo(
 
 
 # ---------------------------------------------------------------------------- sweep
-@app.command()
+@app.command(short_help="Time per scan against resolution, beside OctoMap (Fig. 5).")
 def sweep(
     bag: Annotated[Path | None, typer.Argument(metavar="[BAG]", help="A recording (omit with --synthetic).",
                                                show_default=False)] = None,
@@ -618,7 +653,7 @@ def sweep(
     resolutions: Annotated[str, typer.Option(help="Comma-separated cell sizes in metres.")] = "0.1,0.2,0.4,0.8",
     scans: Annotated[int, typer.Option(min=1, help="Scans to time at each resolution.")] = 20,
     baseline: Annotated[str | None, typer.Option(
-        help="Also time OctoMap (pyoctomap, `pip install ndtom_ti[bench]`) on the same points: octomap.",
+        help="Also time OctoMap on the same points: octomap (needs pyoctomap, the [bench] extra).",
         show_default=False)] = None,
     floor: Annotated[bool, typer.Option(
         "--floor/--no-floor", help="Also time the floor mode (traversal and one atomic per cell).")] = True,
@@ -643,8 +678,9 @@ def sweep(
             _fail("give either a recording BAG or --synthetic", "e.g. `ndtom sweep --synthetic --scans 10`")
         if baseline not in (None, "octomap"):
             _fail(f"unknown baseline {baseline!r}", "the supported baseline is `--baseline octomap`")
-        if baseline == "octomap" and not sw.octomap_available():
-            _fail("the OctoMap baseline needs pyoctomap", "pip install 'ndtom_ti[bench]'")
+        if baseline == "octomap":
+            _need_extra("pyoctomap", "the OctoMap baseline (--baseline octomap)", EXIT_USAGE)
+        no_plot = _without_extra("matplotlib", "the sweep writes sweep.csv and the table but no sweep.png")
         out = out.expanduser()
         out.mkdir(parents=True, exist_ok=True)
         _check_writable(out / "sweep.csv", "CSV file")
@@ -665,27 +701,29 @@ def sweep(
                 _fail(f"no scans with poses in {bag}", "`ndtom info BAG` shows the pose sources")
         rows = sw.run_sweep(data, res, floor=floor, baseline=baseline,
                             progress=lambda msg: _err().print(Text(msg, style="cyan")))
-        tags = {**sw.machine_tags(used), "data": name, "scans": len(data)}
+        tags = {**sw.machine_tags(used), "data": name}  # the rows hold the number of scans
         csv_path = sw.write_csv(rows, out / "sweep.csv", tags)
-        png_path = sw.plot(rows, out / "sweep.png", f"{name}: {len(data)} scans, {used}, {tags['cores']} cores")
+        png_path = None if no_plot else sw.plot(rows, out / "sweep.png",
+                                                f"{name}: {len(data)} scans, {used}, {tags['cores']} cores")
         t = _table(f"Sweep: {name}, {len(data)} scans of {sum(len(p) for p, _ in data) // len(data):,} points, "
                    f"{used}", "mapper", "res (m)", "median ms", "p95 ms", "Mpoints/s", "Mvisits/s",
                    "x NDT-OM", "Gaussians", "memory")
         for r in rows:
             t.add_row(r.mapper, f"{r.resolution:g}", f"{r.ms_median:.1f}", f"{r.ms_p95:.1f}",
                       f"{r.points_per_s / 1e6:.2f}", "-" if math.isnan(r.visits_per_s) else f"{r.visits_per_s / 1e6:.0f}",
-                      "-" if math.isnan(r.ratio_to_ndtom) else f"{r.ratio_to_ndtom:.2f}", _count(r.gaussians),
-                      _mib(r.memory_bytes))
+                      "-" if math.isnan(r.ratio_to_ndtom) else f"{r.ratio_to_ndtom:.2f}",
+                      "-" if r.gaussians is None else _count(r.gaussians), _mib(r.memory_bytes))
         _out().print(t)
-        _out().print(f"Wrote {csv_path} and {png_path}", soft_wrap=True, markup=False)
+        wrote = f"Wrote {csv_path} and {png_path}" if png_path else f"Wrote {csv_path} (no plot: matplotlib missing)"
+        _out().print(wrote, soft_wrap=True, markup=False)
 
 
 # ---------------------------------------------------------------------------- experiments
-@app.command()
+@app.command(short_help="Reproduce the paper's evaluation (Figs. 1-5).")
 def experiments(
     source: Annotated[str, typer.Argument(
-        metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (needs "
-        "../shared/tools/simworld.py).", show_default=False)],
+        metavar="SOURCE", help="A recording, a simworld .npz, or sim:dynamic / sim:static (the synthetic hall "
+        "of simworld.py, see --simworld).", show_default=False)],
     resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.",
                                               show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="Folder for CSVs, PNGs and summary.json.")] = Path(
@@ -699,6 +737,9 @@ def experiments(
         show_default=False)] = None,
     sim_scans: Annotated[int, typer.Option(min=2, help="Scans of a sim: source.")] = 30,
     sim_stride: Annotated[int, typer.Option(min=1, help="Stride of a sim: source.")] = 10,
+    simworld: Annotated[Path | None, typer.Option(
+        help="simworld.py (or its folder) for sim: sources. Default: $NDTOM_SHARED/tools, else ../shared/tools.",
+        show_default=False)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = True,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
@@ -715,21 +756,32 @@ def experiments(
                 sweep_list = [float(x) for x in sweep_res.split(",") if x.strip()]
             except ValueError:
                 raise ValueError(f"--sweep must be numbers separated by commas, got {sweep_res!r}") from None
+        if source.startswith("sim:"):
+            try:
+                ex.find_simworld(simworld)
+            except FileNotFoundError as exc:
+                _fail(str(exc), "give it with --simworld PATH, or set NDTOM_SHARED")
+        if plots and _without_extra("matplotlib", "no PNG plots (the CSVs and summary.json are written)"):
+            plots = False
+        if sweep_list:
+            _without_extra("pyoctomap", "the --sweep times NDT-OM and its floor but not OctoMap")
         out = out.expanduser()
         out.mkdir(parents=True, exist_ok=True)
         _check_writable(out / "summary.json", "summary file")
         _init(arch)
         summary = ex.run_experiments(
             source, resolution, out, every=every, max_scans=max_scans, sensor_frame_only=sensor_frame,
-            coarsen=coarsen, sweep=sweep_list, sim_scans=sim_scans, sim_stride=sim_stride, plots=plots,
+            coarsen=coarsen, sweep=sweep_list, sim_scans=sim_scans, sim_stride=sim_stride, tools_dir=simworld,
+            plots=plots,
             progress=lambda msg: _err().print(Text(msg, style="cyan")),
         )
         _out().print(ex.format_summary(summary), soft_wrap=True, markup=False, highlight=False)
-        _out().print(f"Wrote {out / 'summary.json'} and the figures in {out}", soft_wrap=True, markup=False)
+        _out().print(f"Wrote {out / 'summary.json'} and the {'CSVs and figures' if plots else 'CSVs'} in {out}",
+                     soft_wrap=True, markup=False)
 
 
 # ---------------------------------------------------------------------------- view
-@app.command()
+@app.command(short_help="Look at a map in the browser, or write an HTML page.")
 def view(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
@@ -744,6 +796,7 @@ def view(
 ) -> None:
     """Look at a map in the browser: Gaussians as ellipsoids or splats, occupied and free
     cells, coarser levels, occupancy threshold. Prints the URL; Ctrl-C stops."""
+    _need_extra("viser", "ndtom view")
     from .viewer.cli import view_command
 
     _init(arch)
@@ -751,44 +804,69 @@ def view(
 
 
 # ---------------------------------------------------------------------------- export
-@app.command()
+@app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or 2-D grid.")
 def export(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
     fmt: Annotated[Format | None, typer.Option(
-        "-f", "--format", help="ply (occupied cells as points), npz (all arrays) or csv (one row per Gaussian). "
-        "Default: from the -o suffix, else ply.", show_default=False)] = None,
+        "-f", "--format", help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
+        "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
+        "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
+        "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml; another suffix is "
+        "refused), else ply.",
+        show_default=False)] = None,
     output: Annotated[Path | None, typer.Option(
         "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False)] = None,
     min_probability: Annotated[float, typer.Option(
-        help="Export Gaussians with occupancy probability above this (0: all Gaussians).")] = 0.5,
+        help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
+        "Gaussians above it (0: all Gaussians).")] = 0.5,
+    z_min: Annotated[float | None, typer.Option(
+        help="grid: bottom of the height band (m, map frame), with --z-max. Default: the band from 0.3 m (at "
+        "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.", show_default=False)] = None,
+    z_max: Annotated[float | None, typer.Option(
+        help="grid: top of the height band (m, map frame), with --z-min.", show_default=False)] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
-    """Export a map's Gaussians (means, covariances, point counts, occupancy)."""
-    from .export import FORMATS, export_map
+    """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
+    or a 2-D occupancy grid of a height band (grid: PGM + YAML as ROS map_server reads)."""
+    from .export import DEFAULT_SUFFIX, export_file, format_for, grid_paths
 
     with _user_errors(map_file="give a map file written by `ndtom map` or `ndtom demo`"):
-        if fmt is None:
-            suffix = output.suffix.lstrip(".").lower() if output is not None else ""
-            fmt = Format(suffix) if suffix in FORMATS else Format.ply
+        try:
+            fmt_name = format_for(output, fmt.value if fmt is not None else None)
+        except ValueError as exc:
+            _fail(str(exc), "name the format with --format, or use its suffix: e.g. -o map.bt, -o map.pgm")
         if not (0.0 <= min_probability < 1.0):
             raise ValueError(f"--min-probability must be in [0, 1), got {min_probability}")
+        for name, z in (("--z-min", z_min), ("--z-max", z_max)):
+            if z is not None and not math.isfinite(z):
+                raise ValueError(f"{name} must be a finite height in metres, got {z}")
+        if (z_min is not None or z_max is not None) and fmt_name != "grid":
+            raise ValueError("--z-min/--z-max choose the height band of --format grid only")
+        if (z_min is None) != (z_max is None):
+            raise ValueError("give --z-min and --z-max together (or neither: 0.3 to 2 m above the floor)")
+        if z_min is not None and z_max is not None and not z_min < z_max:
+            raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
         if not map_file.exists():
             _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = _check_writable(output if output is not None else map_file.with_suffix("." + fmt.value),
-                                   f"{fmt.value} file")
-        if out_path.resolve() == map_file.resolve():
-            _fail(f"the output {out_path} is the map file itself", "choose another path with -o")
+        out_path = _check_writable(output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]),
+                                   f"{fmt_name} file")
+        for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
+            if t.resolve() == map_file.resolve():
+                _fail(f"the output {t} is the map file itself", "choose another path with -o")
         _init(arch)
         from .map import NdtOmMap
 
         m = NdtOmMap.load(map_file)
         try:
-            path, k = export_map(m, out_path, fmt.value, min_probability=min_probability)
+            done = export_file(m, out_path, fmt_name, min_probability=min_probability, z_min=z_min, z_max=z_max)
         finally:
             del m
-        _out().print(Text(f"Exported {k:,} Gaussians (p_occ > {min_probability:g}) to {path} ({fmt.value}, "
-                          f"{_mib(path.stat().st_size)})", style="green"), soft_wrap=True)
+        size = sum(p.stat().st_size for p in done.paths)
+        size_text = _mib(size) if size >= 2**20 else f"{size / 1024:.1f} KiB"
+        _out().print(Text(f"Exported {done.summary} ({fmt_name}, {size_text})", style="green"), soft_wrap=True)
+        for note in done.notes:
+            _err().print(Text(f"note: {note}", style="dim"), soft_wrap=True)
 
 
 def main() -> None:

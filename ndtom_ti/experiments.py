@@ -123,19 +123,21 @@ class ScanSet:
 
 
 def find_simworld(tools_dir: str | Path | None = None) -> Path:
-    """Path of ``simworld.py``: in ``tools_dir``, else ``$NDTOM_SHARED/tools``, else
+    """Path of ``simworld.py``: ``tools_dir`` (the file or its folder) when given, else
+    ``$NDTOM_SHARED/tools``, ``../shared/tools`` from the current folder, or
     ``../shared/tools`` next to the repository."""
-    cands = []
     if tools_dir is not None:
-        cands.append(Path(tools_dir))
-    if os.environ.get("NDTOM_SHARED"):
-        cands.append(Path(os.environ["NDTOM_SHARED"]) / "tools")
-    cands.append(Path(__file__).resolve().parents[2] / "shared" / "tools")
+        cands = [Path(tools_dir).expanduser()]
+    else:
+        cands = [Path(os.environ["NDTOM_SHARED"]) / "tools"] if os.environ.get("NDTOM_SHARED") else []
+        cands += [Path.cwd().parent / "shared" / "tools", Path(__file__).resolve().parents[2] / "shared" / "tools"]
     for d in cands:
         p = d if d.suffix == ".py" else d / "simworld.py"
         if p.is_file():
             return p
-    raise FileNotFoundError(f"simworld.py not found in {[str(c) for c in cands]}; pass tools_dir")
+    raise FileNotFoundError(f"simworld.py (the generator of the synthetic hall of sim: sources) is not in "
+                            f"{', '.join(str(c) for c in cands)}; give its path, or set NDTOM_SHARED to the "
+                            f"folder that holds tools/simworld.py")
 
 
 def make_simworld(
@@ -379,6 +381,10 @@ def run_experiments(
     if isinstance(coarsen, bool) or int(coarsen) != coarsen or coarsen < 2:
         raise ValueError(f"coarsen must be an integer >= 2, got {coarsen!r}")
     cfg = config if config is not None else MapConfig()
+    if plots:  # before any work: the plots are drawn at the end
+        from .extras import require
+
+        require("matplotlib", "the plots (plots=False skips them)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     runtime.ensure_init()

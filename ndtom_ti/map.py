@@ -138,8 +138,39 @@ class NdtOmMap:
         config: MapConfig | None = None,
         layout: Layout | None = None,
         metadata: dict | None = None,
+        p_occupied: float | None = None,
+        p_empty: float | None = None,
+        logodds_min: float | None = None,
+        logodds_max: float | None = None,
+        min_points: int | None = None,
+        min_range: float | None = None,
+        max_range: float | None = None,
+        max_range_mode: str | None = None,
+        n_max: int | None = None,
         **options: Any,
     ):
+        """A new, empty map.
+
+        resolution: cell size in metres (> 0).
+        occupancy: ray-trace free space (NDT-OM); False is the paper's Recursive NDT
+            (Gaussians only, no ray tracing).
+        config: a :class:`MapConfig` with the sensor model; or give its options here one
+            by one (not both): ``p_occupied`` (p_o, default 0.6), ``p_empty`` (p_e, 0.49),
+            ``logodds_min`` / ``logodds_max`` (clamp, -2 / 2), ``min_points`` (points a
+            Gaussian needs, 3), ``min_range`` / ``max_range`` (m, 0 / inf),
+            ``max_range_mode`` ("drop" or "free"), ``n_max`` (cap on N, 0 = off). Options
+            left out (None) keep MapConfig's defaults; ``**options`` takes any other
+            MapConfig field.
+        layout: grid size (default :class:`Layout`: 32768 x 32768 x 4096 cells).
+        metadata: a dict saved with the map (source, settings, ...).
+
+        Raises TypeError or ValueError for a bad resolution or option, and
+        MapMemoryError when every map slot of the process is taken.
+        """
+        given = {"p_occupied": p_occupied, "p_empty": p_empty, "logodds_min": logodds_min,
+                 "logodds_max": logodds_max, "min_points": min_points, "min_range": min_range,
+                 "max_range": max_range, "max_range_mode": max_range_mode, "n_max": n_max}
+        options = {**{k: v for k, v in given.items() if v is not None}, **options}
         if isinstance(resolution, bool) or not isinstance(resolution, (int, float, np.floating, np.integer)):
             raise TypeError(f"resolution must be a number of metres, got {type(resolution).__name__}")
         resolution = float(resolution)
@@ -147,6 +178,13 @@ class NdtOmMap:
             raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
         if config is not None and options:
             raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
+        if options:
+            from dataclasses import fields
+
+            unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
+            if unknown:
+                raise TypeError(f"unknown map options {unknown}; the options are MapConfig's: "
+                                f"{', '.join(f.name for f in fields(MapConfig))}")
         self.config = config if config is not None else MapConfig(**options)
         self.resolution = resolution
         self.occupancy_enabled = bool(occupancy)
@@ -187,9 +225,24 @@ class NdtOmMap:
         return runtime.current_arch() or "cpu"
 
     @property
-    def extent(self) -> tuple[np.ndarray, np.ndarray]:
-        """World-frame bounds (metres) of the grid: (min corner, max corner)."""
+    def grid_extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame bounds (metres) of the grid the map can hold: (min corner, max
+        corner). Points outside are dropped. For the part holding data: :meth:`data_extent`."""
         return self._glo * self.resolution, self._ghi * self.resolution
+
+    @property
+    def extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """The same as :attr:`grid_extent` (the grid, not the data; kept for older code)."""
+        return self.grid_extent
+
+    def data_extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """World-frame bounds (metres) of the known cells, occupied or free: (min corner,
+        max corner) of the box of whole cells holding them; None for an empty map."""
+        idx = self.known_cells()["index"]
+        if len(idx) == 0:
+            return None
+        lo, hi = cell_box(idx)
+        return lo * self.resolution, (hi + 1) * self.resolution
 
     def cell_index(self, points: Any) -> np.ndarray:
         """Cell indices ``floor(x / resolution)`` (int64) of world points (N, 3)."""
@@ -213,7 +266,7 @@ class NdtOmMap:
         origin = np.ascontiguousarray(T[:3, 3])
         ocell = np.floor(origin / res).astype(np.int64)
         if ((ocell < self._glo) | (ocell >= self._ghi)).any():
-            lo, hi = self.extent
+            lo, hi = self.grid_extent
             raise ValueError(
                 f"sensor origin {origin.tolist()} is outside the map grid "
                 f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
@@ -671,11 +724,15 @@ class NdtOmMap:
         return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
 
     def occupancy(self, points: Any, *, return_known: bool = False):
-        """Occupancy probability of the cells holding world ``points`` (N, 3).
+        """Occupancy probability of the cells holding world ``points`` (N, 3), or of one
+        point (3,) (then a float, and a bool with ``return_known``).
 
         Unknown cells (never touched, or outside the grid) read 0.5, the prior; pass
         ``return_known=True`` to also get a boolean mask of the cells that are known.
         """
+        if np.ndim(points) == 1 and np.shape(points) == (3,):
+            p, k = self.occupancy(np.reshape(points, (1, 3)), return_known=True)
+            return (float(p[0]), bool(k[0])) if return_known else float(p[0])
         pts = _as_points(points)
         out = np.full(len(pts), 0.5)
         known = np.zeros(len(pts), bool)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import threading
 from dataclasses import dataclass
@@ -94,7 +96,7 @@ def init(
         pool_gb = device_memory_GB or 4.0
         if arch == "cuda" or (arch == "auto" and _cuda_driver_present()):
             try:
-                ti.init(arch=ti.cuda, device_memory_GB=pool_gb, **kwargs)
+                _quiet(ti.init, arch=ti.cuda, device_memory_GB=pool_gb, **kwargs)
             except Exception as exc:  # noqa: BLE001 - Taichi raises various types here
                 if arch == "cuda":
                     raise RuntimeError(f"CUDA was requested but could not be initialised: {exc}") from exc
@@ -103,7 +105,7 @@ def init(
             elif arch == "cuda":
                 raise RuntimeError("CUDA was requested but no CUDA device is available; use arch='cpu'.")
         if _state.arch is None:
-            ti.init(arch=ti.cpu, **kwargs)
+            _quiet(ti.init, arch=ti.cpu, **kwargs)
             _state.arch = "cpu"
             if pin_threads is None:
                 pin_threads = os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
@@ -114,6 +116,13 @@ def init(
                 _state.pinned = tuple(pin_pool(cpu_threads()))
         _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
         return _state.arch
+
+
+def _quiet(fn, *args, **kwargs):
+    """Call ``fn`` without its prints: ti.init prints "[Taichi] Starting on arch=..." to
+    stdout, which a library's user did not ask for (its warnings still go to the log)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn(*args, **kwargs)
 
 
 def _cuda_driver_present() -> bool:

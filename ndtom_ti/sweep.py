@@ -30,8 +30,8 @@ class SweepRow:
     ms_p95: float
     points_per_s: float
     visits_per_s: float  # ray-cell visits per second (NaN for OctoMap)
-    known_cells: int
-    gaussians: int
+    known_cells: int | None  # None where the mapper does not keep them (the floor)
+    gaussians: int | None  # None for mappers without Gaussians (the floor, OctoMap)
     memory_bytes: int
     ratio_to_ndtom: float = math.nan  # this mapper's median / NDT-OM's median
 
@@ -54,7 +54,8 @@ def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[
     return times, reports
 
 
-def _row(mapper: str, res: float, scans: Sequence[Scan], times: list[float], visits: int, known: int, gauss: int, mem: int) -> SweepRow:
+def _row(mapper: str, res: float, scans: Sequence[Scan], times: list[float], visits: int, known: int | None,
+         gauss: int | None, mem: int) -> SweepRow:
     t = np.asarray(times)
     pts = sum(len(p) for p, _ in scans)
     return SweepRow(
@@ -98,7 +99,9 @@ def run_sweep(
     if baseline not in (None, "octomap"):
         raise ValueError(f"unknown baseline {baseline!r}; the supported baseline is 'octomap'")
     if baseline == "octomap" and not octomap_available():
-        raise RuntimeError("the OctoMap baseline needs pyoctomap: pip install 'ndtom_ti[bench]'")
+        from .extras import require
+
+        require("pyoctomap", "the OctoMap baseline")
     scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in scans]
     say = progress or (lambda s: None)
     rows: list[SweepRow] = []
@@ -123,7 +126,8 @@ def run_sweep(
             say(f"{res:g} m: floor")
             f = NdtOmMap(res)
             times, reps = _time_scans(f.traverse_only, scans)
-            r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), 0, 0, f.memory_bytes())
+            r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None,
+                     f.memory_bytes())
             r.ratio_to_ndtom = r.ms_median / full.ms_median
             rows.append(r)
             del f
@@ -147,7 +151,7 @@ def _octomap_row(scans: Sequence[Scan], res: float, full: SweepRow, max_range: f
         t0 = time.perf_counter()
         tree.insertPointCloud(w, o, max_range)
         times.append(time.perf_counter() - t0)
-    row = _row("octomap", res, scans, times, 0, int(tree.getNumLeafNodes()), 0, int(tree.memoryUsage()))
+    row = _row("octomap", res, scans, times, 0, int(tree.getNumLeafNodes()), None, int(tree.memoryUsage()))
     row.ratio_to_ndtom = row.ms_median / full.ms_median
     return row
 
@@ -175,7 +179,11 @@ def machine_tags(arch: str) -> dict:
 
 
 def write_csv(rows: Sequence[SweepRow], path: Path, tags: dict) -> Path:
-    names = [f.name for f in fields(SweepRow)] + sorted(tags)
+    """One line per row, then the ``tags`` (machine, versions, data) in every line; a tag
+    named like a row field (e.g. ``scans``) is left out: the row's value stands."""
+    own = [f.name for f in fields(SweepRow)]
+    tags = {k: v for k, v in tags.items() if k not in own}
+    names = own + sorted(tags)
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=names)
         w.writeheader()

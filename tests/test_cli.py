@@ -138,7 +138,7 @@ def test_map_options_and_config_file(bags, tmp_path: Path) -> None:
     r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--max-range", "3.5",
             "--every", "2", "--no-progress")
     assert r.exit_code == 0, r.output
-    assert "3 of 5 clouds read" in r.output and "2 every" in r.output and "out of range" in r.output
+    assert "3 of 5 clouds read" in r.output and "2 left out by --every" in r.output and "out of range" in r.output
     h = read_header(out)
     assert h["config"]["p_occupied"] == 0.7 and h["config"]["max_range"] == 3.5 and h["config"]["min_points"] == 4
     assert h["metadata"]["config_file"] == str(cfg.resolve()) and h["resolution"] == 0.5

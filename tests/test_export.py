@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import gc
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -82,8 +83,8 @@ def test_ply_holds_occupied_gaussians(map_file: Path, tmp_path: Path) -> None:
     assert f"Exported {len(g['n']):,} Gaussians" in r.output
     header, v = read_ply(out)
     names = [ln.split()[-1] for ln in header if ln.startswith("property")]
-    assert names == ["x", "y", "z", "p_occ", "n", *COV_TERMS]
-    assert "property float x" in header and "property int n" in header
+    assert names == ["x", "y", "z", "red", "green", "blue", "p_occ", "n", *COV_TERMS]
+    assert "property float x" in header and "property int n" in header and "property uchar red" in header
     assert len(v) == len(g["n"]) > 100
     np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], 1), g["mean"].astype(np.float32))
     np.testing.assert_array_equal(v["n"], g["n"])
@@ -92,6 +93,19 @@ def test_ply_holds_occupied_gaussians(map_file: Path, tmp_path: Path) -> None:
     for name, (a, b) in zip(COV_TERMS, IJ):
         np.testing.assert_array_equal(v[name], g["cov"][:, a, b].astype(np.float32))
     assert np.abs(v["z"][np.abs(v["z"] - pb.PLANE_Z) < 0.2] - pb.PLANE_Z).max() < 0.01  # the floor
+    # colour: the height ramp blue, cyan, green, yellow, red over the range the header states
+    (line,) = [ln for ln in header if ln.startswith("comment colour: height")]
+    words = line.split()
+    lo, hi = float(words[words.index("<=") + 1]), float(words[words.index(">=") + 1])
+    assert lo < pb.PLANE_Z + 0.05 and hi > 2.0  # floor to wall top
+    t = np.clip((v["z"].astype(np.float64) - lo) / (hi - lo), 0, 1) * 4
+    ramp = np.array([[0, 0, 255], [0, 255, 255], [0, 255, 0], [255, 255, 0], [255, 0, 0]], np.float64)
+    want = np.stack([np.interp(t, np.arange(5), ramp[:, c]) for c in range(3)], axis=1)
+    got = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.float64)
+    assert np.abs(got - want).max() <= 1.0
+    floor_rgb = got[np.abs(v["z"] - pb.PLANE_Z) < 0.05]
+    assert len(floor_rgb) and (floor_rgb[:, 2] > 200).all() and (floor_rgb[:, 0] < 30).all()  # floor blue
+    assert (got[v["z"] > hi][:, 0] == 255).all() and len(np.unique(got, axis=0)) > 20  # top red, a ramp
 
 
 def test_npz_holds_the_full_arrays(map_file: Path, tmp_path: Path) -> None:
@@ -149,8 +163,17 @@ def test_default_output_and_min_probability(map_file: Path, tmp_path: Path) -> N
     (lambda t, m: m, ["-o", "{t}/nope/out.ply"], ["folder", "does not exist"]),
     (lambda t, m: m, ["--min-probability", "1.5"], ["--min-probability must be in [0, 1)"]),
     (lambda t, m: m, ["-f", "las"], ["Invalid value for '-f' / '--format'"]),
-    (lambda t, m: m, ["-o", "{m}"], ["is the map file itself"]),
-], ids=["missing", "not-a-map", "truncated", "no-folder", "probability", "format", "overwrite-map"])
+    (lambda t, m: m, ["-f", "ply", "-o", "{m}"], ["is the map file itself"]),
+    (lambda t, m: m, ["-o", "{t}/h.xyz"], ["cannot tell the export format", "'.xyz'", "--format"]),
+    (lambda t, m: m, ["-o", "{t}/h"], ["cannot tell the export format", "no suffix"]),
+    (lambda t, m: m, ["-f", "ply", "-o", "{t}/h.csv"], ["suffix of the csv format", "asked for is ply"]),
+    (lambda t, m: m, ["-o", "{t}/h.ply", "--z-min", "1"], ["height band of --format grid only"]),
+    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "2", "--z-max", "1"], ["--z-min (2.0) must be below"]),
+    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-max", "1"], ["give --z-min and --z-max together"]),
+    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "40", "--z-max", "41"], ["no known cells in the height band",
+                                                                          "known cells span z"]),
+], ids=["missing", "not-a-map", "truncated", "no-folder", "probability", "format", "overwrite-map", "unknown-suffix",
+        "no-suffix", "suffix-conflict", "band-not-grid", "band-order", "band-half", "band-empty"])
 def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts) -> None:
     path = setup(tmp_path, map_file)
     args = [a.format(t=tmp_path, m=map_file) for a in args]
@@ -160,6 +183,7 @@ def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts
     for t in texts:
         assert t in r.output, (t, r.output)
     assert map_file.read_bytes() == before
+    assert not list(tmp_path.glob("h*"))  # nothing written
 
 
 def test_python_api_and_empty_maps(tmp_path: Path) -> None:
@@ -170,6 +194,218 @@ def test_python_api_and_empty_maps(tmp_path: Path) -> None:
     m = NdtOmMap(0.5)
     path, k = export_map(m, tmp_path / "e.csv")
     assert k == 0 and path.read_text().count("\n") == 1
-    with pytest.raises(ValueError, match="unknown export format"):
+    with pytest.raises(ValueError, match="cannot tell the export format"):
         export_map(m, tmp_path / "e.xyz")
+    with pytest.raises(ValueError, match="unknown export format"):
+        export_map(m, tmp_path / "e.ply", "las")
+    path, k = export_map(m, tmp_path / "e.bt")  # an empty tree: a header and no nodes
+    assert k == 0 and b"\nsize 0\n" in path.read_bytes() and path.read_bytes().endswith(b"data\n")
+    _, v = read_pcd(export_map(m, tmp_path / "e.pcd")[0])
+    assert len(v) == 0
     del m
+
+
+def read_pcd(path: Path) -> tuple[dict, np.ndarray]:
+    """A minimal reader of binary PCD 0.7 files (independent of ndtom_ti.export)."""
+    data = path.read_bytes()
+    head, pos = {}, 0
+    while True:
+        end = data.index(b"\n", pos)
+        line = data[pos:end].decode("ascii")
+        pos = end + 1
+        if line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        head[key] = vals
+        if key == "DATA":
+            break
+    assert head["VERSION"] == ["0.7"] and head["DATA"] == ["binary"] and head["HEIGHT"] == ["1"]
+    kinds = {("F", "4"): "<f4", ("U", "4"): "<u4", ("I", "4"): "<i4", ("F", "8"): "<f8"}
+    assert set(head["COUNT"]) == {"1"}
+    dt = np.dtype([(n, kinds[t, z]) for n, t, z in zip(head["FIELDS"], head["TYPE"], head["SIZE"])])
+    count = int(head["POINTS"][0])
+    assert int(head["WIDTH"][0]) == count
+    v = np.frombuffer(data[pos:], dtype=dt, count=count)
+    assert len(data) == pos + v.nbytes
+    return head, v
+
+
+def test_pcd_holds_means_n_and_occupancy(map_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "means.pcd"
+    r = run("export", map_file, "-o", out)
+    assert r.exit_code == 0, r.output
+    assert f"to {out}" in r.output
+    g = expected(map_file)
+    head, v = read_pcd(out)
+    assert head["FIELDS"] == ["x", "y", "z", "n", "p_occ"]
+    assert len(v) == len(g["n"]) > 100
+    np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], 1), g["mean"].astype(np.float32))
+    np.testing.assert_array_equal(v["n"], g["n"])
+    np.testing.assert_array_equal(v["p_occ"], g["p_occ"].astype(np.float32))
+
+
+def known(map_file: Path) -> dict:
+    m = NdtOmMap.load(map_file)
+    k = m.known_cells()
+    del m
+    return k
+
+
+def test_bt_is_read_by_octomap(map_file: Path, tmp_path: Path) -> None:
+    """OctoMap's own reader loads the tree; every known cell queried at its centre has the
+    map's state, cells never seen are unknown, and the bytes equal OctoMap's own writer's."""
+    pyoctomap = pytest.importorskip("pyoctomap", reason="the .bt check needs OctoMap's reader (pyoctomap)")
+    out = tmp_path / "cells.bt"
+    r = run("export", map_file, "-o", out)
+    assert r.exit_code == 0, r.output
+    k = known(map_file)
+    occ, free = k["p_occ"] > 0.5, k["p_occ"] < 0.5
+    assert occ.sum() > 100 and free.sum() > 1000
+    assert f"{occ.sum():,} occupied and {free.sum():,} free cells" in r.output and str(out) in r.output
+
+    tree = pyoctomap.OcTree(1.0)
+    assert tree.readBinary(str(out))
+    assert tree.getResolution() == pb.RES
+    res = pb.RES
+    for cell, is_occ in zip(k["index"], occ):
+        node = tree.search((cell + 0.5) * res)
+        assert node is not None and tree.isNodeOccupied(node) == is_occ, cell
+    # a point beside each occupied cell's centre (not only the centre) falls in it
+    for cell in k["index"][occ][:50]:
+        node = tree.search((cell + np.array([0.01, 0.99, 0.5])) * res)
+        assert node is not None and tree.isNodeOccupied(node)
+    # known cells are a tiny part of their bounding box: unknown cells stay unknown
+    lo, hi = k["index"].min(0), k["index"].max(0)
+    rng = np.random.default_rng(0)
+    probe = rng.integers(lo, hi + 1, (2000, 3))
+    keys = {tuple(c) for c in k["index"].tolist()}
+    unknown = [c for c in probe.tolist() if tuple(c) not in keys]
+    assert len(unknown) > 500
+    for cell in unknown:
+        assert tree.search((np.array(cell) + 0.5) * res) is None, cell
+    # the wall and the floor, at world coordinates
+    wall = tree.search(np.array([pb.WALL_X, 0.5, 1.5]))
+    assert wall is not None and tree.isNodeOccupied(wall)
+
+    # OctoMap's own writer, given the same cells, writes the same tree byte for byte
+    ref = pyoctomap.OcTree(res)
+    for cell, is_occ in zip(k["index"][occ | free], occ[occ | free]):
+        ref.updateNode((cell + 0.5) * res, bool(is_occ))
+    ref.writeBinary(str(tmp_path / "ref.bt"))
+    ours, theirs = out.read_bytes(), (tmp_path / "ref.bt").read_bytes()
+    assert ours[ours.index(b"\nid OcTree\n"):] == theirs[theirs.index(b"\nid OcTree\n"):]
+
+
+def test_bt_merges_full_octants_and_rejects_cells_beyond_octomap(tmp_path: Path) -> None:
+    from ndtom_ti.export import octree_stream
+
+    block = np.stack(np.meshgrid(*[np.arange(8, 10)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    n_one, one = octree_stream(block[:1], [True])
+    n_all, full = octree_stream(block, np.ones(8, bool))  # eight siblings: one leaf a level up
+    assert n_one == 17 and len(one) == 2 * 16  # root, 15 inner nodes, the leaf; 2 bytes per non-leaf
+    assert n_all == 16 and len(full) == 2 * 15
+    n_mixed, mixed = octree_stream(block, block[:, 2] == 9)  # mixed states stay eight leaves
+    assert n_mixed == 16 + 8 and len(mixed) == 2 * 16
+    assert mixed[-2:] == bytes([0b01010101, 0b10101010])  # children 0-3 free (01), 4-7 (z up) occupied (10)
+    with pytest.raises(ValueError, match="beyond OctoMap's tree"):
+        octree_stream([[0, 0, 40000]], [True])
+    with pytest.raises(ValueError, match="twice"):
+        octree_stream([[1, 2, 3], [1, 2, 3]], [True, False])
+
+
+def read_pgm(path: Path) -> np.ndarray:
+    """A minimal reader of binary (P5, 8-bit) PGM images."""
+    data = path.read_bytes()
+    tokens, pos = [], 0
+    while len(tokens) < 4:
+        while data[pos : pos + 1].isspace():
+            pos += 1
+        if data[pos : pos + 1] == b"#":
+            pos = data.index(b"\n", pos) + 1
+            continue
+        end = pos
+        while not data[end : end + 1].isspace():
+            end += 1
+        tokens.append(data[pos:end].decode("ascii"))
+        pos = end
+    pos += 1  # the one whitespace after maxval
+    assert tokens[0] == "P5" and tokens[3] == "255"
+    w, h = int(tokens[1]), int(tokens[2])
+    assert len(data) == pos + w * h
+    return np.frombuffer(data[pos:], np.uint8).reshape(h, w)
+
+
+def read_map_yaml(path: Path) -> dict:
+    """map_server's YAML keys (flat ``key: value`` lines, the origin a list)."""
+    out: dict = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        key, value = (part.strip() for part in line.split(":", 1))
+        if value.startswith("["):
+            out[key] = [float(x) for x in value.strip("[]").split(",")]
+        else:
+            try:
+                out[key] = float(value)
+            except ValueError:
+                out[key] = value
+    return out
+
+
+def test_grid_is_a_map_server_map(map_file: Path, tmp_path: Path) -> None:
+    """The PGM + YAML pair, read as map_server reads it: each pixel's state is that of the
+    cells of its column in the band, at the place the YAML origin puts it."""
+    out = tmp_path / "floor.pgm"
+    z0, z1 = 1.0, 2.0
+    r = run("export", map_file, "-o", out, "--z-min", z0, "--z-max", z1)
+    assert r.exit_code == 0, r.output
+    yml = tmp_path / "floor.yaml"
+    assert str(out) in r.output and str(yml) in r.output
+    meta = read_map_yaml(yml)
+    assert meta["image"] == "floor.pgm" and meta["mode"] == "trinary" and meta["negate"] == 0
+    assert meta["resolution"] == pb.RES and meta["origin"][2] == 0.0
+    assert np.allclose(np.array(meta["origin"][:2]) / pb.RES, np.round(np.array(meta["origin"][:2]) / pb.RES))
+    img = read_pgm(out)
+    h, w = img.shape
+    ox, oy = meta["origin"][:2]
+    # map_server: p = (255 - value) / 255; occupied above occupied_thresh, free below free_thresh
+    p = (255.0 - img) / 255.0
+    state = np.where(p > meta["occupied_thresh"], 1, np.where(p < meta["free_thresh"], 0, -1))
+    assert set(np.unique(state)) == {-1, 0, 1}
+
+    k = known(map_file)
+    res = pb.RES
+    zc = (k["index"][:, 2] + 0.5) * res
+    in_band = (zc + res / 2 > z0) & (zc - res / 2 < z1)
+    want: dict = {}
+    for cell, prob in zip(k["index"][in_band], k["p_occ"][in_band]):
+        key = (int(cell[0]), int(cell[1]))
+        s = 1 if prob > 0.5 else (0 if prob < 0.5 else -1)
+        want[key] = max(want.get(key, -1), s)
+    for row in range(h):
+        for col in range(w):
+            # the pixel's centre in the map frame: row 0 is the top of the image (largest y)
+            x = ox + (col + 0.5) * res
+            y = oy + (h - 1 - row + 0.5) * res
+            key = (int(np.floor(x / res)), int(np.floor(y / res)))
+            assert state[row, col] == want.get(key, -1), (row, col, key)
+    assert len(want) == int((state >= 0).sum())
+    # the wall stands in the band: its column at x = WALL_X is occupied, free before it
+    col = int((pb.WALL_X - ox) // res)
+    row = h - 1 - int((pb.T_map_base(2)[1, 3] - oy) // res)
+    assert state[row, col] == 1 and state[row, col - 4] == 0
+
+
+def test_grid_default_band_is_above_the_floor(map_file: Path, tmp_path: Path) -> None:
+    r = run("export", map_file, "-f", "grid", "-o", tmp_path / "auto.yaml")
+    assert r.exit_code == 0, r.output
+    found = re.search(r"floor plane z = (\S+) (\S+) x (\S+) y \(tilt 0\.0 deg\)", r.output)
+    assert found and "--z-min/--z-max" in r.output, r.output
+    a, b, c = map(float, found.groups())
+    assert abs(a - pb.PLANE_Z) < 0.01 and abs(b) < 1e-3 and abs(c) < 1e-3
+    assert "0.30 .. 2.00 m above the floor" in r.output
+    assert (tmp_path / "auto.pgm").exists() and (tmp_path / "auto.yaml").exists()
+    img = read_pgm(tmp_path / "auto.pgm")
+    # the band starts above the floor's cells: the floor is not drawn as an obstacle
+    assert (img == 0).sum() < 0.2 * (img == 254).sum()

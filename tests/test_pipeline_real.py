@@ -71,7 +71,7 @@ def test_balm_hall_walls_are_thin_and_vertical(tmp_path: Path) -> None:
     out = tmp_path / "hall.ndtom"
     r = cli("map", need(BALM), "-r", "0.3", "--every", "4", "-o", out, "--no-progress")
     assert r.exit_code == 0, r.output
-    assert "12 of 45 clouds read" in r.output and "33 every" in r.output
+    assert "12 of 45 clouds read" in r.output and "33 left out by --every" in r.output
     m = NdtOmMap.load(out)
     assert m.metadata["pose_source"] == "tf: map -> livox" and m.metadata["recording"]["storage"] == "mcap"
     assert m.metadata["options"]["every"] == 4 and m.scans_inserted == 12

@@ -37,11 +37,19 @@ def test_run_sweep_rejects_bad_input():
 
 @pytest.mark.skipif(not sweep.octomap_available(), reason="pyoctomap not installed")
 def test_cli_sweep_synthetic_with_octomap(tmp_path):
-    res = CliRunner().invoke(app, ["sweep", "--synthetic", "--scans", "2", "--resolutions", "0.5",
-                                   "--baseline", "octomap", "--out", str(tmp_path / "sw")])  # fmt: skip
+    res = CliRunner(env={"COLUMNS": "250"}).invoke(app, ["sweep", "--synthetic", "--scans", "2", "--resolutions", "0.5",
+                                                         "--baseline", "octomap", "--out", str(tmp_path / "sw")])  # fmt: skip
     assert res.exit_code == 0, res.output
+    with open(tmp_path / "sw" / "sweep.csv") as fh:
+        header = next(csv.reader(fh))
+    assert len(header) == len(set(header)) and "scans" in header  # each column once
     rows = list(csv.DictReader(open(tmp_path / "sw" / "sweep.csv")))
     assert [r["mapper"] for r in rows] == ["ndtom", "ndtom-floor", "octomap"]
+    assert int(rows[0]["gaussians"]) > 0 and rows[1]["gaussians"] == rows[2]["gaussians"] == ""  # not 0: none
+    assert all(int(r["scans"]) == 2 for r in rows)
+    table = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[1:-1]]
+             for line in res.output.splitlines() if line.startswith("│")}
+    assert table["octomap"][7] == table["ndtom-floor"][7] == "-" and table["ndtom"][7] not in ("-", "0")
     assert all(r["arch"] and r["taichi"] and r["machine"] for r in rows)
     from ndtom_ti import runtime
 
@@ -62,3 +70,14 @@ def test_cli_sweep_synthetic_with_octomap(tmp_path):
 def test_cli_sweep_bad_options(tmp_path, args, message):
     res = CliRunner().invoke(app, ["sweep", *args, "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and message in res.output, res.output
+
+
+def test_write_csv_holds_each_column_once(tmp_path):
+    row = sweep.SweepRow("octomap", 0.5, 3, 100.0, 1.0, 2.0, 3.0, float("nan"), 10, None, 1000)
+    path = sweep.write_csv([row], tmp_path / "s.csv", {"scans": 99, "machine": "m"})
+    with open(path) as fh:
+        header = next(csv.reader(fh))
+    assert header.count("scans") == 1 and header[-1] == "machine"
+    with open(path) as fh:
+        (line,) = csv.DictReader(fh)
+    assert line["scans"] == "3" and line["gaussians"] == "" and line["machine"] == "m"

@@ -42,7 +42,7 @@ POSE_TYPES = (
     'geometry_msgs/msg/TransformStamped',
 )
 _ROS1_MAGIC = b'#ROSBAG V2.0\n'
-_SUGGEST = ('Map in the sensor frame with --sensor-frame (sensor_frame_only=True), give poses with --poses FILE '
+_SUGGEST = ('Map in the sensor frame (identity poses) with --sensor-frame, give poses with --poses FILE '
             '(TUM or KITTI), or name a pose topic with --pose-topic.')
 
 
