@@ -66,6 +66,10 @@ REGIONS = """
             crossed.append(k)  # the scan whose nodes crossed a GiB of pool
         k += 1
     print("FILLED", k, st.pool_bytes(), *crossed)
+    ctr = np.zeros_like(m._ctr)
+    m._k.count_known(m._slot, ctr)
+    print("SIZE scans", k, "known", int(ctr[4]), "gaussians", m._nrec, "map_MiB", m.memory_bytes() / 2**20,
+          "pool_MiB", st.pool_bytes() / 2**20)
 
     def region(mm, c):
         g = np.mgrid[-96:97, -96:97, -96:97].reshape(3, -1).T + c
@@ -108,8 +112,10 @@ REGIONS = """
 """
 
 
-def check_regions(budget: float, target: float) -> None:
+def check_regions(budget: float, target: float, capsys) -> None:
     out = run_py(REGIONS, str(budget), str(target))
+    with capsys.disabled():
+        print("\n" + next(line for line in out.splitlines() if line.startswith("SIZE ")))
     chunk, mapped = values(out, "CHUNK")
     assert int(chunk) >= budget * 2**30 and mapped == "True"
     filled = values(out, "FILLED")
@@ -120,16 +126,16 @@ def check_regions(budget: float, target: float) -> None:
     assert values(out, "USABLE") == ["True", "True"]
 
 
-def test_cpu_pool_past_taichis_1_gib_chunk_equals_fresh_maps_region_by_region():
+def test_cpu_pool_past_taichis_1_gib_chunk_equals_fresh_maps_region_by_region(capsys):
     """2.5 GiB budget, filled past 2.1 GiB (where this kind of workload crashed Taichi 1.7.4
     with its own 1 GiB chunks); ~2.6 GiB of memory."""
-    check_regions(2.5, 2.1)
+    check_regions(2.5, 2.1, capsys)
 
 
 @pytest.mark.slow
-def test_cpu_pool_past_4_gib_equals_fresh_maps_region_by_region():
+def test_cpu_pool_past_4_gib_equals_fresh_maps_region_by_region(capsys):
     """A map past 4 GiB of pool (~5 GiB of memory; run with -m slow)."""
-    check_regions(5.0, 4.3)
+    check_regions(5.0, 4.3, capsys)
 
 
 def test_guards_fall_back_to_taichis_chunk_with_a_one_line_note():
