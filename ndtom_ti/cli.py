@@ -96,8 +96,8 @@ def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
 
     budget = runtime.pool_limit() / 2**30
     scan = summary.scans_used + 1
-    error = (f"scan {scan} did not fit the memory budget: Taichi's pool may hold {budget:.2f} GiB "
-             f"(--memory-limit) and this scan could take it past that; nothing of it was mapped")
+    error = (f"scan {scan} was refused: it could take Taichi's memory pool past its {budget:.2f} GiB budget "
+             f"(--memory-limit); nothing of it was mapped")
     ways = []
     note = runtime.pool_note()
     if runtime.current_arch() == "cpu" and note is None:
@@ -161,7 +161,7 @@ def _init(arch: Arch, memory_limit: float | None = None) -> str:
         except ValueError as exc:
             if memory_limit is None:
                 raise
-            _fail(str(exc).replace("memory_limit_GB", "--memory-limit"),
+            _fail(str(exc).replace("memory_limit_GB=", "--memory-limit ").replace("memory_limit_GB", "--memory-limit"),
                   "give --memory-limit in GiB, below the machine's memory")
     for w in caught:
         if issubclass(w.category, RuntimeWarning) and w.message is not None:
@@ -541,8 +541,14 @@ def map_(
             raise ValueError("give --every or --every-distance, not both")
         if start is not None and end is not None and end < start:
             raise ValueError(f"--end ({end}) is before --start ({start})")
-        if memory_limit is not None and not (math.isfinite(memory_limit) and memory_limit > 0):
-            raise ValueError(f"--memory-limit must be a positive number of GiB, got {memory_limit}")
+        if memory_limit is not None:
+            from .hostpool import physical_memory
+
+            if not (math.isfinite(memory_limit) and memory_limit > 0):
+                raise ValueError(f"--memory-limit must be a positive number of GiB, got {memory_limit}")
+            if memory_limit * 2**30 > physical_memory():
+                raise ValueError(f"--memory-limit {memory_limit:g} GiB is more than this machine's "
+                                 f"{physical_memory() / 2**30:.1f} GiB of memory")
         cfg = load_config_file(config) if config is not None else None
         from .pipeline import config_with_ranges
 

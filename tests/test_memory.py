@@ -355,3 +355,16 @@ def test_default_budget_is_a_share_of_the_machine(arch):
     assert runtime.pool_chunk() >= runtime.chunk_for(int(runtime.CPU_DEFAULT_SHARE * hostpool.physical_memory()))
     with pytest.raises(ValueError, match="first ndtom_ti.init"):
         ndtom_ti.init(memory_limit_GB=runtime.pool_chunk() / 2**30 + 1)
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "1e9"])
+def test_cli_memory_limit_rejects_bad_values_in_its_own_terms(value, tmp_path):
+    from typer.testing import CliRunner
+
+    from ndtom_ti.cli import app
+
+    old = runtime.pool_limit()
+    r = CliRunner().invoke(app, ["map", str(tmp_path / "none.bag"), "-r", "0.5", "--memory-limit", value,
+                                 "-o", str(tmp_path / "m.ndtom")])  # fmt: skip
+    assert runtime.pool_limit() == old
+    assert r.exit_code == 2 and "--memory-limit" in r.output and "memory_limit_GB" not in r.output, r.output

@@ -117,7 +117,7 @@ def test_norlab_long_ranges_fit_the_memory_budget(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=300, check=False, env={**os.environ, "COLUMNS": "200"})  # fmt: skip
     text = r.stdout + r.stderr
     assert r.returncode == 1, text
-    assert "scan 1 did not fit the memory budget" in text and "--memory-limit" in text and "-r 0.2" in text
+    assert "scan 1 was refused: it could take Taichi's memory pool past its 0.88 GiB budget" in text and "--memory-limit" in text and "-r 0.2" in text
     assert "Traceback" not in text and "memory_limit_GB" not in text and "--every" not in text
     assert "Nothing was mapped; no map written" in text and not fine.exists()
 
