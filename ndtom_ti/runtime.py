@@ -114,7 +114,7 @@ def init(
         if arch == "cuda" or (arch == "auto" and _cuda_driver_present()):
             if pool_gb is None:  # sized from the device (no bug there: one exact preallocation)
                 total = _cuda_device_memory()
-                pool_gb = round(CUDA_DEFAULT_SHARE * total / 2**30 * 4) / 4 if total else 4.0
+                pool_gb = max(0.5, round(CUDA_DEFAULT_SHARE * total / 2**30 * 4) / 4) if total else 4.0
             try:
                 ti.init(arch=ti.cuda, device_memory_GB=pool_gb, **kwargs)
             except Exception as exc:  # noqa: BLE001 - Taichi raises various types here
