@@ -70,8 +70,9 @@ def init(
         Taichi's pool is made one chunk of that size before it starts (Taichi 1.7.4
         corrupts memory past its first chunk, see README "Memory"); where that cannot be
         done safely the budget stays within Taichi's 1 GiB chunk (0.875 GiB, at most
-        0.9375) and ``pool_note()`` says why. Later calls may lower it, or raise it up to
-        what the chunk holds. On CUDA it defaults to 90% of the device pool.
+        0.9375) and ``pool_note()`` says why. Later calls may lower it, or raise it back
+        up to the budget the pool was sized for. On CUDA it defaults to 90% of the device
+        pool.
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
     pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
