@@ -88,12 +88,24 @@ def _symbol_offset(lib: Path) -> int:
     return int(hit[0]["value"])
 
 
-def _load_base(lib: Path) -> int:
+def _address(lib: Path, offset: int) -> int:
+    """The address of ``offset`` in the loaded library, checked to lie in one of its
+    writable mappings (so reading it cannot fault)."""
+    base, writable = None, []
     for line in Path("/proc/self/maps").read_text().splitlines():
         parts = line.split(maxsplit=5)
-        if len(parts) == 6 and int(parts[2], 16) == 0 and Path(parts[5]).resolve() == lib:
-            return int(parts[0].split("-")[0], 16)
-    raise GuardFailed(f"{lib.name} is not mapped in this process")
+        if len(parts) == 6 and parts[5].endswith(lib.name) and Path(parts[5]).resolve() == lib:
+            a, b = (int(x, 16) for x in parts[0].split("-"))
+            if int(parts[2], 16) == 0 and base is None:
+                base = a
+            if parts[1].startswith("rw"):
+                writable.append((a, b))
+    if base is None:
+        raise GuardFailed(f"{lib.name} is not mapped in this process")
+    addr = base + offset
+    if not any(a <= addr and addr + 8 <= b for a, b in writable):
+        raise GuardFailed("UnifiedAllocator::default_allocator_size is not in a writable mapping of the library")
+    return addr
 
 
 def anonymous_mappings() -> dict[int, int]:
@@ -116,7 +128,7 @@ def chunk_size_cell() -> ctypes.c_uint64:
     if tuple(ti.__version__) != TESTED_VERSION:
         raise GuardFailed(f"taichi {'.'.join(map(str, ti.__version__))} is not the tested 1.7.4")
     lib = _library()
-    cell = ctypes.c_uint64.from_address(_load_base(lib) + _symbol_offset(lib))
+    cell = ctypes.c_uint64.from_address(_address(lib, _symbol_offset(lib)))
     if cell.value != DEFAULT_CHUNK:
         raise GuardFailed(f"UnifiedAllocator::default_allocator_size reads {cell.value}, not 1 GiB")
     return cell
