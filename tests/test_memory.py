@@ -368,3 +368,18 @@ def test_cli_memory_limit_rejects_bad_values_in_its_own_terms(value, tmp_path):
                                  "-o", str(tmp_path / "m.ndtom")])  # fmt: skip
     assert runtime.pool_limit() == old
     assert r.exit_code == 2 and "--memory-limit" in r.output and "memory_limit_GB" not in r.output, r.output
+
+
+def test_symbol_guard_refuses_other_files(tmp_path):
+    from pathlib import Path
+
+    from ndtom_ti import hostpool
+
+    text = tmp_path / "not_elf.so"
+    text.write_bytes(b"just text, not a library" * 10)
+    with pytest.raises(hostpool.GuardFailed, match="ELF"):
+        hostpool._symbol_offset(text)
+    numpy_lib = next(Path(np.__file__).parent.glob("_core/_multiarray_umath*.so"), None)
+    if numpy_lib is not None:  # an ELF library without Taichi's allocator
+        with pytest.raises(hostpool.GuardFailed):
+            hostpool._symbol_offset(numpy_lib.resolve())
