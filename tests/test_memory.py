@@ -179,8 +179,9 @@ def test_a_pool_linux_refuses_to_map_falls_back_with_a_note():
 
 
 def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
-    """The issue's repro: a 2,000-ray scan to 50 m at 0.05 m under a 0.875 GiB budget is
-    refused while its rays are traced in batches; then small scans into the same map, a
+    """A 2,000-ray scan to 50 m at 0.05 m under a 0.875 GiB budget is refused while its
+    rays are traced in batches (the map keeps what it held, and its node counts); then
+    small scans into the same map, a
     new map and a map made after deleting both are accepted, and a half-size version of
     the big scan reuses the nodes the refused one gave back."""
     out = run_py(
@@ -193,12 +194,16 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
         d[:, 2] *= 0.1
         m = ndtom_ti.NdtOmMap(0.05)
         st = m._st
+        m.insert_scan(d[:200] * 0.1, np.eye(4))  # some content before the refused scan
+        before, nodes = m.state(), st.nodes(m._slot).tolist()
         try:
             m.insert_scan(d, np.eye(4))
             print("BIG accepted")
         except ndtom_ti.MapMemoryError:
             print("BIG refused")
-        print("NODES", *st.nodes(m._slot).tolist(), st.node_high_water[1] > 50000)
+        after = m.state()
+        same = all(np.array_equal(before[k], after[k]) for k in before)
+        print("NODES", st.nodes(m._slot).tolist() == nodes, nodes[1] > 0, same, st.node_high_water[1] > 50000)
         small = rng.normal(size=(10, 3)) * 0.1 + [1.0, 0.0, 0.0]
         m.insert_scan(small, np.eye(4))
         m2 = ndtom_ti.NdtOmMap(0.05)
@@ -216,7 +221,7 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
         """
     )
     assert values(out, "BIG") == ["refused"]
-    assert values(out, "NODES") == ["0", "0", "0", "0", "True"]  # empty leaves given back
+    assert values(out, "NODES") == ["True", "True", "True", "True"]  # empty leaves given back, map unchanged
     assert values(out, "AFTER") == ["True", "True", "True"]
 
 
