@@ -181,9 +181,9 @@ def test_a_pool_linux_refuses_to_map_falls_back_with_a_note():
 def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
     """A 2,000-ray scan to 50 m at 0.05 m under a 0.875 GiB budget is refused while its
     rays are traced in batches (the map keeps what it held, and its node counts); then
-    small scans into the same map, a
-    new map and a map made after deleting both are accepted, and a half-size version of
-    the big scan reuses the nodes the refused one gave back."""
+    small scans into the same map, a new map and a map made after deleting both are
+    accepted, and a half-size version of the big scan reuses the nodes the refused one
+    gave back."""
     out = run_py(
         """
         import gc, numpy as np, ndtom_ti
