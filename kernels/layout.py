@@ -198,7 +198,12 @@ class Storage:
     def note_usage(self) -> None:
         np.maximum(self.node_high_water, self.nodes(), out=self.node_high_water)
 
-    def pool_bytes(self, extra=(0, 0, 0, 0)) -> int:
-        """Pool bytes reserved now, or after ``extra`` more nodes of each type."""
+    def pool_bytes(self, extra=(0, 0, 0, 0), all_types: bool = False) -> int:
+        """Pool bytes reserved now, or after ``extra`` more nodes of each type. With
+        ``all_types``, as if every node type held its first chunk already: budget checks
+        count them, so a scan that fills the pool with one type cannot leave a budget in
+        which the next map's first hits (index nodes) no longer fit."""
         want = np.maximum(self.node_high_water, self.nodes() + np.asarray(extra, np.int64))
+        if all_types:
+            want = np.maximum(want, 1)
         return pool_bytes(self.layout, want)

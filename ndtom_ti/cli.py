@@ -118,6 +118,31 @@ _MEMORY_HINT = ("use a coarser resolution (-r), a smaller --max-range, fewer sca
                 "or a CUDA device (--arch cuda)")
 
 
+def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
+    """The error and hint of a scan the memory budget refused, in `ndtom map`'s options."""
+    from . import hostpool, runtime
+
+    budget = runtime.pool_limit() / 2**30
+    scan = summary.scans_used + 1
+    error = (f"scan {scan} was refused: it could take Taichi's memory pool past its {budget:.2f} GiB budget "
+             f"(--memory-limit); nothing of it was mapped")
+    ways = []
+    note = runtime.pool_note()
+    if runtime.current_arch() == "cpu" and note is None:
+        most = 0.8 * hostpool.physical_memory() / 2**30
+        if most > budget * 1.1:
+            ways.append(f"a larger --memory-limit (this machine has {hostpool.physical_memory() / 2**30:.0f} GiB; "
+                        f"e.g. --memory-limit {most:.0f})")
+    elif note is not None:
+        ways.append(f"(--memory-limit cannot go past ~0.94 GiB here: {note})")
+    ways += [f"a coarser resolution (-r {2 * summary.resolution:g})",
+             "a smaller --max-range (long rays at a fine resolution touch the most cells)"]
+    if runtime.current_arch() == "cpu":
+        ways.append("a CUDA device (--arch cuda)")
+    more = " Or map a part: --max-scans N or --end T stops before it." if summary.scans_used else ""
+    return error, f"{saved} To map scan {scan}, use " + ", ".join(ways[:-1]) + f", or {ways[-1]}." + more
+
+
 @contextlib.contextmanager
 def _user_errors(*, recording: str | None = None, map_file: str | None = None) -> Iterator[None]:
     """Turn the errors a user can cause into one red line + hint and an exit code."""
@@ -148,15 +173,28 @@ def _user_errors(*, recording: str | None = None, map_file: str | None = None) -
               "set NDTOM_DEBUG=1 to see the traceback, and please report it", EXIT_FAILURE)
 
 
-def _init(arch: Arch) -> str:
-    """Initialise Taichi once (its start-up line is not shown); a wrong arch is a usage error."""
+def _init(arch: Arch, memory_limit: float | None = None) -> str:
+    """Initialise Taichi once (its start-up line is not shown); a wrong arch is a usage
+    error. Why the CPU memory budget is below the one asked for is shown as a note."""
+    import warnings
+
     import ndtom_ti
 
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
         try:
-            return ndtom_ti.init(arch.value)
+            used = ndtom_ti.init(arch.value, memory_limit_GB=memory_limit)
         except RuntimeError as exc:
             _fail(str(exc), "use --arch cpu (or auto)")
+        except ValueError as exc:
+            if memory_limit is None:
+                raise
+            _fail(str(exc).replace("memory_limit_GB=", "--memory-limit ").replace("memory_limit_GB", "--memory-limit"),
+                  "give --memory-limit in GiB, below the machine's memory")
+    for w in caught:
+        if issubclass(w.category, RuntimeWarning) and w.message is not None:
+            _err().print(Text(f"note: {w.message}", style="dim"))
+    return used
 
 
 def _check_writable(path: Path, what: str = "output") -> Path:
@@ -366,8 +404,9 @@ def default_output(bag: Path) -> Path:
 class _Bar:
     """Progress callback for the pipeline: a rich progress bar on stderr (scans, points/s)."""
 
-    def __init__(self, arch: Arch, show: bool) -> None:
+    def __init__(self, arch: Arch, show: bool, memory_limit: float | None = None) -> None:
         self.arch = arch
+        self.memory_limit = memory_limit
         self.show = show
         self.progress: Progress | None = None
         self.task: Any = None
@@ -375,7 +414,7 @@ class _Bar:
 
     def __call__(self, summary: Any, report: Any) -> None:
         if report is None:  # the recording is fine: start Taichi and the bar
-            self.arch_used = _init(self.arch)
+            self.arch_used = _init(self.arch, self.memory_limit)
             err = _err()
             err.print(Text(f"Mapping {summary.cloud_topic or summary.source} at {summary.resolution:g} m on "
                            f"{self.arch_used}; poses: {summary.pose_source or '-'}", style="cyan"))
@@ -464,10 +503,11 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
         err.print(Text(msg, style="bold yellow"))
         return EXIT_INTERRUPTED
     if summary.stopped == "memory":
-        err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "memory budget reached", "red")))
         saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote}." if wrote
                  else "Nothing was mapped; no map written.")
-        err.print(Text.assemble(("Hint: ", "bold"), f"{saved} To map it all, {_MEMORY_HINT}."))
+        error, hint = _memory_refusal(summary, saved)
+        err.print(Text.assemble(("Error: ", "bold red"), (error, "red")))
+        err.print(Text.assemble(("Hint: ", "bold"), hint))
         return EXIT_FAILURE
     if not summary.scans_used:
         why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
@@ -510,6 +550,9 @@ def map_(
         "--miss-model", help="How rays lower cells holding a Gaussian: ndt (by how squarely they pass it, "
         "IJRR 2013) or paper (a constant per ray, eq. 12). Default: the config's.")] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    memory_limit: Annotated[float | None, typer.Option(
+        "--memory-limit", metavar="GIB", help="Memory budget of the map's sparse cells (GiB of Taichi's pool). "
+        "Default: half of the machine's memory on the CPU, 90% of the device pool on CUDA.")] = None,
     config: Annotated[Path | None, typer.Option(
         help="JSON or TOML file of MapConfig options (p_occupied, p_empty, logodds_min, logodds_max, "
         "min_points, min_range, max_range, max_range_mode, n_max, miss_model, sigma_s, eta); -r, --min-range, "
@@ -540,6 +583,14 @@ def map_(
             raise ValueError("give --every or --every-distance, not both")
         if start is not None and end is not None and end < start:
             raise ValueError(f"--end ({end}) is before --start ({start})")
+        if memory_limit is not None:
+            from .hostpool import physical_memory
+
+            if not (math.isfinite(memory_limit) and memory_limit > 0):
+                raise ValueError(f"--memory-limit must be a positive number of GiB, got {memory_limit}")
+            if memory_limit * 2**30 > physical_memory():
+                raise ValueError(f"--memory-limit {memory_limit:g} GiB is more than this machine's "
+                                 f"{physical_memory() / 2**30:.1f} GiB of memory")
         cfg = load_config_file(config) if config is not None else None
         from .pipeline import config_with_ranges
 
@@ -551,7 +602,7 @@ def map_(
             from .io import open_recording
             from .viewer.cli import live_command
 
-            _init(arch)
+            _init(arch, memory_limit)
             with open_recording(bag) as rec:
                 stream = rec.scans(
                     cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic, poses_file=poses,
@@ -560,7 +611,7 @@ def map_(
                 )  # fmt: skip
                 raise typer.Exit(live_command(stream, resolution, host, port, config=mapcfg, save=out_path))
 
-        bar = _Bar(arch, progress)
+        bar = _Bar(arch, progress, memory_limit)
         try:
             m, summary = map_recording(
                 bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,

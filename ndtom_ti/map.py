@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import runtime
+from .cellkeys import count_distinct, lex_order, pack
 from .config import MapConfig
 from .kernels.layout import Layout
 from .kernels.layout import RECORD_BYTES
@@ -302,14 +303,17 @@ class NdtOmMap:
         # fit and the rays are traced in batches, each checked against exact counts.
         limit = runtime.pool_limit()
         bound = self._scan_bound(cells, n_hit, ocell, box=box)
-        one_pass = self._st.pool_bytes(bound) <= limit
+        one_pass = self._st.pool_bytes(bound, all_types=True) <= limit
+        self._hit_nodes = None
         if not one_pass:
             # The index tree takes only hit cells: count its new nodes exactly and retry.
             hit_nodes = self._new_hit_nodes(cells[:n_hit])
             bound[2:] = hit_nodes[2:]
-            one_pass = self._st.pool_bytes(bound) <= limit
+            one_pass = self._st.pool_bytes(bound, all_types=True) <= limit
             if not one_pass:
                 self._reserve(hit_nodes)
+                # What the hits write after the batched rays: each batch must leave room for it.
+                self._hit_nodes = (hit_nodes, cells[:n_hit])
         return world, cells, n_hit, origin, ocell, rep, box, one_pass
 
     def _new_hit_nodes(self, hit_cells: np.ndarray) -> np.ndarray:
@@ -326,7 +330,9 @@ class NdtOmMap:
             cells, seen, dedup = hit_cells, np.zeros(shape, np.int32), 1
         else:  # a sparse, wide scan: one cell per distinct leaf
             key = np.ravel_multi_index((hit_cells // L.leaf - lo).T, shape)
-            _, first = np.unique(key, return_index=True)
+            order = np.argsort(key)  # np.unique is ~100x slower than a sort (numpy 2.4)
+            sk = key[order]
+            first = order[np.concatenate(([True], sk[1:] != sk[:-1]))]
             cells, seen, dedup = np.ascontiguousarray(hit_cells[first]), np.zeros((1, 1, 1), np.int32), 0
         new = np.zeros(4, np.int64)
         st = self._st
@@ -392,13 +398,22 @@ class NdtOmMap:
         ws, cs = world[order], cells[order]
         limit = runtime.pool_limit()
         pending = [(0, n)]
+        # Nodes the hits write after the rays (merge): an upper bound, counted again exactly
+        # when a batch does not fit, as the rays may have made some of them already.
+        hits, hit_cells = getattr(self, "_hit_nodes", None) or (np.zeros(4, np.int64), cells[:0])
+        fresh = True
         while pending:
             a, b = pending.pop()
             bound = self._scan_bound(cs[a:b], 0, ocell, tight=True, rays=True)
-            if st.pool_bytes(bound) <= limit:
+            fits = st.pool_bytes(bound + hits, all_types=True) <= limit
+            if not fits and not fresh:
+                hits, fresh = self._new_hit_nodes(hit_cells), True
+                fits = st.pool_bytes(bound + hits, all_types=True) <= limit
+            if fits:
                 # No dense block here: its cells would reach the tree outside this batch's bound.
                 kernel(slot, np.ascontiguousarray(ws[a:b]), np.ascontiguousarray(cs[a:b]), max(0, min(n_hit - a, b - a)), b - a, *args, 0, *recs)
                 st.note_usage()
+                fresh = len(hit_cells) == 0
             elif b - a > 1:
                 mid = (a + b) // 2
                 pending += [(mid, b), (a, mid)]
@@ -408,7 +423,12 @@ class NdtOmMap:
                     self._k.reset_rays(slot, self._touched, nt)
                 else:
                     self._k.reset_rays_all(slot)
-                self._reserve(bound)  # raises: nothing of this scan is kept
+                need = st.pool_bytes(bound + hits, all_types=True)
+                # The leaves these rays made hold nothing now: give them back for later scans.
+                from .kernels.release import release_empty_leaves
+
+                release_empty_leaves(st, slot)
+                self._refuse(need)  # nothing of this scan is kept
         return None
 
     def _block_for(self, box, ocell: np.ndarray, dtype=np.int32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -609,16 +629,20 @@ class NdtOmMap:
     def _reserve(self, extra_nodes: np.ndarray) -> None:
         """Refuse, before any kernel runs, work that could take Taichi's memory pool past
         the budget (runtime.pool_limit)."""
+        need = self._st.pool_bytes(extra_nodes, all_types=True)
+        if need > runtime.pool_limit():
+            self._refuse(need)
+
+    def _refuse(self, need: int) -> None:
+        """Raise the MapMemoryError of an update that needs ``need`` bytes of pool."""
         limit = runtime.pool_limit()
-        need = self._st.pool_bytes(extra_nodes)
-        if need > limit:
-            raise MapMemoryError(
-                f"this update could take Taichi's memory pool to {need / 2**20:.0f} MiB, past the "
-                f"{limit / 2**20:.0f} MiB budget (this map holds {self._st.slot_bytes(self._slot) / 2**20:.0f} MiB "
-                f"of nodes; all maps {self._st.pool_bytes() / 2**20:.0f} MiB of pool). Use a coarser "
-                f"resolution or a smaller max_range, delete other maps, or use CUDA "
-                f"(ndtom_ti.init(arch='cuda', device_memory_GB=...)). The map is unchanged."
-            )
+        raise MapMemoryError(
+            f"this update could take Taichi's memory pool to {need / 2**20:.0f} MiB, past the "
+            f"{limit / 2**20:.0f} MiB budget (this map holds {self._st.slot_bytes(self._slot) / 2**20:.0f} MiB "
+            f"of nodes; all maps {self._st.pool_bytes() / 2**20:.0f} MiB of pool). Use a coarser "
+            f"resolution or a smaller max_range, delete other maps, give a larger budget "
+            f"(ndtom_ti.init(memory_limit_GB=...) before the first map), or use CUDA. The map is unchanged."
+        )
 
     def memory_bytes(self) -> int:
         """Bytes this map holds: nodes of its sparse trees (counted exactly by the
@@ -657,7 +681,7 @@ class NdtOmMap:
         k = self._nrec
         keep = self._rec_n[:k] > 0
         idx = self._rec_cell[:k][keep]
-        order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+        order = lex_order(idx)
         idx = np.ascontiguousarray(idx[order])
         lo = np.zeros(len(idx), np.float32)
         if len(idx):
@@ -719,7 +743,7 @@ class NdtOmMap:
         if K:
             ctr[:] = 0
             self._k.export_known(self._slot, idx, val, ctr)
-        order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+        order = lex_order(idx)
         lo = val[order].astype(np.float64)
         return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
 
@@ -813,7 +837,7 @@ class NdtOmMap:
         L = self.layout
 
         def distinct(idx: np.ndarray, size: int) -> int:
-            return 0 if len(idx) == 0 else len(np.unique(idx.astype(np.int64) // size, axis=0))
+            return count_distinct(pack(idx // size)[0]) if len(idx) else 0
 
         occ = np.concatenate([occ_idx, g_idx])  # a Gaussian's cell holds its flag in the occupancy tree
         return np.array(

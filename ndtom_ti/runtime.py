@@ -6,17 +6,28 @@ import contextlib
 import io
 import os
 import threading
+import warnings
 from dataclasses import dataclass
 
 ARCHS = ("auto", "cpu", "cuda")
 
-# Taichi 1.7.4's CPU memory pool hands out memory past the end of every 1 GiB host chunk
-# after its first (README "Memory"): the pool must never need a second chunk. All maps
-# share one storage whose pool use is computed exactly (node counts and chunk sizes), and
-# an update that could pass the budget is refused before any kernel allocates.
-CPU_POOL_LIMIT_BYTES = 896 * 2**20
+# Taichi 1.7.4's CPU memory pool hands out memory past the end of every host chunk after
+# its first (README "Memory"): the pool must never need a second chunk. The first chunk is
+# sized to the budget before ti.init (hostpool.py; 1 GiB when that is not possible). All
+# maps share one storage whose pool use is computed exactly (node counts and chunk sizes),
+# and an update that could pass the budget is refused before any kernel allocates.
+CPU_POOL_LIMIT_BYTES = 896 * 2**20  # the budget within Taichi's own 1 GiB chunk
 CPU_POOL_HARD_MAX_BYTES = 960 * 2**20
+CPU_DEFAULT_SHARE = 0.5  # default CPU budget: this share of the machine's memory
+CUDA_DEFAULT_SHARE = 0.5  # default CUDA pool: this share of the device's memory
 DEFAULT_MAX_MAPS = 8
+
+
+def chunk_for(budget: int) -> int:
+    """The one pool chunk a CPU budget needs: the budget, plus room for what Taichi takes
+    from the pool besides nodes (its runtime; struct-for element lists, ~2% of the leaves'
+    bytes): 1/16 and 128 MiB, in whole MiB."""
+    return -(-(budget + budget // 16 + 128 * 2**20) // 2**20) * 2**20
 
 
 class MapMemoryError(MemoryError):
@@ -27,6 +38,9 @@ class MapMemoryError(MemoryError):
 class _State:
     arch: str | None = None
     pool_limit: int = CPU_POOL_LIMIT_BYTES
+    pool_max: int = CPU_POOL_HARD_MAX_BYTES  # the most the budget may be raised to later
+    pool_chunk: int = 1 << 30  # CPU: bytes of the pool's one chunk
+    pool_note: str | None = None  # why the CPU budget is below the one asked for
     max_maps: int = DEFAULT_MAX_MAPS
     pinned: tuple = ()  # (thread id, cpu) of each pinned Taichi worker
 
@@ -51,10 +65,16 @@ def init(
 
     arch: "auto" picks CUDA when a CUDA device is present, else the CPU; the environment
         variable NDTOM_ARCH overrides "auto".
-    device_memory_GB: CUDA only: the memory pool Taichi preallocates (default 4 GiB).
-    memory_limit_GB: budget of Taichi's memory pool for all maps' sparse trees. On the CPU
-        it may not exceed 0.9375 GiB (Taichi 1.7.4 allocator bug, see README "Memory");
-        default 0.875. On CUDA it defaults to 90% of the device pool.
+    device_memory_GB: CUDA only: the memory pool Taichi preallocates (default: half of
+        the device's memory; 4 GiB when it cannot be read).
+    memory_limit_GB: budget of Taichi's memory pool for all maps' sparse trees. On the
+        CPU the default is half of the machine's memory (or of a lower cgroup limit), and
+        Taichi's pool is made one chunk of that size before it starts (Taichi 1.7.4
+        corrupts memory past its first chunk, see README "Memory"); where that cannot be
+        done safely the budget stays within Taichi's 1 GiB chunk (0.875 GiB, at most
+        0.9375) and ``pool_note()`` says why. Later calls may lower it, or raise it back
+        up to the budget the pool was sized for. On CUDA it defaults to 90% of the device
+        pool.
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
     pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
@@ -90,11 +110,14 @@ def init(
                 raise ValueError(f"NDTOM_ARCH must be one of {ARCHS}, got {arch!r}")
         if max_maps is not None:
             _state.max_maps = _check_max_maps(max_maps)
-        kwargs = dict(offline_cache=offline_cache, debug=debug, log_level=ti.WARN)
+        kwargs = {"offline_cache": offline_cache, "debug": debug, "log_level": ti.WARN}
         if cpu_max_num_threads:
             kwargs["cpu_max_num_threads"] = cpu_max_num_threads
-        pool_gb = device_memory_GB or 4.0
+        pool_gb = device_memory_GB
         if arch == "cuda" or (arch == "auto" and _cuda_driver_present()):
+            if pool_gb is None:  # sized from the device (no bug there: one exact preallocation)
+                total = _cuda_device_memory()
+                pool_gb = max(0.5, round(CUDA_DEFAULT_SHARE * total / 2**30 * 4) / 4) if total else 4.0
             try:
                 _quiet(ti.init, arch=ti.cuda, device_memory_GB=pool_gb, **kwargs)
             except Exception as exc:  # noqa: BLE001 - Taichi raises various types here
@@ -105,7 +128,7 @@ def init(
             elif arch == "cuda":
                 raise RuntimeError("CUDA was requested but no CUDA device is available; use arch='cpu'.")
         if _state.arch is None:
-            _quiet(ti.init, arch=ti.cpu, **kwargs)
+            _init_cpu(ti, memory_limit_GB, kwargs)
             _state.arch = "cpu"
             if pin_threads is None:
                 pin_threads = os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
@@ -114,7 +137,9 @@ def init(
                 from .kernels.ndt import cpu_threads
 
                 _state.pinned = tuple(pin_pool(cpu_threads()))
-        _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
+        if _state.arch == "cuda":
+            _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
+            _state.pool_max = 1 << 62
         return _state.arch
 
 
@@ -125,28 +150,109 @@ def _quiet(fn, *args, **kwargs):
         return fn(*args, **kwargs)
 
 
+def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
+    """ti.init on the CPU with the pool's one chunk sized to the budget, or Taichi's own
+    1 GiB chunk and the budget within it when that cannot be done safely (pool_note)."""
+    from . import hostpool
+
+    mem = hostpool.physical_memory()
+    if memory_limit_GB is None:
+        want = int(CPU_DEFAULT_SHARE * mem)
+    else:
+        want = _positive_limit(memory_limit_GB)
+        if want > mem:
+            raise ValueError(
+                f"memory_limit_GB={memory_limit_GB} is more than this machine's {mem / 2**30:.1f} GiB of memory; "
+                "give a smaller budget"
+            )
+    legacy = min(want, CPU_POOL_LIMIT_BYTES if memory_limit_GB is None else CPU_POOL_HARD_MAX_BYTES)
+    if want <= CPU_POOL_HARD_MAX_BYTES:  # fits Taichi's own first chunk
+        _quiet(ti.init, arch=ti.cpu, **kwargs)
+        _state.pool_limit, _state.pool_max, _state.pool_chunk = want, CPU_POOL_HARD_MAX_BYTES, 1 << 30
+        return
+    why = None
+    try:
+        cell = hostpool.chunk_size_cell()
+    except (hostpool.GuardFailed, OSError, ValueError) as exc:
+        cell, why = None, str(exc)
+    if cell is not None:
+        chunk = chunk_for(want)
+        before = hostpool.anonymous_mappings()
+        cell.value = chunk
+        try:
+            _quiet(ti.init, arch=ti.cpu, **kwargs)
+        except RuntimeError as exc:  # Linux refused a mapping that large: Taichi's own chunk
+            cell.value = hostpool.DEFAULT_CHUNK
+            why = f"Taichi could not map a {chunk / 2**30:.1f} GiB pool ({str(exc).strip().splitlines()[-1][:120]})"
+            _quiet(ti.init, arch=ti.cpu, **kwargs)
+        else:
+            new = [n for a, n in hostpool.anonymous_mappings().items() if a not in before and n >= chunk]
+            if new:
+                _state.pool_limit = _state.pool_max = want
+                _state.pool_chunk = chunk
+                return
+            why = f"no {chunk / 2**30:.1f} GiB pool chunk appeared after Taichi started"
+    else:
+        _quiet(ti.init, arch=ti.cpu, **kwargs)
+    _state.pool_limit, _state.pool_max, _state.pool_chunk = legacy, CPU_POOL_HARD_MAX_BYTES, 1 << 30
+    _state.pool_note = (
+        f"the CPU map budget is {legacy / 2**30:.3f} GiB instead of {want / 2**30:.1f} GiB: {why}; Taichi 1.7.4 "
+        "corrupts memory past its first 1 GiB pool chunk, so maps stay within it (README \"Memory\")"
+    )
+    warnings.warn(_state.pool_note, RuntimeWarning, stacklevel=3)
+
+
+def pool_note() -> str | None:
+    """Why the CPU budget is below the one asked for (None when it is not)."""
+    return _state.pool_note
+
+
+def pool_chunk() -> int:
+    """Bytes of the CPU pool's one chunk (what the budget may be raised to fits in it)."""
+    return _state.pool_chunk
+
+
+def _cuda_device_memory() -> int:
+    """Total memory of CUDA device 0 in bytes, from the driver (0 when it cannot be read)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        cuda = ctypes.CDLL(ctypes.util.find_library("cuda") or "libcuda.so.1")
+        dev, size = ctypes.c_int(), ctypes.c_size_t()
+        if cuda.cuInit(0) or cuda.cuDeviceGet(ctypes.byref(dev), 0):
+            return 0
+        if cuda.cuDeviceTotalMem_v2(ctypes.byref(size), dev):
+            return 0
+        return int(size.value)
+    except (OSError, AttributeError):
+        return 0
+
+
 def _cuda_driver_present() -> bool:
     import ctypes.util
 
     return ctypes.util.find_library("cuda") is not None
 
 
+def _positive_limit(limit_gb) -> int:
+    if isinstance(limit_gb, bool) or not isinstance(limit_gb, (int, float)) or not limit_gb > 0:
+        raise ValueError(f"memory_limit_GB must be a positive number of GiB, got {limit_gb!r}")
+    return int(limit_gb * 2**30)
+
+
 def _check_limit(limit_gb: float | None, arch: str, pool_gb: float | None) -> int:
     if arch == "cuda":
         if limit_gb is None:
             return int(0.9 * (pool_gb or 4.0) * 2**30)
-        return int(limit_gb * 2**30)
-    if limit_gb is None:
-        return CPU_POOL_LIMIT_BYTES
-    limit = int(limit_gb * 2**30)
-    if limit <= 0:
-        raise ValueError(f"memory_limit_GB must be positive, got {limit_gb}")
-    if limit > CPU_POOL_HARD_MAX_BYTES:
+        return _positive_limit(limit_gb)
+    limit = _positive_limit(limit_gb)
+    if limit > _state.pool_max:
         raise ValueError(
-            f"memory_limit_GB={limit_gb} is above the {CPU_POOL_HARD_MAX_BYTES / 2**30:.4f} GiB the CPU "
-            "backend can hold safely: Taichi 1.7.4's CPU pool corrupts memory once it grows "
-            "past its first 1 GiB chunk. Use a coarser resolution, a smaller max_range, or a "
-            "CUDA device for larger maps."
+            f"memory_limit_GB={limit_gb} is above the {_state.pool_max / 2**30:.4f} GiB the CPU pool of this "
+            "process can hold safely: Taichi 1.7.4's CPU pool corrupts memory once it grows "
+            "past its first chunk, whose size is fixed when Taichi starts. Pass memory_limit_GB to "
+            "the first ndtom_ti.init of the process, or use a coarser resolution or a smaller max_range."
         )
     return limit
 

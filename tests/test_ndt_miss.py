@@ -194,7 +194,7 @@ def test_batched_tracing_matches_the_reference(rng):
     m._scan_bound = lambda *a, tight=False, **k: orig_bound(*a, tight=tight, **k) * (1 if tight else 10**9)
     old = runtime.pool_limit()
     try:
-        runtime._state.pool_limit = 2**30 - 1  # the one-pass bound (x 1e9) never fits
+        runtime._state.pool_limit = max(old, 2**30 - 1)  # the one-pass bound (x 1e9) never fits
         for o, ends, hit in reference_scans(scans, 6.0):
             T = np.eye(4)
             T[:3, 3] = o

@@ -1,0 +1,65 @@
+"""Integer cell indices (K, 3) as one int64 key per row, for sorting and grouping.
+
+Keys order rows as (i, j, k) lexicographically. Sorting one int64 column is many times
+faster than ``np.lexsort`` over three, and ``np.unique(..., axis=0)`` of a few million
+rows took tens of seconds (numpy 2.4: even its 1-D unique is ~100x slower than a sort).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def pack(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(keys, lo, span): key = ((i - lo_i) * span_j + (j - lo_j)) * span_k + (k - lo_k)."""
+    idx = np.asarray(idx)
+    if len(idx) == 0:
+        return np.zeros(0, np.int64), np.zeros(3, np.int64), np.ones(3, np.int64)
+    lo = np.array([idx[:, a].min() for a in range(3)], np.int64)  # per column: axis=0 is slow
+    span = np.array([idx[:, a].max() for a in range(3)], np.int64) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        raise ValueError(f"cell indices span {span.tolist()} cells: too wide for one int64 key")
+    keys = idx[:, 0].astype(np.int64) - lo[0]
+    keys *= span[1]
+    keys += idx[:, 1]
+    keys -= lo[1]
+    keys *= span[2]
+    keys += idx[:, 2]
+    keys -= lo[2]
+    return keys, lo, span
+
+
+def unpack(keys: np.ndarray, lo: np.ndarray, span: np.ndarray, dtype=np.int64) -> np.ndarray:
+    """The (K, 3) rows of ``keys`` made by :func:`pack`."""
+    out = np.empty((len(keys), 3), dtype)
+    ij, out[:, 2] = np.divmod(keys, span[2])
+    out[:, 0], out[:, 1] = np.divmod(ij, span[1])
+    out += lo.astype(dtype)
+    return out
+
+
+def lex_order(idx: np.ndarray) -> np.ndarray:
+    """The permutation that sorts distinct rows lexicographically (as np.lexsort of the
+    reversed columns, for rows without repeats)."""
+    return np.argsort(pack(idx)[0])
+
+
+def count_distinct(keys: np.ndarray) -> int:
+    if len(keys) == 0:
+        return 0
+    s = np.sort(keys)
+    return int(np.count_nonzero(s[1:] != s[:-1])) + 1
+
+
+def group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(distinct keys sorted, order, starts, inverse): ``keys[order]`` is sorted, the
+    groups of equal keys start at ``starts`` in it, and ``inverse`` gives each key's group."""
+    order = np.argsort(keys)
+    s = keys[order]
+    first = np.empty(len(s), bool)
+    first[:1] = True
+    np.not_equal(s[1:], s[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    inverse = np.empty(len(keys), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return s[starts], order, starts, inverse
