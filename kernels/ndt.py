@@ -339,19 +339,19 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         return changed
 
     @ti.func
-    def ndt_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
-                  rec_icov: ti.template(), rec_miss: ti.template()):  # fmt: skip
+    def ndt_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
+                  rec_miss: ti.template()):  # fmt: skip
         # A ray passing a cell of the block marked as holding a usable Gaussian.
         r = gslot[at(slot, c)] - 1
-        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_mean, rec_icov))
+        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov))
 
     @ti.func
-    def ndt_tree_visit(slot, c, o, z, hit, res, prm: ti.template(), rec_n: ti.template(), rec_mean: ti.template(),
+    def ndt_tree_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_n: ti.template(),
                        rec_icov: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
         # A ray passing a cell of the tree that may hold a Gaussian (NE_GAUSS).
         r = gslot[at(slot, c)] - 1
         if r >= 0 and rec_n[r] >= ndt_minp:
-            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, hit, res, prm, rec_mean, rec_icov))
+            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov))
 
     @ti.func
     def ndt_floor(s0, s1, s2, s3, s4, s5, prm: ti.template()) -> ti.f64:
@@ -376,10 +376,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         return prm[2] * l3 + prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3] + 1e-12
 
     @ti.func
-    def ndt_icov(r, rec_n: ti.template(), rec_scat: ti.template(), prm: ti.template(), rec_icov: ti.template()):
-        # The inverse of record r's regularised covariance (xx xy xz yy yz zz), kept with
-        # the record: computed when its points change (merge) or the map is loaded, so a
-        # ray visit only reads it.
+    def ndt_icov(r, rec_n: ti.template(), rec_scat: ti.template(), rec_mean: ti.template(), prm: ti.template(),
+                 rec_icov: ti.template()):  # fmt: skip
+        # What a ray visit reads of record r, in one row: the inverse of its regularised
+        # covariance (xx xy xz yy yz zz) and a copy of its mean (relative to the cell
+        # centre). Computed when its points change (merge) or the map is loaded.
         k = 1.0 / ti.max(ti.cast(rec_n[r], ti.f64) - 1.0, 1.0)
         s0, s1, s2 = rec_scat[r, 0] * k, rec_scat[r, 1] * k, rec_scat[r, 2] * k
         s3, s4, s5 = rec_scat[r, 3] * k, rec_scat[r, 4] * k, rec_scat[r, 5] * k
@@ -398,23 +399,22 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         rec_icov[r, 3] = c11 / det
         rec_icov[r, 4] = c12 / det
         rec_icov[r, 5] = c22 / det
+        for a in ti.static(range(3)):
+            rec_icov[r, 6 + a] = rec_mean[r, a]
 
     @ti.func
-    def ndt_miss(r, c, o, z, hit, res, prm: ti.template(), rec_mean: ti.template(), rec_icov: ti.template()) -> ti.i64:
+    def ndt_miss(r, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template()) -> ti.i64:
         # The NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for one ray o -> z
         # passing cell c, whose Gaussian (record r, as at the scan's start) it tests: the
         # ray's point of highest likelihood x_ML, p = 0.5 - eta p(x_ML|N) (1 - p(x_ML|z)),
         # and the log-odds change logit(p), in fixed point. Coordinates relative to the
-        # cell centre keep f64 exact enough far from the origin.
-        # prm: [eta, 1 / (2 sigma_s^2), covariance floors (see ndt_floor)].
+        # cell centre keep f64 exact enough far from the origin. u, length: the ray's unit
+        # direction and length. prm: [eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor)].
         centre = (c.cast(ti.f64) + 0.5) * res
         oc = o - centre
-        d = z - o
-        length = d.norm()
-        u = d / length
         i0, i1, i2, i3, i4, i5 = rec_icov[r, 0], rec_icov[r, 1], rec_icov[r, 2], rec_icov[r, 3], rec_icov[r, 4], rec_icov[r, 5]
         inv = ti.Matrix([[i0, i1, i2], [i1, i3, i4], [i2, i4, i5]], dt=ti.f64)
-        mu = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+        mu = ti.Vector([rec_icov[r, 6], rec_icov[r, 7], rec_icov[r, 8]])
         a = inv @ u
         # x_ML on the ray's line, kept on the segment the ray travelled.
         t = ti.min(ti.max(a.dot(mu - oc) / a.dot(u), 0.0), length)
@@ -548,7 +548,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             rec_free: i32_1d,  # [C] stack of free records (ctr[C_FREE] of them)
             left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
             rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
-            rec_icov: f64_2d,  # [C, 6] out (ndt != 0): inverse regularised covariance of changed records
+            rec_icov: f64_2d,  # [C, 9] out (ndt != 0): ndt_icov of the changed records
             prm: f64_1d,  # [5] NDT miss model parameters (see ndt_miss)
             ndt: ti.i32,  # 1: the map uses the NDT miss model
         ):
@@ -626,7 +626,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 rec_n[r] = tot_i
                 rec_miss[r] = ti.i64(0)
                 if ndt != 0:
-                    ndt_icov(r, rec_n, rec_scat, prm, rec_icov)
+                    ndt_icov(r, rec_n, rec_scat, rec_mean, prm, rec_icov)
                 hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
         def make_rays(mode: str, flags: bool = True, ndt: bool = False):
@@ -662,8 +662,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 bflag1: i8_1d,
                 use_block: ti.i32,
                 rec_n: i32_1d,  # [C] Gaussian records (ndt): points
-                rec_mean: f64_2d,  # [C, 3] mean minus cell centre
-                rec_icov: f64_2d,  # [C, 6] inverse regularised covariance (see ndt_icov)
+                rec_icov: f64_2d,  # [C, 9] inverse regularised covariance and mean (see ndt_icov)
                 rec_miss: i64_1d,  # [C] out: summed log-odds changes, fixed point (MISS_SCALE)
                 prm: f64_1d,  # [5] eta, 1 / (2 sigma_s^2), covariance floors (see ndt_floor)
                 ndt_minp: ti.i32,  # points a Gaussian needs for the NDT miss model
@@ -680,6 +679,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     ce = row(cells, i)
                     z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
                     d = z - o
+                    length = d.norm()  # the NDT miss model's (dead code without it)
+                    u = d / length
                     cur = co
                     step = ti.Vector([0, 0, 0], dt=ti.i32)
                     rem = ti.Vector([0, 0, 0], dt=ti.i32)
@@ -704,7 +705,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rel = cur - b0
                         if ti.static(mode == "dense"):
                             if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
+                                ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, prm, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
@@ -713,7 +714,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             # Near the sensor every ray passes: count in the dense block,
                             # applied to the tree once per cell by block_apply.
                             if ti.static(ndt) and block[rel[0], rel[1], rel[2]] == ti.cast(mark, bt):
-                                ndt_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
+                                ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, prm, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
                             lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
@@ -728,7 +729,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             if ti.static(full):
                                 g = visit(slot, cur, touched, cap, ctr)
                                 if ti.static(ndt) and g != 0:
-                                    ndt_tree_visit(slot, cur, o, z, i < n_hit, res, prm, rec_n, rec_mean, rec_icov,
+                                    ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, prm, rec_n, rec_icov,
                                                    rec_miss, ndt_minp)  # fmt: skip
                             else:
                                 ti.atomic_add(ne[at(slot, cur)], 1)
@@ -775,7 +776,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                     if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                         if ti.static(mode == "dense"):  # li is the endpoint cell's now
                             if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                                ndt_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_icov, rec_miss)
+                                ndt_visit(slot, ce, o, z, u, length, False, res, prm, rec_icov, rec_miss)
                             else:
                                 ti.atomic_add(block1[li], ti.cast(1, bt))
                             if ti.static(flags):
@@ -784,7 +785,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                             note_leaf(olm, slot, ce, regions, leaves, 0)
                             g = visit(slot, ce, touched, cap, ctr)
                             if ti.static(ndt) and g != 0:
-                                ndt_tree_visit(slot, ce, o, z, False, res, prm, rec_n, rec_mean, rec_icov, rec_miss,
+                                ndt_tree_visit(slot, ce, o, z, u, length, False, res, prm, rec_n, rec_icov, rec_miss,
                                                ndt_minp)  # fmt: skip
                         visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
@@ -936,11 +937,11 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                                  ndt_minp)  # fmt: skip
 
     @ti.kernel
-    def ndt_refresh(nrec: ti.i32, rec_n: i32_1d, rec_scat: f64_2d, prm: f64_1d, rec_icov: f64_2d):
+    def ndt_refresh(nrec: ti.i32, rec_n: i32_1d, rec_scat: f64_2d, rec_mean: f64_2d, prm: f64_1d, rec_icov: f64_2d):
         # ndt_icov of every record (after a load: merge keeps them current afterwards).
         for r in range(nrec):
             if rec_n[r] > 0:
-                ndt_icov(r, rec_n, rec_scat, prm, rec_icov)
+                ndt_icov(r, rec_n, rec_scat, rec_mean, prm, rec_icov)
 
     @ti.kernel
     def count_new_nodes(

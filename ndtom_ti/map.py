@@ -40,13 +40,16 @@ _TOUCHED_START = 1 << 20
 # the part nearest the sensor, where rays are densest, and the rest counts in the tree.
 BLOCK_CELLS = 1 << 25
 _SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
-# NDT miss model: a Gaussian's covariance gets this share of its trace added on every axis
-# before it is inverted, so flat (planar) Gaussians stay invertible: no axis is thinner than
-# ~3% of the Gaussian's spread.
+# NDT miss model: variance added on every axis of a Gaussian's covariance before it is
+# inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * l3 keeps flat
+# Gaussians invertible; a line-like one (l2 < NDT_LINE * l3: the points of one scan line
+# across the cell, at the ranges where a lidar's rings are a cell or more apart) gets up to
+# NDT_LINE_FLOOR * l3 more, so that it stands for the surface the line samples. Without it,
+# rays of the other rings never pass within the line's millimetre thickness and the
+# Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md).
 NDT_COV_FLOOR = 1e-3
-NDT_LINE = 0.1
+NDT_LINE = 0.2
 NDT_LINE_FLOOR = 0.25
-NDT_MIN_POINTS = 0
 
 
 @dataclass
@@ -369,9 +372,9 @@ class NdtOmMap:
         block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
-        minp = NDT_MIN_POINTS or int(self.config.min_points)
+        minp = int(self.config.min_points)
         # The Gaussians the rays test are those of the scan's start: merge runs after them.
-        recs = (self._rec_n, self._rec_mean, self._rec_icov, self._rec_miss, self._ndt_prm, minp)
+        recs = (self._rec_n, self._rec_icov, self._rec_miss, self._ndt_prm, minp)
         if ndt and block.size:
             kb.mark_gaussians(self._nrec, self._rec_n, self._rec_cell, minp, block, bflag, base)
         n = len(world)
@@ -542,7 +545,7 @@ class NdtOmMap:
                 kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
                                   self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free, self._rec_miss)  # fmt: skip
         if self.occupancy_enabled and n:
-            ndt_minp = (NDT_MIN_POINTS or int(cfg.min_points)) if cfg.ndt_misses else 0
+            ndt_minp = int(cfg.min_points) if cfg.ndt_misses else 0
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
                 k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss,
@@ -571,7 +574,7 @@ class NdtOmMap:
         scat = np.zeros((capacity, 6), np.float64)
         free = np.zeros(capacity, np.int32)
         miss = np.zeros(capacity, np.int64)  # NDT miss sums, zero between updates
-        icov = np.zeros((capacity, 6), np.float64)  # NDT miss model: inverse regularised covariances
+        icov = np.zeros((capacity, 9), np.float64)  # NDT miss model: inverse covariance and mean
         if old is not None:
             k = self._nrec
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
@@ -829,7 +832,7 @@ class NdtOmMap:
             self._rec_scat[: len(g_idx)] = st["g_scatter"]
             self._nrec = len(g_idx)
             if self.config.ndt_misses:
-                self._k.ndt_refresh(self._nrec, self._rec_n, self._rec_scat, self._ndt_prm, self._rec_icov)
+                self._k.ndt_refresh(self._nrec, self._rec_n, self._rec_scat, self._rec_mean, self._ndt_prm, self._rec_icov)
             self._k.load_slots(self._slot, g_idx, len(g_idx), fs.gidx_regions, fs.occ_regions, fs.leaf_count)
         fs.note_usage()
 

@@ -12,6 +12,7 @@ from test_core import BLOCKS, set_block
 from ndtom_ti import MapConfig, NdtOmMap, runtime
 
 NDT = dict(miss_model="ndt")
+ETA, SIGMA_S = MapConfig().eta, MapConfig().sigma_s
 L_HIT = math.log(0.6 / 0.4)
 L_FREE = math.log(0.49 / 0.51)
 
@@ -57,13 +58,16 @@ def test_ray_through_the_mean_far_from_its_endpoint(rng):
     mu = g["mean"][0]
     before = logodds_of(m)[(4, 0, 0)]
     assert before == pytest.approx(40 * L_HIT, rel=1e-6)
-    # From below the cell, through the mean, to an endpoint 3 m past it.
+    # From below the cell, through the mean, to an endpoint 30 m past it.
     o = mu - np.array([0.0, 0.0, 3.0])
-    insert_world(m, o, [mu + np.array([0.0, 0.0, 3.0])])
+    insert_world(m, o, [mu + np.array([0.0, 0.0, 30.0])])
     after = logodds_of(m)[(4, 0, 0)]
-    eta = 0.2
-    assert after - before == pytest.approx(math.log((0.5 - eta) / (0.5 + eta)), abs=1e-5)
-    assert after - before == pytest.approx(-0.8473, abs=1e-4)
+    assert after - before == pytest.approx(math.log((0.5 - ETA) / (0.5 + ETA)), abs=1e-5)
+    # eta = 0.2 (ohm's): -0.8473 per ray.
+    m2 = NdtOmMap(res, config=MapConfig(**NDT, eta=0.2, sigma_s=0.05, logodds_min=-100, logodds_max=100))
+    insert_world(m2, np.array([0.25, 0.25, 0.25]), pts)
+    insert_world(m2, o, [mu + np.array([0.0, 0.0, 30.0])])
+    assert logodds_of(m2)[(4, 0, 0)] - before == pytest.approx(-0.8473, abs=1e-4)
 
 
 def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
@@ -84,13 +88,16 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     o = mu + np.array([-4.0, 0.0, h])
     insert_world(m, o, [mu + np.array([6.0, 0.0, h])])
     after = logodds_of(m)[(10, 0, 0)]
-    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, 0.2, 0.05)
+    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, ETA, SIGMA_S)
     assert after - before == pytest.approx(expected, abs=2e-6)
     # A few sigma above: small evidence, far from the paper's constant rate per ray.
     assert -0.05 < expected < 0.0
     # The same ray through the plane's mean height takes the strong update.
-    insert_world(m, mu + np.array([-4.0, 0.0, 0.0]), [mu + np.array([6.0, 0.0, 0.0])])
-    assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(-0.8473, abs=2e-3)
+    o2, z2 = mu + np.array([-4.0, 0.0, 0.0]), mu + np.array([6.0, 0.0, 0.0])
+    insert_world(m, o2, [z2])
+    strong = ndt_miss_term(o2, z2, True, mu, C, ETA, SIGMA_S)
+    assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(strong, abs=2e-6)
+    assert strong < 0.95 * math.log((0.5 - ETA) / (0.5 + ETA))  # near the strongest a ray gives
 
 
 def test_ray_ending_inside_the_cell_takes_the_hit_update_only(rng):
@@ -175,7 +182,7 @@ def test_logodds_match_the_float64_reference_in_every_ray_path(rng, block_cells)
     cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
     scans = random_scans(rng)
     m = build(scans, res, cfg, block_cells)
-    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res)
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts)
     # The scans test the model: the paper's eq. (12) gives other log-odds.
     paper, _ = ndt_om_logodds(reference_scans(scans, 6.0), res, miss_model="paper")
@@ -204,7 +211,7 @@ def test_batched_tracing_matches_the_reference(rng):
     finally:
         runtime._state.pool_limit = old
     assert passes == [False, False, False]  # batched every time
-    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res)
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts)
 
 
@@ -230,7 +237,7 @@ def test_synthetic_lidar_scans_match_the_reference(sim_hall_dynamic):
         o = sim.origin(i)
         insert_world(m, o, world)
         scans.append((o, world))
-    ref_lo, ref_pts = ndt_om_logodds(scans, res)
+    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
 
@@ -251,5 +258,5 @@ def test_real_lidar_scans_match_the_reference():
         T = scan.T_world_sensor
         m.insert_scan(p, T)
         scans.append((T[:3, 3].copy(), p @ T[:3, :3].T + T[:3, 3]))
-    ref_lo, ref_pts = ndt_om_logodds(scans, res)
+    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
