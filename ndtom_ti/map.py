@@ -771,10 +771,24 @@ class NdtOmMap:
             c = np.ascontiguousarray(cells[ok].astype(np.int32))
             lo = np.empty(len(c), np.float32)
             self._k.query(self._slot, c, len(c), lo)
-            lo64 = lo.astype(np.float64)
-            out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo64))
+            with np.errstate(over="ignore"):  # exp of a large log-odds: p = 1
+                out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo.astype(np.float64)))
             known[ok] = lo != 0.0
         return (out, known) if return_known else out
+
+    def logodds_at(self, index: Any) -> np.ndarray:
+        """Log-odds (float64) of cells given by integer index (K, 3); unknown cells and
+        cells outside the grid read 0."""
+        idx = np.asarray(index)
+        if idx.ndim != 2 or idx.shape[1] != 3 or not np.issubdtype(idx.dtype, np.integer):
+            raise ValueError(f"index must be an integer (K, 3) array of cell indices, got {idx.dtype} {idx.shape}")
+        out = np.zeros(len(idx))
+        ok = ((idx >= self._glo) & (idx < self._ghi)).all(axis=1)
+        if ok.any():
+            lo = np.empty(int(ok.sum()), np.float32)
+            self._k.query(self._slot, np.ascontiguousarray(idx[ok], np.int32), len(lo), lo)
+            out[ok] = lo
+        return out
 
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""

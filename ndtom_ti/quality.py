@@ -110,23 +110,18 @@ def mark_observed(cand: GhostCandidates, scans: Sequence[LabelledScan], resoluti
     cand.observed = np.zeros(len(cand.cells), bool)
     if len(cand.cells) == 0:
         return cand
-    probe = NdtOmMap(resolution, config=MapConfig(miss_model="paper", logodds_min=-1e9, logodds_max=1e9))
-    centres = probe.cell_center(cand.cells)
+    # Clamps far out, where f32 still resolves a ray's 0.04.
+    probe = NdtOmMap(resolution, config=MapConfig(miss_model="paper", logodds_min=-1e5, logodds_max=1e5))
     before = np.zeros(len(cand.cells))
     for s, sc in enumerate(scans):
         T = sc.T_world_sensor
         probe.insert_scan((sc.points - T[:3, 3]) @ T[:3, :3], T)
-        after = _logodds(probe, centres)
+        after = probe.logodds_at(cand.cells)
         cand.observed |= (after < before) & (s > cand.last_hit)
         before = after
     del probe
     gc.collect()
     return cand
-
-
-def _logodds(m: NdtOmMap, points: np.ndarray) -> np.ndarray:
-    p = np.clip(m.occupancy(points), 1e-300, 1.0 - 1e-16)
-    return np.log(p / (1.0 - p))
 
 
 def static_reference(scans: Sequence[LabelledScan], resolution: float, min_points: int = 3) -> np.ndarray:
