@@ -473,7 +473,8 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     t.add_row("memory", f"{_mib(summary.memory_bytes)} map; Taichi pool {_mib(summary.pool_bytes)} of "
               f"{_mib(summary.pool_budget_bytes)}")
     if summary.scan_seconds:
-        t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms")
+        t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms"
+                  f" (first scan {summary.ms_first_scan:.0f} ms, kernels compiled)")  # fmt: skip
     t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s)")
     if output is not None:
         t.add_row("map file", escape(str(output)))

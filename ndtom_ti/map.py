@@ -33,6 +33,7 @@ from .kernels.ndt import (
     total,
 )
 from .runtime import MapMemoryError
+from .warmup import warm_up
 
 _TOUCHED_START = 1 << 20
 # Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
@@ -219,6 +220,7 @@ class NdtOmMap:
         self._nrec = 0
         self._nfree = 0
         self._alloc_records(1024)
+        self._warm = False  # warmup.warm_up done for this map (at its first scan)
         c = self.config
         self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR])
 
@@ -472,6 +474,9 @@ class NdtOmMap:
         unchanged.
         """
         with self._st.lock:  # the dense block is shared by the maps of the process
+            if not self._warm:
+                self._warm = True
+                warm_up(self)
             try:
                 return self._insert(points, T_world_sensor)
             except BaseException:

@@ -1,0 +1,73 @@
+"""Compile every kernel variant a map's updates can need before its first scan returns.
+
+Taichi compiles a kernel at its first call with a given argument signature. An update
+picks among several variants scan by scan (16- or 32-bit ray counts, row-flagged or not,
+the dense block or the tree, float32 or float64 points, each miss model), so without this
+a scan that first needs one stalls for a second or more in the middle of a run (a real
+Livox recording: 1.3 s at its first scan of fewer than 65,535 points). ``warm_up`` runs
+tiny scans through each path on a scratch map of the same storage and model; with the
+offline cache (on by default) later processes load them instead of compiling.
+"""
+
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+
+_DONE: set = set()
+
+
+def _scans(res: float) -> list[np.ndarray]:
+    # Rays to clusters of 4 points per cell on a 3-cell-radius shell: cells get Gaussians
+    # (>= 3 points) and later rays pass cells holding them.
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(48, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centres = np.floor(d * 3.0) * res + 0.5 * res
+    pts = np.repeat(centres, 4, axis=0) + rng.uniform(-0.3, 0.3, size=(192, 3)) * res
+    far = d * 6.0 * res  # through the shell to beyond it
+    return [np.concatenate([pts, far]), np.concatenate([far, pts])]
+
+
+def warm_up(m) -> None:
+    """Compile the update kernels ``m`` (an NdtOmMap) can need, once per process and per
+    (miss model, occupancy). Skipped when no map slot is free for the scratch map or the
+    memory budget has no room for it: those variants then compile as scans need them."""
+    from .map import NdtOmMap
+
+    key = (id(m._st), m.config.miss_model, m.occupancy_enabled)
+    if key in _DONE:
+        return
+    _DONE.add(key)
+    try:
+        w = NdtOmMap(0.5, config=m.config, occupancy=m.occupancy_enabled, layout=m.layout)
+    except (RuntimeError, MemoryError):
+        return
+    try:
+        scans = _scans(w.resolution)
+        T = np.eye(4)
+        modes = [
+            {},  # dense block, rows flagged
+            {"_block_density": float("inf")},  # dense block, every row read
+            {"block_cells": w.layout.leaf**3},  # a block that holds part of the scan, the tree the rest
+            {"block_cells": 0},  # the tree only (also the batched path's kernel)
+            {"block_cells": 0, "_touched": np.empty((1, 3), np.int32)},  # touched list overflow
+        ]
+        for dtype in (np.float32, np.float64):
+            for u16 in (m._u16_rays, 0):  # 16- and 32-bit ray counts
+                for opts in modes:
+                    for pts in scans:
+                        w._u16_rays = u16
+                        for k, v in opts.items():
+                            setattr(w, k, v)
+                        w.insert_scan(pts.astype(dtype), T)
+                    w.block_cells, w._block_density = m.block_cells, 0.0
+        len(w)
+        w.known_cells()
+        w.gaussians()
+    except MemoryError:
+        pass
+    finally:
+        del w
+        gc.collect()  # the scratch map's slot goes back to the storage
