@@ -120,7 +120,13 @@ def test_viewer_draws_the_maps_gaussians_as_ellipsoids(maps, make_viewer):
     assert v.drawn["geometry"] == "ellipsoids"
     h = v._handles["gaussians"]
     assert np.allclose(h.batched_positions, g["mean"].astype(np.float32))
-    assert np.allclose(h.batched_colors, geo.occupancy_colors(g["p_occ"]))
+    # coloured by height by default, on a scale fitted to the map's heights
+    assert v.controls.color_mode.value == "height"
+    zr = geo.height_range(g["mean"][:, 2])
+    assert v.drawn["zrange"] == zr and zr[0] >= g["mean"][:, 2].min() and zr[1] <= g["mean"][:, 2].max()
+    assert np.array_equal(h.batched_colors, geo.height_colors(g["mean"][:, 2], zr))
+    assert len(np.unique(h.batched_colors, axis=0)) > 20  # not one colour for the whole map
+    assert f"{abs(zr[0]):.2f} m" in v.controls.legend.content and f"{zr[1]:.2f} m" in v.controls.legend.content
     assert v.layer_visible("gaussians")
     assert v.url.startswith("http://127.0.0.1:") and v.port == v.server.get_port() > 0
     assert "Gaussians" in v.controls.stats.content and "Level of detail" in v.controls.stats.content
@@ -187,13 +193,13 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     from viser import GaussianSplatHandle
 
     v = make_viewer(m)
-    occ_colors = np.array(v._handles["gaussians"].batched_colors)
-    v.controls.color_mode.value = "height"
+    height_colors = np.array(v._handles["gaussians"].batched_colors)
+    v.controls.color_mode.value = "occupancy"  # one click away
     g = m.gaussians(min_probability=0.5)
-    expected = geo.height_colors(g["mean"][:, 2], v.drawn["zrange"])
+    expected = geo.occupancy_colors(g["p_occ"])
     assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
-    assert not np.array_equal(expected, occ_colors)
-    assert "height" in v.controls.legend.content
+    assert not np.array_equal(expected, height_colors)
+    assert "occupancy probability" in v.controls.legend.content and "height of" not in v.controls.legend.content
     v.controls.geometry.value = "splats"
     assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
 
@@ -495,3 +501,136 @@ def test_live_commands_map_until_stopped_and_save(monkeypatch, tmp_path, capsys)
     del saved
     monkeypatch.setattr("ndtom_ti.demo.make_scans", lambda n: make_scans(3, rings=4, per_ring=60))
     assert cli.live_demo_command("127.0.0.1", 0, rate_hz=0.0) == 0
+
+
+# ---------------------------------------------------------------------------- what a static map offers
+
+
+def test_layers_are_offered_only_when_the_map_has_them(maps, make_viewer, room_scans):
+    m, r = maps
+    v = make_viewer(m)
+    boxes = v.controls.layers
+    # a map file holds no trajectory, no latest scan and no comparison map
+    assert not boxes["trajectory"].visible and not boxes["scan"].visible and not boxes["conflicts"].visible
+    assert not v.controls.point_size.visible  # it sizes the latest scan's points only
+    assert boxes["gaussians"].visible and boxes["occupied"].visible and boxes["free"].visible
+    assert not boxes["free"].value  # free cells: off until ticked
+    assert "trajectory" not in v.controls.legend.content and "conflicting" not in v.controls.legend.content
+    # with a comparison map: conflicting cells offered
+    assert make_viewer(m, compare=r).controls.layers["conflicts"].visible
+    # live mapping: the trajectory and latest scan (and the point size) appear
+    lv = make_viewer()
+    lm = lv.live(room_scans[:2], NdtOmMap(RES), refresh_interval=0.05)
+    lm.step(2)
+    assert lm.wait_scans(2, timeout=30)
+    for _ in range(100):
+        if lv.controls.layers["trajectory"].visible:
+            break
+        time.sleep(0.05)
+    assert lv.controls.layers["trajectory"].visible and lv.controls.layers["scan"].visible
+    assert lv.controls.point_size.visible
+    lm.stop()
+
+
+def test_free_cells_are_translucent_boxes(maps, make_viewer):
+    from ndtom_ti.viewer.app import FREE_OPACITY
+
+    m, _ = maps
+    v = make_viewer(m)
+    v.controls.layers["free"].value = True
+    h = v._handles["free"]
+    assert 0.0 < h.opacity == FREE_OPACITY <= 0.3
+    assert len(h.batched_positions) == v.drawn["free"] > 0
+    assert "free cells" in v.controls.legend.content
+
+
+def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    g = m.gaussians(min_probability=0.5)
+    z = g["mean"][:, 2]
+    zlo, zhi = v._zlimits
+    assert zlo <= z.min() and zhi >= z.max()
+    assert tuple(v.controls.zclip.value) == (zlo, zhi) and v.drawn["clip"] is None
+    v.controls.zclip.value = (zlo, 1.0)  # below the room's ceiling and the walls' tops
+    expected = int(((z >= zlo) & (z <= 1.0)).sum())
+    assert v.drawn["gaussians"] == expected < len(z)
+    assert (np.asarray(v._handles["gaussians"].batched_positions)[:, 2] <= 1.0).all()
+    assert v.drawn["zrange"] == geo.height_range(z)  # colours stay those of the whole map
+    assert "Height clip" in v.controls.legend.content and "between" in v.controls.stats.content
+    v.controls.layers["occupied"].value = True
+    assert (np.asarray(v._handles["occupied"].points)[:, 2] <= 1.0 + RES).all()
+    v.controls.zclip.value = (zlo, zhi)
+    assert v.drawn["gaussians"] == len(z)
+
+
+def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    pos, look = v._view
+    g = m.gaussians(min_probability=0.5)
+    lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
+    assert np.all(np.abs(look - (lo + hi) / 2) < 0.6 * (hi - lo) + 1e-6)  # looks at the map's middle
+    assert pos[2] > hi[2]  # from above
+    moved = []
+
+    class FakeCamera:
+        def __setattr__(self, k, val):
+            moved.append((k, tuple(val)))
+
+    class FakeClient:
+        camera = FakeCamera()
+
+    v.server.get_clients = lambda: {0: FakeClient()}
+    v.controls.frame.value = True  # a click
+    assert ("position", tuple(float(x) for x in pos)) in moved and ("look_at", tuple(float(x) for x in look)) in moved
+
+
+def test_every_geometry_is_capped_with_a_notice(maps, make_viewer):
+    m, _ = maps
+    n = len(m.gaussians(min_probability=0.5)["n"])
+    v = make_viewer(m, max_ellipsoids=200, max_splats=300)
+    v.controls.resolution.value = v.controls.resolution.options[0]
+    v.controls.geometry.value = "ellipsoids"
+    assert v.drawn["gaussians"] == 400 < n == v.drawn["gaussians_total"]  # twice the auto limit at most
+    assert len(v._handles["gaussians"].batched_positions) == 400
+    assert v.controls.notice.visible and "showing an even 400" in v.controls.notice.content
+    v.controls.geometry.value = "splats"
+    assert v.drawn["gaussians"] == 300 and "showing an even 300" in v.controls.notice.content
+    big = make_viewer(m)
+    assert big.drawn["gaussians"] == n and not big.controls.notice.visible
+
+
+def test_html_snapshot_is_written_atomically(map_file, tmp_path, capsys, monkeypatch):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+    from ndtom_ti.viewer.app import MapViewer
+
+    out = tmp_path / "snap.html"
+    out.write_text("previous snapshot")
+    real = MapViewer.save_html
+
+    def full_disk(self, path):
+        import os as _os
+
+        def fail(*a, **k):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(_os, "fsync", fail)
+        try:
+            return real(self, path)
+        finally:
+            monkeypatch.undo()
+
+    monkeypatch.setattr(MapViewer, "save_html", full_disk)
+    assert cli.view_command(map_file, "127.0.0.1", 0, out) == 1
+    assert out.read_text() == "previous snapshot"  # the old snapshot survives
+    assert [p.name for p in tmp_path.iterdir()] == ["snap.html"]  # no temporary file left
+    err = capsys.readouterr().err
+    assert "No space left" in err and "unchanged" in err
+    monkeypatch.setattr(MapViewer, "save_html", real)
+    assert cli.view_command(map_file, "127.0.0.1", 0, out) == 0
+    text = capsys.readouterr().out
+    assert f"Wrote {out.resolve()}" in text and out.resolve().as_uri() in text
+    assert "http://" not in text  # no URL of a server that is gone
+    assert out.stat().st_size > 10_000

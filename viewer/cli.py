@@ -8,6 +8,7 @@ map file, host that cannot be listened on, snapshot path that cannot be written)
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,10 @@ def _load(path: Path, what: str = "map") -> Any:
     return None
 
 
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
 def view_command(
     map_path: Path,
     host: str = "127.0.0.1",
@@ -64,10 +69,12 @@ def view_command(
 ) -> int:
     """``ndtom view MAP [--host 127.0.0.1] [--port N] [--html snapshot.html] [--compare RNDT_MAP]``.
 
-    Serves the map at ``http://HOST:PORT`` (prints the URL with the real port: a busy
-    port is replaced by the next free one) until Ctrl-C; with ``html`` writes a
-    standalone page of the scene instead and returns. ``compare``: a map of the same
-    scans built with ``occupancy=False`` (shows the conflicting cells).
+    Says what it does while a big map loads, then serves the map and prints its URL
+    (with the real port: a busy port is replaced by the next free one; beyond loopback
+    with its access token, after a warning) until Ctrl-C. With ``html`` it writes a
+    standalone page of the scene instead (atomically), says where, and returns.
+    ``compare``: a map of the same scans built with ``occupancy=False`` (shows the
+    conflicting cells).
     """
     try:
         require_viser()
@@ -75,14 +82,22 @@ def view_command(
         _error(str(exc))
         return EXIT_FAILURE
     if html is not None:
-        html = Path(html)
+        html = Path(html).expanduser()
         parent = html.parent if str(html.parent) else Path(".")
         if not parent.is_dir():
-            _error(f"cannot write {html}: folder {parent} does not exist")
+            _error(f"cannot write {html}: folder {parent} does not exist", "create the folder first")
             return EXIT_USAGE
-    m = _load(Path(map_path))
+        if html.exists() and not html.is_file():
+            _error(f"cannot write {html}: it exists and is not a regular file", "choose another --html path")
+            return EXIT_USAGE
+    t0 = time.perf_counter()
+    path = Path(map_path)
+    if path.is_file():
+        _say(f"Loading {path} ({path.stat().st_size / 2**20:.1f} MiB) ...")
+    m = _load(path)
     if m is None:
         return EXIT_USAGE
+    _say(f"Loaded {len(m):,} Gaussians at {m.resolution:g} m in {time.perf_counter() - t0:.1f} s")
     cmp_map = None
     if compare is not None:
         cmp_map = _load(Path(compare), "comparison map")
@@ -92,9 +107,11 @@ def view_command(
     from .app import MapViewer
 
     try:
-        # a snapshot is lit by plain lights: it draws at once (an environment map fades in slowly)
-        viewer = MapViewer(m, compare=cmp_map, host=host, port=0 if html is not None else port,
-                           verbose=html is None, environment_map=html is None)  # fmt: skip
+        # a snapshot needs no server beyond this machine, and is lit by plain lights: it draws at
+        # once (an environment map fades in slowly)
+        viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
+                           port=0 if html is not None else port, verbose=html is None,
+                           environment_map=html is None, progress=_say)  # fmt: skip
     except ValueError as exc:
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine, "
                "and a --port in 0..65535 (0: any free port)")
@@ -103,11 +120,12 @@ def view_command(
         try:
             viewer.save_html(html)
         except OSError as exc:
-            _error(f"cannot write {html}: {exc.strerror or exc}")
-            return EXIT_USAGE
+            _error(f"cannot write {html}: {exc.strerror or exc}", "the previous file, if any, is unchanged")
+            return EXIT_FAILURE
         finally:
             viewer.close()
-        print(f"Wrote {html} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser", flush=True)
+        _say(f"Wrote {html.resolve()} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser "
+             f"({html.resolve().as_uri()})")  # fmt: skip
         return EXIT_OK
     print("Press Ctrl-C to stop.", flush=True)
     try:
