@@ -263,7 +263,7 @@ class MapViewer:
         self.controls = Controls()
         try:
             self._build_gui(threshold=float(threshold), color_mode=color_mode, geometry=geometry)
-            if m is not None and verbose:
+            if m is not None and len(m) and verbose:
                 self._say(f"Preparing the scene: {_fmt(len(m))} Gaussians at {m.resolution:g} m ...")
             self.refresh()
         except BaseException:
@@ -388,6 +388,7 @@ class MapViewer:
         refresh_interval: float = 0.5,
         max_scan_points: int = 50_000,
         rate_hz: float = 0.0,
+        **pacing: Any,
     ) -> LiveMapper:
         """Build ``m`` (default: this viewer's map) from ``scans`` in a worker thread and
         watch it grow: Play / Pause / Step, a scan counter and a chart of time per scan.
@@ -397,6 +398,8 @@ class MapViewer:
         ``compare=True`` also builds a Recursive NDT map (``occupancy=False``, same
         resolution and config) for the "Conflicting cells" layer; or pass such a map.
         ``rate_hz``: at most this many scans per second (0: as fast as mapping goes).
+        ``pacing``: ``speed`` (x the recording's rate, from the scans' ``stamp_ns``),
+        ``max_gap_s``, ``on_scan``, ``clock``, ``sleep``: see :class:`LiveMapper`.
         """
         from .live import LiveMapper
 
@@ -404,7 +407,7 @@ class MapViewer:
             self.live_mapper.stop()
         lm = LiveMapper(
             self, scans, m if m is not None else self.map, compare=compare, total=total,
-            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz,
+            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz, **pacing,
         )  # fmt: skip
         self.live_mapper = lm
         if play:
