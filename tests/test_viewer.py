@@ -546,23 +546,33 @@ def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
 def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
     m, _ = maps
     v = make_viewer(m)
-    pos, look = v._view
     g = m.gaussians(min_probability=0.5)
     lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
-    assert np.all(np.abs(look - (lo + hi) / 2) < 0.6 * (hi - lo) + 1e-6)  # looks at the map's middle
+    pos, look = (np.array(x) for x in v._camera_for(np.radians(50.0), 0.75))
+    assert np.all(np.abs(look - (lo + hi) / 2) < 0.1 * (hi - lo) + 1e-6)  # looks at the map's middle
     assert pos[2] > hi[2]  # from above
-    moved = []
+    # a narrow view steps back further than a wide one (the whole map stays in view)
+    narrow, wide = (np.linalg.norm(np.array(v._camera_for(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))
+    assert narrow > 1.5 * wide
 
     class FakeCamera:
+        fov, aspect = np.radians(50.0), 0.5
+
+        def __init__(self):
+            self.__dict__["moved"] = []
+
         def __setattr__(self, k, val):
-            moved.append((k, tuple(val)))
+            self.moved.append((k, tuple(val)))
+
+    cam = FakeCamera()
 
     class FakeClient:
-        camera = FakeCamera()
+        camera = cam
 
     v.server.get_clients = lambda: {0: FakeClient()}
     v.controls.frame.value = True  # a click
-    assert ("position", tuple(float(x) for x in pos)) in moved and ("look_at", tuple(float(x) for x in look)) in moved
+    expected = v._camera_for(np.radians(50.0), 0.5)
+    assert cam.moved == [("position", expected[0]), ("look_at", expected[1])]
 
 
 def test_every_geometry_is_capped_with_a_notice(maps, make_viewer):

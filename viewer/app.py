@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import socket
 import tempfile
@@ -917,24 +918,46 @@ class MapViewer:
         center = (lo + hi) / 2.0
         radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1.0)
         direction = np.array([-0.45, -0.75, 0.8])
-        # the bounding sphere fits the vertical field of view (50 degrees, viser's default)
-        distance = radius / np.sin(np.radians(25.0)) * 0.75
-        self._view = (center + distance * direction / np.linalg.norm(direction), center)
+        self._view = (center, radius, direction / np.linalg.norm(direction))
         cam = self.server.initial_camera
-        cam.position, cam.look_at = (tuple(float(x) for x in v) for v in self._view)
+        # pages start here: 75 degrees vertical (viser's), a view narrowed by the panel beside it
+        # (a page's first camera message comes before its layout: its size cannot be used yet)
+        cam.position, cam.look_at = self._camera_for(np.radians(75.0), 0.75)
         with contextlib.suppress(AttributeError):
             cam.up = (0.0, 0.0, 1.0)
         self._framed = True
         self.frame()
 
+    def _camera_for(self, fov: float, aspect: float) -> tuple[tuple, tuple]:
+        """(position, look_at) that fit the map's bounding sphere in a view of vertical field
+        of view ``fov`` (radians) and width/height ``aspect``."""
+        center, radius, direction = self._view
+        half = min(fov / 2.0, math.atan(math.tan(fov / 2.0) * max(aspect, 0.1)))
+        distance = radius / math.sin(half)
+        pos = center + distance * direction
+        return tuple(float(x) for x in pos), tuple(float(x) for x in center)
+
     def frame(self) -> None:
-        """Move every connected browser's camera to the overview of the map."""
-        view = getattr(self, "_view", None)
-        if view is None:
+        """Move every connected browser's camera to the overview of the map (fitted to
+        each page's own view)."""
+        if getattr(self, "_view", None) is None:
             return
         for client in self.server.get_clients().values():
-            client.camera.position = tuple(float(x) for x in view[0])
-            client.camera.look_at = tuple(float(x) for x in view[1])
+            self._frame_client(client)
+
+    def _frame_client(self, client: Any) -> None:
+        if getattr(self, "_view", None) is None:
+            return
+        cam = client.camera
+        try:
+            fov, aspect = float(cam.fov), float(cam.aspect)
+        except (AssertionError, AttributeError, ZeroDivisionError, TypeError, ValueError):
+            fov, aspect = math.radians(75.0), 0.75
+        if not (math.isfinite(fov) and 0.05 < fov < 3.0 and math.isfinite(aspect) and aspect > 0):
+            fov, aspect = math.radians(75.0), 0.75
+        position, look_at = self._camera_for(fov, aspect)
+        cam.position = position
+        cam.look_at = look_at
 
     def _stats_markdown(self, snap: dict, drawn: dict) -> str:
         if snap.get("g") is None:
