@@ -252,9 +252,9 @@ def test_a_token_viewer_opens_from_its_url_and_refuses_a_foreign_page(page, room
     page2 = page.context.new_page()
     page2.goto(other.url)
     js = """(url) => new Promise((done) => {
-        const ws = new WebSocket(url, ["viser-v%s"]);
+        const ws = new WebSocket(url, ["viser-vVERSION"]);
         ws.onopen = () => done("open"); ws.onerror = () => done("refused");
-        setTimeout(() => done("timeout"), 8000); })""" % viser.__version__
+        setTimeout(() => done("timeout"), 8000); })""".replace("VERSION", viser.__version__)
     refused_before = v.guard.refused
     assert page2.evaluate(js, f"ws://127.0.0.1:{v.port}") == "refused"
     assert v.guard.refused > refused_before and len(v.server.get_clients()) == 1
