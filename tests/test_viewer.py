@@ -578,16 +578,19 @@ def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
 def test_every_geometry_is_capped_with_a_notice(maps, make_viewer):
     m, _ = maps
     n = len(m.gaussians(min_probability=0.5)["n"])
-    v = make_viewer(m, max_ellipsoids=200, max_splats=300)
-    v.controls.resolution.value = v.controls.resolution.options[0]
+    # chosen by hand too, too many ellipsoids: a coarser level that fits, said at the top
+    v = make_viewer(m, max_ellipsoids=300, max_splats=600)
     v.controls.geometry.value = "ellipsoids"
-    assert v.drawn["gaussians"] == 400 < n == v.drawn["gaussians_total"]  # twice the auto limit at most
-    assert len(v._handles["gaussians"].batched_positions) == 400
-    assert v.controls.notice.visible and "showing an even 400" in v.controls.notice.content
+    assert v.level >= 2 and 0 < v.drawn["gaussians"] <= 300 and v.drawn["geometry"] == "ellipsoids"
+    assert v.controls.notice.visible and "coarser level" in v.controls.notice.content
     v.controls.geometry.value = "splats"
-    assert v.drawn["gaussians"] == 300 and "showing an even 300" in v.controls.notice.content
+    assert v.level >= 2 and 300 < v.drawn["gaussians"] <= 600
+    # even the coarsest level exceeds the cap: an even subsample of it, said at the top
+    tiny = make_viewer(m, max_ellipsoids=20, max_splats=20)
+    assert tiny.drawn["gaussians"] == 20 < tiny.drawn["gaussians_total"]
+    assert len(tiny._handles["gaussians"].centers) == 20 and "showing an even 20" in tiny.controls.notice.content
     big = make_viewer(m)
-    assert big.drawn["gaussians"] == n and not big.controls.notice.visible
+    assert big.drawn["gaussians"] == n and big.level == 1 and not big.controls.notice.visible
 
 
 def test_html_snapshot_is_written_atomically(map_file, tmp_path, capsys, monkeypatch):
