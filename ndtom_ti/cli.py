@@ -754,7 +754,9 @@ def experiments(
 def view(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
-    host: Annotated[str, typer.Option(help="Address to serve on (default: this machine only).")] = "127.0.0.1",
+    host: Annotated[str, typer.Option(
+        help="Address to serve on (default: this machine only; any other address prints a warning and a URL "
+        "with an access token).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="Port (the next free one if taken; the URL says which).")] = 8080,
     html: Annotated[Path | None, typer.Option(
         help="Write a standalone HTML snapshot of the scene and exit.", show_default=False)] = None,

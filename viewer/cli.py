@@ -101,7 +101,11 @@ def view_command(
     path = Path(map_path)
     if path.is_file():
         _say(f"Loading {path} ({path.stat().st_size / 2**20:.1f} MiB) ...")
-    m = _load(path)
+    try:
+        m = _load(path)
+    except KeyboardInterrupt:
+        _error("interrupted (Ctrl-C) while loading the map")
+        return EXIT_INTERRUPTED
     if m is None:
         return EXIT_USAGE
     _say(f"Loaded {len(m):,} Gaussians at {m.resolution:g} m in {time.perf_counter() - t0:.1f} s")
@@ -113,7 +117,7 @@ def view_command(
 
     from .app import MapViewer
 
-    try:
+    try:  # (Ctrl-C while the scene is prepared: no traceback)
         # a snapshot needs no server beyond this machine, and is lit by plain lights: it draws at
         # once (an environment map fades in slowly)
         viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
@@ -123,6 +127,9 @@ def view_command(
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine, "
                "and a --port in 0..65535 (0: any free port)")
         return EXIT_USAGE
+    except KeyboardInterrupt:
+        _error("interrupted (Ctrl-C) while preparing the scene")
+        return EXIT_INTERRUPTED
     if html is not None:
         try:
             viewer.save_html(html)
@@ -393,6 +400,8 @@ def live_recording_command(
             summary.skipped = dict(Counter(stream.skipped).most_common())
             summary.skip_notes = list(stream.notes)
 
+        # no Recursive NDT map beside it by default: a recording's map costs what `ndtom map` costs
+        live.setdefault("compare", False)
         return live_command(stream, resolution, occupancy=occupancy, config=cfg, summary=summary, metadata=extra,
                             after_loop=counts, **live)  # fmt: skip
 
