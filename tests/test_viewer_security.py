@@ -143,13 +143,16 @@ def test_token_viewer_needs_the_printed_url(small_map, viewers):
     assert _status(_get(v.port, own)) == 401
     assert _status(_upgrade(v.port, own, f"http://{own}")) == 401
     page = _get(v.port, own, "/?token=s3cret-token")
-    assert _status(page) == 200 and b"Set-Cookie: ndtom_viewer_token=s3cret-token" in page
+    name = f"ndtom_viewer_token_{v.port}"  # one cookie per port: viewers on other ports keep theirs
+    assert _status(page) == 200 and f"Set-Cookie: {name}=s3cret-token".encode() in page
     assert b"HttpOnly" in page and b"SameSite=Strict" in page
     # the page's WebSocket carries the cookie
-    cookie = ("Cookie: ndtom_viewer_token=s3cret-token",)
+    cookie = (f"Cookie: {name}=s3cret-token",)
     ok = _upgrade(v.port, own, f"http://{own}", cookie)
     assert _status(ok) == 101 and len(ok) > 2_000
-    assert _status(_upgrade(v.port, own, f"http://{own}", ("Cookie: ndtom_viewer_token=guess",))) == 401
+    assert _status(_upgrade(v.port, own, f"http://{own}", (f"Cookie: {name}=guess",))) == 401
+    other_port = ("Cookie: ndtom_viewer_token_1=s3cret-token",)  # another port's cookie does not open this one
+    assert _status(_upgrade(v.port, own, f"http://{own}", other_port)) == 401
     # a foreign page does not get in with the cookie either (Origin check first)
     assert _status(_upgrade(v.port, own, "http://evil.example", cookie)) == 403
 

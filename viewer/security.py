@@ -135,7 +135,14 @@ class AccessGuard:
         host = _strip(host)
         return host in self.allowed or _is_loopback_literal(host)
 
-    def _token_ok(self, path: str, cookie_header: str | None) -> bool:
+    @staticmethod
+    def cookie_name(host_header: str | None) -> str:
+        """The token cookie of the viewer at this Host's port (cookies are shared by every
+        port of a host: viewers on other ports keep their own)."""
+        _, port = _split_host_header(host_header or "")
+        return f"{COOKIE}_{port or 80}"
+
+    def _token_ok(self, path: str, cookie_header: str | None, host_header: str | None = None) -> bool:
         if self.token is None:
             return True
         query = parse_qs(urlsplit(path).query)
@@ -146,7 +153,7 @@ class AccessGuard:
             jar = SimpleCookie()
             with contextlib.suppress(Exception):
                 jar.load(cookie_header)
-            morsel = jar.get(COOKIE)
+            morsel = jar.get(self.cookie_name(host_header))
             if morsel is not None and hmac.compare_digest(morsel.value.encode(), self.token.encode()):
                 return True
         return False
@@ -160,7 +167,7 @@ class AccessGuard:
             origin = headers.get("Origin")
             if origin is not None and origin.strip().lower() != f"http://{host.strip().lower()}":
                 return 403, f"Origin {origin!r} is not this viewer's page"
-        if not self._token_ok(path, headers.get("Cookie")):
+        if not self._token_ok(path, headers.get("Cookie"), host):
             return 401, "this viewer needs its access token: open the URL it printed (with ?token=...)"
         return None
 
@@ -179,7 +186,8 @@ class AccessGuard:
             response = inner(connection, request) if inner is not None else None
             if response is not None and self.token is not None and "token=" in request.path:
                 # the page's own later requests (assets, the WebSocket) carry the token as a cookie
-                response.headers["Set-Cookie"] = f"{COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+                name = self.cookie_name(request.headers.get("Host"))
+                response.headers["Set-Cookie"] = f"{name}={self.token}; Path=/; HttpOnly; SameSite=Strict"
             return response
 
         return process
