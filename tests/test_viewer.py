@@ -626,3 +626,41 @@ def test_html_snapshot_is_written_atomically(map_file, tmp_path, capsys, monkeyp
     assert f"Wrote {out.resolve()}" in text and out.resolve().as_uri() in text
     assert "http://" not in text  # no URL of a server that is gone
     assert out.stat().st_size > 10_000
+
+
+def test_view_says_what_it_does_while_a_map_loads(map_file, monkeypatch, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+
+    real_load = cli._load
+    ticks = threading.Event()
+
+    def slow_load(path, what="map"):  # a big map: the load outlasts one tick
+        assert ticks.wait(30)
+        return real_load(path, what)
+
+    real_ticking = cli._ticking
+    monkeypatch.setattr(cli, "_load", slow_load)
+
+    def fast_ticking(what, every=10.0):
+        return real_ticking(what, every=0.05)
+
+    real_say = cli._say
+
+    def say(line):
+        real_say(line)
+        if "loading (" in line:
+            ticks.set()
+
+    monkeypatch.setattr(cli, "_ticking", fast_ticking)
+    monkeypatch.setattr(cli, "_say", say)
+    seen = []
+    monkeypatch.setattr(cli, "_block", lambda viewer: seen.append(viewer.url))
+    assert cli.view_command(map_file, "127.0.0.1", 0, None) == 0
+    out = capsys.readouterr().out.splitlines()
+    first = [i for i, line in enumerate(out) if line.startswith("Loading ")]
+    tick = [i for i, line in enumerate(out) if "... loading (" in line]
+    url = [i for i, line in enumerate(out) if line.startswith("NDT-OM viewer: http://127.0.0.1:")]
+    assert first and tick and url and first[0] < tick[0] < url[0], out
+    assert any(line.startswith("Loaded ") and "Gaussians" in line for line in out)
+    assert seen and url and seen[0] in out[url[0]]  # the URL is printed once it serves

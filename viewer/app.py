@@ -280,6 +280,8 @@ class MapViewer:
 
     def announce(self) -> None:
         """Print where the viewer serves (and, beyond loopback, a warning)."""
+        for note in self.drawn.get("notes", ()):
+            self._say(f"Note: {note}")
         if self.port_note:
             self._say(f"Note: {self.port_note}")
         if not self.guard.loopback:

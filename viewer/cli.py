@@ -66,6 +66,25 @@ def _say(line: str) -> None:
     print(line, flush=True)
 
 
+@contextlib.contextmanager
+def _ticking(what: str, every: float = 10.0) -> Any:
+    """Say every ``every`` seconds that ``what`` is still going (big maps take a while)."""
+    done = threading.Event()
+    t0 = time.perf_counter()
+
+    def tick() -> None:
+        while not done.wait(every):
+            _say(f"  ... {what} ({time.perf_counter() - t0:.0f} s)")
+
+    th = threading.Thread(target=tick, name="ndtom-view-progress", daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        done.set()
+        th.join()
+
+
 def view_command(
     map_path: Path,
     host: str = "127.0.0.1",
@@ -102,7 +121,8 @@ def view_command(
     if path.is_file():
         _say(f"Loading {path} ({path.stat().st_size / 2**20:.1f} MiB) ...")
     try:
-        m = _load(path)
+        with _ticking("loading"):
+            m = _load(path)
     except KeyboardInterrupt:
         _error("interrupted (Ctrl-C) while loading the map")
         return EXIT_INTERRUPTED
@@ -120,9 +140,10 @@ def view_command(
     try:  # (Ctrl-C while the scene is prepared: no traceback)
         # a snapshot needs no server beyond this machine, and is lit by plain lights: it draws at
         # once (an environment map fades in slowly)
-        viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
-                           port=0 if html is not None else port, verbose=html is None,
-                           environment_map=html is None, progress=_say)  # fmt: skip
+        with _ticking("preparing the scene"):
+            viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
+                               port=0 if html is not None else port, verbose=html is None,
+                               environment_map=html is None, progress=_say)  # fmt: skip
     except ValueError as exc:
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine, "
                "and a --port in 0..65535 (0: any free port)")
