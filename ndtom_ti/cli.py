@@ -560,9 +560,15 @@ def map_(
         "--max-range, --miss-model win.")] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
     view: Annotated[bool, typer.Option(
-        "--view", help="Map live in the browser viewer (play/pause/step); the map is saved on Ctrl-C.")] = False,
+        "--view", help="Map live in the browser viewer, at the recording's own rate, starting when a browser "
+        "connects; the map is saved at the end and on Ctrl-C or SIGTERM.")] = False,
     host: Annotated[str, typer.Option(help="Viewer host (with --view).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
+    rate: Annotated[str, typer.Option(
+        help="With --view: playback speed, times the recording's rate (1: as recorded, 2: twice as fast, "
+        "max: as fast as mapping goes).")] = "1",
+    no_wait: Annotated[bool, typer.Option(
+        "--no-wait", help="With --view: start mapping at once, not when the first browser connects.")] = False,
 ) -> None:
     """Map a recording into an NDT Occupancy Map file.
 
@@ -600,17 +606,24 @@ def map_(
         out_path = _check_writable(output if output is not None else default_output(bag), "map file")
         if view:
             _need_extra("viser", "the live viewer (--view)")
-            from .io import open_recording
-            from .viewer.cli import live_command
+            from .viewer.cli import live_recording_command, parse_rate
 
+            speed = parse_rate(rate)
             _init(arch, memory_limit)
-            with open_recording(bag) as rec:
-                stream = rec.scans(
-                    cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic, poses_file=poses,
-                    sensor_frame_only=sensor_frame, every=every, every_distance=every_distance, t_start=start,
-                    t_end=end, max_scans=max_scans,
+            bar = _Bar(arch, progress, memory_limit)
+            try:
+                code = live_recording_command(
+                    bag, resolution, scan_options={
+                        "cloud_topic": cloud_topic, "fixed_frame": fixed_frame, "pose_topic": pose_topic,
+                        "poses_file": poses, "sensor_frame_only": sensor_frame, "every": every,
+                        "every_distance": every_distance, "t_start": start, "t_end": end, "max_scans": max_scans},
+                    occupancy=occupancy, config=mapcfg, host=host, port=port, speed=speed, wait_for_browser=not no_wait,
+                    metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
+                    progress=bar, finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
                 )  # fmt: skip
-                raise typer.Exit(live_command(stream, resolution, host, port, config=mapcfg, save=out_path))
+            finally:
+                bar.stop()
+            raise typer.Exit(code)
 
         bar = _Bar(arch, progress, memory_limit)
         try:
@@ -637,8 +650,15 @@ def demo(
     scans: Annotated[int, typer.Option(min=2, max=1000, help="Number of scans.")] = 20,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
-    view: Annotated[bool, typer.Option("--view", help="Map the room live in the browser viewer instead.")] = False,
+    view: Annotated[bool, typer.Option(
+        "--view", help="Map the room live in the browser viewer (starting when a browser connects); writes the "
+        "map too.")] = False,
     port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
+    rate: Annotated[str, typer.Option(
+        help="With --view: playback speed, times the scans' rate (1: 10 scans/s as recorded, max: as fast as "
+        "mapping goes).")] = "1",
+    no_wait: Annotated[bool, typer.Option(
+        "--no-wait", help="With --view: start mapping at once, not when the first browser connects.")] = False,
 ) -> None:
     """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
     halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
@@ -651,10 +671,6 @@ def demo(
             raise ValueError(f"-r/--resolution must be a positive number of metres, got {resolution}")
         if view:
             _need_extra("viser", "the live viewer (--view)")
-            from .viewer.cli import live_demo_command
-
-            _init(arch)
-            raise typer.Exit(live_demo_command("127.0.0.1", port, resolution=resolution, n_scans=scans))
         out = out.expanduser()
         if out.exists() and not out.is_dir():
             _fail(f"--out {out} is a file, not a folder", "give a folder for the demo's output")
@@ -670,6 +686,22 @@ def demo(
                           f"{scene.vanishing[0].present_until}), {len(data)} lidar scans of about "
                           f"{sum(len(s.points) for s in data) // len(data):,} points, made in "
                           f"{time.perf_counter() - t0:.1f} s", style="cyan"))
+        if view:
+            from .viewer.cli import live_demo_command, parse_rate
+
+            speed = parse_rate(rate)
+            _init(arch)
+            bar = _Bar(arch, progress)
+            try:
+                code = live_demo_command(
+                    "127.0.0.1", port, resolution=resolution, n_scans=scans, scans=data, speed=speed,
+                    wait_for_browser=not no_wait, progress=bar,
+                    metadata={"command": "ndtom demo --view", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                    finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                )  # fmt: skip
+            finally:
+                bar.stop()
+            raise typer.Exit(code)
         bar = _Bar(arch, progress)
         try:
             m, summary = map_scans(
@@ -837,7 +869,9 @@ def experiments(
 def view(
     map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
                                              show_default=False)],
-    host: Annotated[str, typer.Option(help="Address to serve on (default: this machine only).")] = "127.0.0.1",
+    host: Annotated[str, typer.Option(
+        help="Address to serve on (default: this machine only; any other address prints a warning and a URL "
+        "with an access token).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="Port (the next free one if taken; the URL says which).")] = 8080,
     html: Annotated[Path | None, typer.Option(
         help="Write a standalone HTML snapshot of the scene and exit.", show_default=False)] = None,

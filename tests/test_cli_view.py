@@ -1,6 +1,7 @@
 """`ndtom view`, `ndtom map --view` and `ndtom demo --view` as wired in the CLI."""
 
 import numpy as np
+import pytest
 from test_pipeline_bags import write_plane_bag
 from typer.testing import CliRunner
 
@@ -20,26 +21,32 @@ def test_view_html_snapshot_and_missing_map(tmp_path):
     assert res.exit_code == 2
 
 
-def test_map_view_hands_the_scans_to_the_live_viewer(tmp_path, monkeypatch):
+def test_map_view_maps_the_recording_live_and_saves_it(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli as vcli
+
     bag = write_plane_bag(tmp_path, "ros1")
-    seen = {}
-
-    def fake_live(scans, resolution, host, port, *, config=None, save=None, **kw):
-        seen.update(n=sum(1 for _ in scans), resolution=resolution, host=host, port=port, save=save)
-        return 0
-
-    monkeypatch.setattr("ndtom_ti.viewer.cli.live_command", fake_live)
+    served = []
+    monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: served.append(viewer.url))
     out = tmp_path / "live.ndtom"
-    res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(out), "--view", "--port", "9123"])
+    res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(out), "--view", "--no-wait",
+                                   "--rate", "max", "--port", "0"])  # fmt: skip
     assert res.exit_code == 0, res.output
-    assert seen["n"] > 0 and seen["resolution"] == 0.5 and seen["port"] == 9123
-    assert seen["host"] == "127.0.0.1" and seen["save"] == out
+    # the same summary as `ndtom map`, and the map written with its metadata
+    assert "Mapping summary" in res.output and "scans used" in res.output and "Map written to" in res.output
+    assert "NDT-OM viewer: http://127.0.0.1:" in res.output and len(served) == 1
+    m = NdtOmMap.load(out)
+    assert m.scans_inserted > 0 and m.metadata["command"] == "ndtom map --view" and m.metadata["complete"]
+    assert m.metadata["summary"]["scans_used"] == m.scans_inserted and m.metadata["cloud_topic"]
+    plain = tmp_path / "plain.ndtom"
+    assert CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(plain)]).exit_code == 0
+    ref = NdtOmMap.load(plain)
+    assert ref.scans_inserted == m.scans_inserted and len(ref) == len(m)
 
 
-def test_demo_view_runs_the_live_demo(monkeypatch):
-    seen = {}
-    monkeypatch.setattr("ndtom_ti.viewer.cli.live_demo_command",
-                        lambda host, port, **kw: seen.update(host=host, port=port, **kw) or 0)  # fmt: skip
-    res = CliRunner().invoke(app, ["demo", "--view", "--port", "9124", "--scans", "5"])
-    assert res.exit_code == 0, res.output
-    assert seen == {"host": "127.0.0.1", "port": 9124, "resolution": 0.2, "n_scans": 5}
+def test_map_view_bad_rate(tmp_path):
+    bag = write_plane_bag(tmp_path, "ros1")
+    res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(tmp_path / "x.ndtom"), "--view",
+                                   "--rate", "fast"])  # fmt: skip
+    assert res.exit_code == 2 and "--rate" in res.output
+    assert not (tmp_path / "x.ndtom").exists()

@@ -120,7 +120,13 @@ def test_viewer_draws_the_maps_gaussians_as_ellipsoids(maps, make_viewer):
     assert v.drawn["geometry"] == "ellipsoids"
     h = v._handles["gaussians"]
     assert np.allclose(h.batched_positions, g["mean"].astype(np.float32))
-    assert np.allclose(h.batched_colors, geo.occupancy_colors(g["p_occ"]))
+    # coloured by height by default, on a scale fitted to the map's heights
+    assert v.controls.color_mode.value == "height"
+    zr = geo.height_range(g["mean"][:, 2])
+    assert v.drawn["zrange"] == zr and zr[0] >= g["mean"][:, 2].min() and zr[1] <= g["mean"][:, 2].max()
+    assert np.array_equal(h.batched_colors, geo.height_colors(g["mean"][:, 2], zr))
+    assert len(np.unique(h.batched_colors, axis=0)) > 20  # not one colour for the whole map
+    assert f"{abs(zr[0]):.2f} m" in v.controls.legend.content and f"{zr[1]:.2f} m" in v.controls.legend.content
     assert v.layer_visible("gaussians")
     assert v.url.startswith("http://127.0.0.1:") and v.port == v.server.get_port() > 0
     assert "Gaussians" in v.controls.stats.content and "Level of detail" in v.controls.stats.content
@@ -187,13 +193,13 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     from viser import GaussianSplatHandle
 
     v = make_viewer(m)
-    occ_colors = np.array(v._handles["gaussians"].batched_colors)
-    v.controls.color_mode.value = "height"
+    height_colors = np.array(v._handles["gaussians"].batched_colors)
+    v.controls.color_mode.value = "occupancy"  # one click away
     g = m.gaussians(min_probability=0.5)
-    expected = geo.height_colors(g["mean"][:, 2], v.drawn["zrange"])
+    expected = geo.occupancy_colors(g["p_occ"])
     assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
-    assert not np.array_equal(expected, occ_colors)
-    assert "height" in v.controls.legend.content
+    assert not np.array_equal(expected, height_colors)
+    assert "occupancy probability" in v.controls.legend.content and "height of" not in v.controls.legend.content
     v.controls.geometry.value = "splats"
     assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
 
@@ -261,23 +267,22 @@ def test_live_pause_stops_mapping(room_scans, make_viewer):
 
 def test_slow_drawing_does_not_stall_mapping(room_scans, make_viewer, monkeypatch):
     v = make_viewer()
-    drawn = []
+    gate = threading.Event()  # a redraw that cannot finish until mapping is done
+    started = threading.Event()
     real = v.refresh
 
-    def slow_refresh():
-        drawn.append(time.perf_counter())
-        time.sleep(0.6)
+    def stuck_refresh():
+        started.set()
+        gate.wait(60)
         real()
 
-    monkeypatch.setattr(v, "refresh", slow_refresh)
     lm = v.live(room_scans, NdtOmMap(RES), refresh_interval=0.05)
-    t0 = time.perf_counter()
+    monkeypatch.setattr(v, "refresh", stuck_refresh)
     lm.play()
-    assert lm.wait(timeout=60)
-    elapsed = time.perf_counter() - t0
-    # mapping went on while the (0.6 s) redraws ran: drawing 12 times in turn would take 7 s
-    starts = [t for t in drawn if t >= t0]
-    assert lm.scans_done == len(room_scans) and elapsed < 2.5 and len(starts) <= 4
+    # mapping reaches the end while the first redraw is still stuck
+    assert lm.wait(timeout=60) and started.is_set() and not gate.is_set()
+    assert lm.scans_done == len(room_scans)
+    gate.set()
     lm.stop()
 
 
@@ -477,21 +482,185 @@ def test_no_free_map_slot_is_said_on_screen(maps, make_viewer):
     assert v.level == 2
 
 
-def test_live_commands_map_until_stopped_and_save(monkeypatch, tmp_path, capsys):
+# ---------------------------------------------------------------------------- what a static map offers
+
+
+def test_layers_are_offered_only_when_the_map_has_them(maps, make_viewer, room_scans):
+    m, r = maps
+    v = make_viewer(m)
+    boxes = v.controls.layers
+    # a map file holds no trajectory, no latest scan and no comparison map
+    assert not boxes["trajectory"].visible and not boxes["scan"].visible and not boxes["conflicts"].visible
+    assert not v.controls.point_size.visible  # it sizes the latest scan's points only
+    assert boxes["gaussians"].visible and boxes["occupied"].visible and boxes["free"].visible
+    assert not boxes["free"].value  # free cells: off until ticked
+    assert "trajectory" not in v.controls.legend.content and "conflicting" not in v.controls.legend.content
+    # with a comparison map: conflicting cells offered
+    assert make_viewer(m, compare=r).controls.layers["conflicts"].visible
+    # live mapping: the trajectory and latest scan (and the point size) appear
+    lv = make_viewer()
+    lm = lv.live(room_scans[:2], NdtOmMap(RES), refresh_interval=0.05)
+    lm.step(2)
+    assert lm.wait_scans(2, timeout=30)
+    for _ in range(100):
+        if lv.controls.layers["trajectory"].visible:
+            break
+        time.sleep(0.05)
+    assert lv.controls.layers["trajectory"].visible and lv.controls.layers["scan"].visible
+    assert lv.controls.point_size.visible
+    lm.stop()
+
+
+def test_free_cells_are_translucent_boxes(maps, make_viewer):
+    from ndtom_ti.viewer.app import FREE_OPACITY
+
+    m, _ = maps
+    v = make_viewer(m)
+    v.controls.layers["free"].value = True
+    h = v._handles["free"]
+    assert 0.0 < h.opacity == FREE_OPACITY <= 0.3
+    assert len(h.batched_positions) == v.drawn["free"] > 0
+    assert "free cells" in v.controls.legend.content
+
+
+def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    g = m.gaussians(min_probability=0.5)
+    z = g["mean"][:, 2]
+    zlo, zhi = v._zlimits
+    assert zlo <= z.min() and zhi >= z.max()
+    assert tuple(v.controls.zclip.value) == (zlo, zhi) and v.drawn["clip"] is None
+    v.controls.zclip.value = (zlo, 1.0)  # below the room's ceiling and the walls' tops
+    expected = int(((z >= zlo) & (z <= 1.0)).sum())
+    assert v.drawn["gaussians"] == expected < len(z)
+    assert (np.asarray(v._handles["gaussians"].batched_positions)[:, 2] <= 1.0).all()
+    assert v.drawn["zrange"] == geo.height_range(z)  # colours stay those of the whole map
+    assert "Height clip" in v.controls.legend.content and "between" in v.controls.stats.content
+    v.controls.layers["occupied"].value = True
+    assert (np.asarray(v._handles["occupied"].points)[:, 2] <= 1.0 + RES).all()
+    v.controls.zclip.value = (zlo, zhi)
+    assert v.drawn["gaussians"] == len(z)
+
+
+def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
+    m, _ = maps
+    v = make_viewer(m)
+    g = m.gaussians(min_probability=0.5)
+    lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
+    pos, look = (np.array(x) for x in v._camera_for(np.radians(50.0), 0.75))
+    assert np.all(np.abs(look - (lo + hi) / 2) < 0.1 * (hi - lo) + 1e-6)  # looks at the map's middle
+    assert pos[2] > hi[2]  # from above
+    # a narrow view steps back further than a wide one (the whole map stays in view)
+    narrow, wide = (np.linalg.norm(np.array(v._camera_for(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))
+    assert narrow > 1.5 * wide
+
+    class FakeCamera:
+        fov, aspect = np.radians(50.0), 0.5
+
+        def __init__(self):
+            self.__dict__["moved"] = []
+
+        def __setattr__(self, k, val):
+            self.moved.append((k, tuple(val)))
+
+    cam = FakeCamera()
+
+    class FakeClient:
+        camera = cam
+
+    v.server.get_clients = lambda: {0: FakeClient()}
+    v.controls.frame.value = True  # a click
+    expected = v._camera_for(np.radians(50.0), 0.5)
+    assert cam.moved == [("position", expected[0]), ("look_at", expected[1])]
+
+
+def test_every_geometry_is_capped_with_a_notice(maps, make_viewer):
+    m, _ = maps
+    n = len(m.gaussians(min_probability=0.5)["n"])
+    # chosen by hand too, too many ellipsoids: a coarser level that fits, said at the top
+    v = make_viewer(m, max_ellipsoids=300, max_splats=600)
+    v.controls.geometry.value = "ellipsoids"
+    assert v.level >= 2 and 0 < v.drawn["gaussians"] <= 300 and v.drawn["geometry"] == "ellipsoids"
+    assert v.controls.notice.visible and "coarser level" in v.controls.notice.content
+    v.controls.geometry.value = "splats"
+    assert v.level >= 2 and 300 < v.drawn["gaussians"] <= 600
+    # even the coarsest level exceeds the cap: an even subsample of it, said at the top
+    tiny = make_viewer(m, max_ellipsoids=20, max_splats=20)
+    assert tiny.drawn["gaussians"] == 20 < tiny.drawn["gaussians_total"]
+    assert len(tiny._handles["gaussians"].centers) == 20 and "showing an even 20" in tiny.controls.notice.content
+    big = make_viewer(m)
+    assert big.drawn["gaussians"] == n and big.level == 1 and not big.controls.notice.visible
+
+
+def test_html_snapshot_is_written_atomically(map_file, tmp_path, capsys, monkeypatch):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+    from ndtom_ti.viewer.app import MapViewer
+
+    out = tmp_path / "snap.html"
+    out.write_text("previous snapshot")
+    real = MapViewer.save_html
+
+    def full_disk(self, path):
+        import os as _os
+
+        def fail(*a, **k):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(_os, "fsync", fail)
+        try:
+            return real(self, path)
+        finally:
+            monkeypatch.undo()
+
+    monkeypatch.setattr(MapViewer, "save_html", full_disk)
+    assert cli.view_command(map_file, "127.0.0.1", 0, out) == 1
+    assert out.read_text() == "previous snapshot"  # the old snapshot survives
+    assert [p.name for p in tmp_path.iterdir()] == ["snap.html"]  # no temporary file left
+    err = capsys.readouterr().err
+    assert "No space left" in err and "unchanged" in err
+    monkeypatch.setattr(MapViewer, "save_html", real)
+    assert cli.view_command(map_file, "127.0.0.1", 0, out) == 0
+    text = capsys.readouterr().out
+    assert f"Wrote {out.resolve()}" in text and out.resolve().as_uri() in text
+    assert "http://" not in text  # no URL of a server that is gone
+    assert out.stat().st_size > 10_000
+
+
+def test_view_says_what_it_does_while_a_map_loads(map_file, monkeypatch, capsys):
     pytest.importorskip("viser")
     from ndtom_ti.viewer import cli
 
-    def block(viewer):  # the person watching presses Ctrl-C once mapping is done
-        assert viewer.live_mapper.wait(timeout=60)
+    real_load = cli._load
+    ticks = threading.Event()
 
-    monkeypatch.setattr(cli, "_block", block)
-    out = tmp_path / "live.ndtom"
-    scans = make_scans(4, rings=8, per_ring=120)
-    assert cli.live_command(scans, RES, "127.0.0.1", 0, total=len(scans), save=out) == 0
-    text = capsys.readouterr().out
-    assert "NDT-OM viewer: http://127.0.0.1:" in text and f"Wrote {out} (4 scans)" in text
-    saved = NdtOmMap.load(out)
-    assert saved.scans_inserted == 4 and len(saved) > 0
-    del saved
-    monkeypatch.setattr("ndtom_ti.demo.make_scans", lambda n: make_scans(3, rings=4, per_ring=60))
-    assert cli.live_demo_command("127.0.0.1", 0, rate_hz=0.0) == 0
+    def slow_load(path, what="map"):  # a big map: the load outlasts one tick
+        assert ticks.wait(30)
+        return real_load(path, what)
+
+    real_ticking = cli._ticking
+    monkeypatch.setattr(cli, "_load", slow_load)
+
+    def fast_ticking(what, every=10.0):
+        return real_ticking(what, every=0.05)
+
+    real_say = cli._say
+
+    def say(line):
+        real_say(line)
+        if "loading (" in line:
+            ticks.set()
+
+    monkeypatch.setattr(cli, "_ticking", fast_ticking)
+    monkeypatch.setattr(cli, "_say", say)
+    seen = []
+    monkeypatch.setattr(cli, "_block", lambda viewer: seen.append(viewer.url))
+    assert cli.view_command(map_file, "127.0.0.1", 0, None) == 0
+    out = capsys.readouterr().out.splitlines()
+    first = [i for i, line in enumerate(out) if line.startswith("Loading ")]
+    tick = [i for i, line in enumerate(out) if "... loading (" in line]
+    url = [i for i, line in enumerate(out) if line.startswith("NDT-OM viewer: http://127.0.0.1:")]
+    assert first and tick and url and first[0] < tick[0] < url[0], out
+    assert any(line.startswith("Loaded ") and "Gaussians" in line for line in out)
+    assert seen and url and seen[0] in out[url[0]]  # the URL is printed once it serves

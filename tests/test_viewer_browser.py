@@ -31,6 +31,7 @@ if not CHROMIUM.exists():
     )
 pytest.importorskip("viser", reason="the viewer needs viser: pip install ndtom_ti[viewer]")
 sync_api = pytest.importorskip("playwright.sync_api", reason="browser tests need playwright: pip install playwright")
+viser = pytest.importorskip("viser")
 
 from ndtom_ti.viewer import MapViewer
 from ndtom_ti.viewer import geometry as geo
@@ -148,58 +149,118 @@ def _hue_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(d, 360.0 - d).min(axis=1)
 
 
-def test_small_map_renders_in_occupancy_colours_and_controls_change_it(page, room, viewers):
-    v = _viewer(viewers, room)
-    client = _connect(page, v)
-    img = _render_until(client, lambda im: _drawn(im) > 3000)
-    assert _drawn(img) > 3000, "the map's Gaussians are not drawn"
+CANVAS_JS = """() => {
+    const cs = [...document.querySelectorAll('canvas')];
+    if (!cs.length) return null;
+    cs.sort((a, b) => b.width * b.height - a.width * a.height);
+    const c = cs[0]; const r = c.getBoundingClientRect();
+    const W = Math.round(r.width), H = Math.round(r.height);
+    const o = document.createElement('canvas'); o.width = W; o.height = H;
+    const g = o.getContext('2d'); g.drawImage(c, 0, 0, W, H);
+    const d = g.getImageData(0, 0, W, H).data; let n = 0, x0 = W, x1 = -1, y0 = H, y1 = -1;
+    for (let y = 0; y < H; y++) for (let x = 0; x < W; x++) if (d[(y * W + x) * 4 + 3] > 0) {
+        n++; x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y); }
+    return {drawn: n, width: W, height: H, box: x1 < 0 ? 0 : (x1 - x0 + 1) * (y1 - y0 + 1),
+            box_w: x1 < 0 ? 0 : x1 - x0 + 1, page: innerWidth * innerHeight}; }"""
 
-    # the colours drawn are the occupancy colours of the map's Gaussians (lighting changes
-    # brightness, not hue): nearly every coloured pixel has one of their hues
+
+def _canvas(page, pred=lambda c: True, timeout: float = 25.0) -> dict:
+    """What the page's scene canvas shows (drawn pixels, their bounding box), once ``pred``."""
+    t_end = time.monotonic() + timeout
+    c = page.evaluate(CANVAS_JS)
+    while (c is None or not pred(c)) and time.monotonic() < t_end:
+        time.sleep(0.3)
+        c = page.evaluate(CANVAS_JS)
+    return c
+
+
+@pytest.fixture
+def small_page(browser):
+    ctx = browser.new_context(viewport={"width": 640, "height": 480})
+    p = ctx.new_page()
+    yield p
+    ctx.close()
+
+
+def test_map_fills_a_640x480_page_in_height_colours(small_page, room, viewers):
+    page = small_page
+    # negative control: an empty map draws nothing in the same page size
+    empty = _viewer(viewers, NdtOmMap(RES))
+    page.goto(empty.url)
+    c = _canvas(page, lambda c: c["width"] > 0)
+    time.sleep(1.5)
+    assert page.evaluate(CANVAS_JS)["drawn"] == 0
+
+    v = _viewer(viewers, room)
+    page.goto(v.url)
+    c = _canvas(page, lambda c: c["drawn"] > 5000)
+    # the map, framed at once, fills most of the scene's width beside the panel and a good
+    # part of the page (with no camera moved by the test)
+    assert c["box_w"] > 0.75 * c["width"], c
+    assert c["box"] > 0.2 * c["page"] and c["drawn"] > 0.04 * c["page"], c
+    assert c["width"] < 640  # the panel is docked beside the scene, not over it
+
+    # coloured by height: the pixels carry the height colours of the map's Gaussians, several hues of them
+    client = next(iter(v.server.get_clients().values()))
+    img = _render_until(client, lambda im: _drawn(im) > 3000)
     g = room.gaussians(min_probability=0.5)
-    expected = _hues(np.unique(geo.occupancy_colors(g["p_occ"]), axis=0))
+    expected = _hues(np.unique(geo.height_colors(g["mean"][:, 2], v.drawn["zrange"]), axis=0))
     hues = _saturated_pixel_hues(img)
     assert len(hues) > 1000
-    near = _hue_distance(hues, expected) < 12.0
-    assert near.mean() > 0.9, f"only {near.mean():.0%} of the pixels have an occupancy colour"
-    most = _hues(geo.occupancy_colors(np.array([np.median(g["p_occ"])])))
-    assert (_hue_distance(hues, most) < 12.0).mean() > 0.3  # the typical cell's colour dominates
-    assert (_hue_distance(hues, _hues(np.array(geo.CONFLICT_RGB))) < 12.0).mean() < 0.01  # no magenta here
-
-    # layer toggle, clicked in the page: the Gaussians go (0 drawn pixels) and come back
-    page.get_by_label("Gaussians", exact=True).click()
-    assert _wait(lambda: not v.layer_visible("gaussians"))
-    off = _render_until(client, lambda im: _drawn(im) == 0)
-    assert _drawn(off) == 0
-    page.get_by_label("Gaussians", exact=True).click()
-    assert _wait(lambda: v.layer_visible("gaussians"))
-    back = _render_until(client, lambda im: _drawn(im) > 3000)
-    assert abs(_drawn(back) - _drawn(img)) < 0.05 * _drawn(img)
-
-    # resolution selector, chosen in the page: the 2x level draws fewer, larger ellipsoids
-    page.get_by_label("Resolution").click()
-    page.get_by_role("option", name="1 m (2x)").click()
-    assert _wait(lambda: v.level == 2 and v.drawn["gaussians"] < len(g["n"]))
-    before = back[..., 3] > 0
-
-    def changed(im):
-        mask = im[..., 3] > 0
-        return mask.sum() > 1000 and (mask ^ before).mean() > 0.03
-
-    coarse = _render_until(client, changed)
-    assert changed(coarse), "switching the resolution did not change what is drawn"
+    near = _hue_distance(hues, expected) < 15.0
+    assert near.mean() > 0.85, f"only {near.mean():.0%} of the pixels have a height colour"
+    bins = np.histogram(hues, bins=6, range=(0, 360))[0]
+    assert (bins > 0.03 * len(hues)).sum() >= 3, f"one colour for the whole map: hue histogram {bins}"
+    sync_api.expect(page.get_by_text("Colour: height of the Gaussian's mean")).to_be_visible()
 
 
-def test_empty_map_draws_nothing(page, room, viewers):
-    v = _viewer(viewers, NdtOmMap(RES))
-    client = _connect(page, v)
-    assert v.drawn["gaussians"] == 0
-    assert _drawn(_render(client)) == 0
-    time.sleep(1.0)
-    assert _drawn(_render(client)) == 0
-    # control: the same page draws as soon as the map has content
-    v.set_maps(room)
-    assert _drawn(_render_until(client, lambda im: _drawn(im) > 3000)) > 3000
+def test_controls_a_person_uses(small_page, room, viewers):
+    page = small_page
+    v = _viewer(viewers, room)
+    page.goto(v.url)
+    full = _canvas(page, lambda c: c["drawn"] > 5000)
+    # a map file has no trajectory, latest scan or comparison map: not offered; free cells off
+    sync_api.expect(page.get_by_label("Gaussians", exact=True)).to_be_checked()
+    assert page.get_by_label("Trajectory", exact=True).count() == 0
+    assert page.get_by_label("Latest scan", exact=True).count() == 0
+    assert page.get_by_label("Conflicting cells", exact=True).count() == 0
+    assert not page.get_by_label("Free cells", exact=True).is_checked()
+
+    # the camera taken far away, then "Frame the map" brings the whole map back
+    client = next(iter(v.server.get_clients().values()))
+    client.camera.position = (400.0, -400.0, 300.0)
+    far = _canvas(page, lambda c: c["drawn"] < 0.2 * full["drawn"])
+    assert far["drawn"] < 0.2 * full["drawn"]
+    page.get_by_role("button", name="Frame the map").click()
+    back = _canvas(page, lambda c: c["box_w"] > 0.75 * c["width"] and c["drawn"] > 0.5 * full["drawn"])
+    assert back["box_w"] > 0.75 * back["width"] and back["drawn"] > 0.5 * full["drawn"], (full, back)
+
+    # the height clip keeps the floor only: the walls go, far fewer pixels
+    lo, _ = v._zlimits
+    v.controls.zclip.value = (lo, 0.3)
+    clipped = _canvas(page, lambda c: c["drawn"] < 0.7 * back["drawn"])
+    assert 0 < clipped["drawn"] < 0.7 * back["drawn"], (back, clipped)
+    sync_api.expect(page.get_by_text(re.compile(r"Height clip: .* to 0\.30 m"))).to_be_visible()
+
+
+def test_a_token_viewer_opens_from_its_url_and_refuses_a_foreign_page(page, room, viewers):
+    v = _viewer(viewers, room, token="browser-test-token")
+    client = _connect(page, v)  # the printed URL, token included: the page and its WebSocket get in
+    assert client is not None and len(v.server.get_clients()) == 1
+    # a page of another origin (another viewer, another port) tries the first viewer's WebSocket
+    other = _viewer(viewers, NdtOmMap(RES))
+    page2 = page.context.new_page()
+    page2.goto(other.url)
+    js = """(url) => new Promise((done) => {
+        const ws = new WebSocket(url, ["viser-vVERSION"]);
+        ws.onopen = () => done("open"); ws.onerror = () => done("refused");
+        setTimeout(() => done("timeout"), 8000); })""".replace("VERSION", viser.__version__)
+    refused_before = v.guard.refused
+    assert page2.evaluate(js, f"ws://127.0.0.1:{v.port}") == "refused"
+    assert v.guard.refused > refused_before and len(v.server.get_clients()) == 1
+    # the same request from the viewer's own page opens (positive control)
+    assert page.evaluate(js, f"ws://127.0.0.1:{v.port}") == "open"
+    page2.close()
 
 
 def test_play_button_advances_live_mapping(page, room_scans, viewers):
@@ -222,6 +283,9 @@ def test_play_button_advances_live_mapping(page, room_scans, viewers):
         time.sleep(0.1)
     assert len(room_scans) in seen and len(seen - {0}) >= 2, f"counter values seen: {sorted(seen)}"
     assert lm.wait(timeout=10) and lm.scans_done == len(room_scans)
+    # nothing left to play: the buttons say so in the page
+    for name in ("Play", "Pause", "Step"):
+        sync_api.expect(page.get_by_role("button", name=name)).to_be_disabled(timeout=10_000)
     # the map built live is drawn, with its conflicting cells (the box taken away)
     assert _wait(lambda: v.drawn.get("trajectory") == len(room_scans))
     assert v.drawn["gaussians"] > 1000 and v.drawn["conflicts"] > 0

@@ -10,15 +10,23 @@ a worker thread. ``map_lock`` guards every read and write of the maps (Taichi ca
 serialised by it; coarsened maps are made and dropped under it). Layers are rebuilt
 from numpy snapshots outside that lock, one rebuild at a time, and swapped in one
 ``server.atomic()`` step.
+
+Security: every HTTP request and WebSocket upgrade passes the Host/Origin checks of
+:mod:`.security`; beyond loopback the printed URL carries an access token.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
+import math
+import os
 import socket
+import tempfile
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +35,7 @@ import numpy as np
 
 from . import geometry as geo
 from ._deps import require_viser
+from .security import AccessGuard, guarded_server, primary_address
 
 if TYPE_CHECKING:
     from ndtom_ti import NdtOmMap
@@ -43,11 +52,13 @@ LAYERS = {  # key -> checkbox label
     "trajectory": "Trajectory",
     "scan": "Latest scan",
 }
-_DEFAULT_ON = {"gaussians", "conflicts", "trajectory", "scan"}
+_DEFAULT_ON = {"gaussians", "conflicts", "trajectory", "scan"}  # free cells stay off: they bury the scene
+_LIVE_LAYERS = ("trajectory", "scan")  # offered once live mapping runs (or a trajectory is set)
 FACTORS = (1, 2, 3, 4)  # resolution selector: native and coarser levels made with coarsen()
 _LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
-COLOR_MODES = ("occupancy", "height")
+COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
+FREE_OPACITY = 0.15  # free cells: translucent, so the scene shows through them
 
 
 def _fmt(n: int) -> str:
@@ -91,11 +102,12 @@ def warm_up(m: NdtOmMap | None) -> None:
         m.occupancy(np.zeros((1, 3)))
 
 
-def url_for(host: str, port: int) -> str:
-    shown = "127.0.0.1" if host in ("", "0.0.0.0") else host
+def url_for(host: str, port: int, token: str | None = None) -> str:
+    """The URL a browser opens: a wildcard bind is shown as this machine's address."""
+    shown = primary_address() if host in ("", "0.0.0.0", "::") else host
     if ":" in shown and not shown.startswith("["):
         shown = f"[{shown}]"
-    return f"http://{shown}:{port}"
+    return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
 
 
 @dataclass
@@ -110,6 +122,9 @@ class Controls:
     layers: dict = field(default_factory=dict)  # layer key -> checkbox
     legend: Any = None
     stats: Any = None
+    notice: Any = None
+    frame: Any = None
+    zclip: Any = None
     # live mapping (made by ``MapViewer.live``)
     live_folder: Any = None
     play: Any = None
@@ -129,11 +144,25 @@ class MapViewer:
     picks a free port (``viewer.port`` / ``viewer.url`` give the real one; a busy port
     makes viser use the next free one, which is printed).
 
-    Level of detail (``geometry="auto"``): up to ``max_ellipsoids`` Gaussians are drawn
-    as ellipsoids, up to ``max_splats`` as splats, and past that the viewer draws the
-    first coarser level (2x .. 8x, made with ``coarsen``) that fits in ``max_splats``.
-    Free and occupied cells are capped at ``max_free_cells`` / ``max_occupied_cells``
-    (an even subsample); the caps are stated on screen.
+    Colours: by height (a legend fitted to the map's heights) or by occupancy. Layers
+    are offered only when the map has them (conflicting cells with ``compare``, the
+    trajectory and the latest scan while mapping live); free cells are off until ticked
+    and drawn translucent. A height clip hides what is above or below a band (a hall's
+    roof), and "Frame the map" returns the camera to the first view.
+
+    Level of detail: "auto" draws up to ``max_ellipsoids`` Gaussians as ellipsoids, up to
+    ``max_splats`` as splats; past the cap of the geometry in use the viewer draws the
+    first coarser level (2x .. 8x, made with ``coarsen``) that fits, and what still
+    exceeds it is subsampled evenly. Free and occupied cells are capped at
+    ``max_free_cells`` / ``max_occupied_cells``. Every cap that applies is stated at the
+    top of the panel. The defaults keep the page responsive with software WebGL (a
+    2-core machine without GPU drew 20,000 splats at ~50 frames/s idle, 4,000 ellipsoids
+    of 80 faces each at a few); with a GPU they can be raised several times.
+
+    Access: only pages of the viewer itself may connect (Host and Origin checks, see
+    :mod:`ndtom_ti.viewer.security`); a ``host`` beyond loopback also needs the access
+    token in ``viewer.url``. ``progress(line)`` receives what the viewer is doing while a
+    big map is prepared (``verbose`` prints it).
 
     Usable from a script or a notebook: the server runs in background threads; call
     :meth:`wait` to block until Ctrl-C, :meth:`close` to stop.
@@ -148,15 +177,18 @@ class MapViewer:
         port: int = 0,
         label: str = "NDT-OM map",
         threshold: float = 0.5,
-        color_mode: str = "occupancy",
+        color_mode: str = "height",
         geometry: str = "auto",
-        max_ellipsoids: int = 20_000,
-        max_splats: int = 200_000,
-        max_free_cells: int = 50_000,
-        max_occupied_cells: int = 200_000,
+        max_ellipsoids: int = 4_000,
+        max_splats: int = 20_000,
+        max_free_cells: int = 20_000,
+        max_occupied_cells: int = 100_000,
         cache_size: int = 2,
         environment_map: bool = True,
         verbose: bool = True,
+        progress: Callable[[str], None] | None = None,
+        token: str | None = None,
+        allowed_hosts: tuple[str, ...] = (),
     ):
         viser = require_viser()
         if color_mode not in COLOR_MODES:
@@ -177,6 +209,9 @@ class MapViewer:
         self.max_occupied_cells = int(max_occupied_cells)
         self.cache_size = max(int(cache_size), 0)
         self.verbose = verbose
+        if progress is None and verbose:
+            progress = lambda line: print(line, flush=True)
+        self._progress = progress
 
         self.map_lock = threading.RLock()  # every map access (Taichi) goes through it
         self._scene_lock = threading.RLock()  # one layer rebuild at a time
@@ -189,6 +224,8 @@ class MapViewer:
         self._handles: dict[str, Any] = {}
         self._trajectory = np.zeros((0, 3), np.float64)
         self._scan_world = np.zeros((0, 3), np.float32)
+        self._live_layers = False
+        self._zlimits: tuple[float, float] | None = None  # range of the height clip slider
         self._framed = False
         self._closed = False
         self.live_mapper: LiveMapper | None = None
@@ -199,10 +236,14 @@ class MapViewer:
             warm_up(m)
             warm_up(compare)
 
-        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=verbose)
+        self.guard = AccessGuard(host, token=token, allowed_hosts=allowed_hosts)
+        # viser's own messages (a URL without the token, "server stopped") stay off: the viewer
+        # prints a URL that works
+        with guarded_server(self.guard), contextlib.redirect_stdout(io.StringIO()):
+            self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
         self.host = host
         self.port = int(self.server.get_port())
-        self.url = url_for(host, self.port)
+        self.url = url_for(host, self.port, self.guard.token)
         self.port_note = ""
         if port and self.port != port:
             why = "in use" if not port_free else "not available"
@@ -214,18 +255,44 @@ class MapViewer:
             scene.configure_environment_map(hdri=None)
             scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255),
                                        ground_color=(160, 160, 160), intensity=1.2)  # fmt: skip
-        if verbose:
-            if self.port_note:
-                print(f"Note: {self.port_note}", flush=True)
-            print(f"NDT-OM viewer: {self.url}", flush=True)
+        # no "share" button: it would send the map to a public relay
+        self.server.gui.configure_theme(show_share_button=False)
+        # the panel docked at the right edge: the scene is drawn beside it, never under it
+        with contextlib.suppress(AttributeError):
+            self.server.gui.main_panel.dock_right()
+            self.server.gui.main_panel.set_width(280)
 
         self.controls = Controls()
         try:
             self._build_gui(threshold=float(threshold), color_mode=color_mode, geometry=geometry)
+            if m is not None and len(m) and verbose:
+                self._say(f"Preparing the scene: {_fmt(len(m))} Gaussians at {m.resolution:g} m ...")
             self.refresh()
         except BaseException:
             self.close()
             raise
+        if verbose:
+            self.announce()
+
+    def _say(self, line: str) -> None:
+        if self._progress is not None:
+            self._progress(line)
+
+    def announce(self) -> None:
+        """Print where the viewer serves (and, beyond loopback, a warning)."""
+        for note in self.drawn.get("notes", ()):
+            self._say(f"Note: {note}")
+        if self.port_note:
+            self._say(f"Note: {self.port_note}")
+        if not self.guard.loopback:
+            self._say(
+                f"WARNING: the viewer listens on {self.host}, beyond this machine: anyone who can reach "
+                f"port {self.port} and has the URL below (with its access token) can see the map and "
+                "use the controls. Use --host 127.0.0.1 to keep it on this machine."
+            )
+        self._say(f"NDT-OM viewer: {self.url}")
+        if self.host in ("", "0.0.0.0", "::"):
+            self._say(f"  (on this machine also: {url_for('127.0.0.1', self.port, self.guard.token)})")
 
     # ------------------------------------------------------------------ public API
 
@@ -248,6 +315,10 @@ class MapViewer:
             self._maps = {"ndtom": m, "rndt": compare}
             self._cache.clear()
         self._framed = False
+        self._zlimits = None
+        c = self.controls
+        if "conflicts" in c.layers:
+            c.layers["conflicts"].visible = compare is not None
         self._update_resolution_options()
         self.refresh()
 
@@ -256,6 +327,20 @@ class MapViewer:
         pos = np.asarray(positions, np.float64).reshape(-1, 3)
         with self._live_lock:
             self._trajectory = pos.copy()
+        if len(pos):
+            self.offer_live_layers()
+
+    def offer_live_layers(self) -> None:
+        """Show the Trajectory and Latest scan checkboxes (and the point size slider)."""
+        if self._live_layers:
+            return
+        self._live_layers = True
+        c = self.controls
+        for key in _LIVE_LAYERS:
+            if key in c.layers:
+                c.layers[key].visible = True
+        if c.point_size is not None:
+            c.point_size.visible = True
 
     def set_scan(self, points_world: Any) -> None:
         """Points (N, 3) in the world frame, drawn as the latest scan."""
@@ -273,12 +358,27 @@ class MapViewer:
         return bool(h is not None and h.visible)
 
     def save_html(self, path: str | Path) -> Path:
-        """Write a standalone HTML page of the current scene (``scene.as_html()``)."""
+        """Write a standalone HTML page of the current scene (``scene.as_html()``), atomically:
+        a failed write (full disk) leaves an existing file as it was."""
         path = Path(path)
-        if str(path.parent) and not path.parent.is_dir():
-            raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
-        html = self.server.scene.as_html()
-        path.write_text(html, encoding="utf-8")
+        folder = path.parent if str(path.parent) else Path(".")
+        if not folder.is_dir():
+            raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
+        if path.exists() and not path.is_file():
+            raise IsADirectoryError(f"cannot write {path}: it exists and is not a regular file")
+        data = self.server.scene.as_html().encode("utf-8")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
         return path
 
     def live(
@@ -292,6 +392,7 @@ class MapViewer:
         refresh_interval: float = 0.5,
         max_scan_points: int = 50_000,
         rate_hz: float = 0.0,
+        **pacing: Any,
     ) -> LiveMapper:
         """Build ``m`` (default: this viewer's map) from ``scans`` in a worker thread and
         watch it grow: Play / Pause / Step, a scan counter and a chart of time per scan.
@@ -301,6 +402,8 @@ class MapViewer:
         ``compare=True`` also builds a Recursive NDT map (``occupancy=False``, same
         resolution and config) for the "Conflicting cells" layer; or pass such a map.
         ``rate_hz``: at most this many scans per second (0: as fast as mapping goes).
+        ``pacing``: ``speed`` (x the recording's rate, from the scans' ``stamp_ns``),
+        ``max_gap_s``, ``on_scan``, ``clock``, ``sleep``: see :class:`LiveMapper`.
         """
         from .live import LiveMapper
 
@@ -308,7 +411,7 @@ class MapViewer:
             self.live_mapper.stop()
         lm = LiveMapper(
             self, scans, m if m is not None else self.map, compare=compare, total=total,
-            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz,
+            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz, **pacing,
         )  # fmt: skip
         self.live_mapper = lm
         if play:
@@ -339,8 +442,8 @@ class MapViewer:
             if lm is not None:  # GUI callbacks may keep it alive: let go of the maps now
                 lm.map = lm.compare = None
         self.live_mapper = None
-        with contextlib.suppress(Exception):  # stopping twice or during interpreter teardown
-            self.server.stop()
+        with contextlib.suppress(Exception), contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()  # (quietly: stopping twice or during interpreter teardown)
 
     stop = close
 
@@ -387,37 +490,92 @@ class MapViewer:
         gui = self.server.gui
         c = self.controls
         labels, self._level_lookup = self._level_options()
+        c.notice = gui.add_markdown("", visible=False)  # caps and subsampling, where they apply
+        c.frame = gui.add_button("Frame the map", hint="move the camera back to the first view of the whole map")
         with gui.add_folder("Map"):
-            c.resolution = gui.add_dropdown(
-                "Resolution", labels, initial_value=labels[0],
-                hint="native resolution, or a coarser level made on demand (NdtOmMap.coarsen)",
+            c.color_mode = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=color_mode,
+                                            hint="height of the Gaussian's mean, or its occupancy probability")  # fmt: skip
+            c.zclip = gui.add_multi_slider(
+                "Height clip (m)", min=0.0, max=1.0, step=0.05, initial_value=(0.0, 1.0),
+                hint="draw only what lies between these heights (e.g. below a hall's roof)",
             )  # fmt: skip
             c.threshold = gui.add_slider(
                 "Occupancy threshold", min=0.5, max=0.99, step=0.01, initial_value=threshold,
                 hint="draw Gaussians and occupied cells with occupancy probability above this",
             )  # fmt: skip
-            c.color_mode = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=color_mode)
+            c.resolution = gui.add_dropdown(
+                "Resolution", labels, initial_value=labels[0],
+                hint="native resolution, or a coarser level made on demand (NdtOmMap.coarsen)",
+            )  # fmt: skip
             c.geometry = gui.add_dropdown(
                 "Gaussians as", GEOMETRIES, initial_value=geometry,
                 hint=f"auto: ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, splats up to "
                 f"{_fmt(self.max_splats)}, then a coarser level",
             )  # fmt: skip
             c.point_size = gui.add_slider("Point size", min=0.005, max=0.5, step=0.005, initial_value=0.03,
-                                          hint="size (m) of the latest scan's points")  # fmt: skip
+                                          hint="size (m) of the latest scan's points",
+                                          visible=self._live_layers)  # fmt: skip
+        c.legend = gui.add_html("")
         with gui.add_folder("Layers"):
             for key, lab in LAYERS.items():
-                c.layers[key] = gui.add_checkbox(lab, key in _DEFAULT_ON)
-        c.legend = gui.add_html("")
-        with gui.add_folder("Statistics"):
+                offered = key not in _LIVE_LAYERS or self._live_layers
+                if key == "conflicts":
+                    offered = self.compare is not None
+                c.layers[key] = gui.add_checkbox(lab, key in _DEFAULT_ON, visible=offered)
+        with gui.add_folder("Statistics", expand_by_default=False):
             c.stats = gui.add_markdown("")
 
         c.resolution.on_update(lambda _: self.request_refresh())
         c.threshold.on_update(lambda _: self.request_refresh())
         c.color_mode.on_update(lambda _: self.request_refresh())
         c.geometry.on_update(lambda _: self.request_refresh())
+        c.zclip.on_update(lambda _: self._on_zclip())
         c.point_size.on_update(lambda _: self._on_point_size())
+        c.frame.on_click(lambda _: self.frame())
         for key, box in c.layers.items():
             box.on_update(lambda _, key=key: self._on_layer(key))
+
+    def _on_zclip(self) -> None:
+        if not getattr(self, "_setting_zclip", False):
+            self.request_refresh()
+
+    def _clip_range(self) -> tuple[float, float] | None:
+        """The height band to draw, or None when the clip spans the whole map."""
+        c = self.controls
+        if c.zclip is None or self._zlimits is None:
+            return None
+        lo, hi = (float(v) for v in c.zclip.value)
+        zlo, zhi = self._zlimits
+        if lo <= zlo and hi >= zhi:
+            return None
+        return lo, hi
+
+    def _update_zclip(self, z: np.ndarray, res: float) -> None:
+        """Fit the height clip slider to the map's heights (kept where the user moved it)."""
+        if len(z) == 0:
+            return
+        step = max(round(float(res) / 2.0, 3), 0.01)
+        zlo = float(np.floor(np.min(z) / step) * step)
+        zhi = float(np.ceil(np.max(z) / step) * step)
+        if zhi <= zlo:
+            zhi = zlo + step
+        old = self._zlimits
+        if old is not None and zlo >= old[0] and zhi <= old[1]:
+            return  # the map grew inside the range
+        c = self.controls
+        cur = tuple(float(v) for v in c.zclip.value)
+        full = old is None or (cur[0] <= old[0] and cur[1] >= old[1])
+        if old is not None:
+            zlo, zhi = min(zlo, old[0]), max(zhi, old[1])
+        self._zlimits = (zlo, zhi)
+        self._setting_zclip = True
+        try:
+            c.zclip.step = step
+            c.zclip.min = zlo
+            c.zclip.max = zhi
+            c.zclip.value = (zlo, zhi) if full else (max(cur[0], zlo), min(cur[1], zhi))
+        finally:
+            self._setting_zclip = False
 
     def _on_layer(self, key: str) -> None:
         on = bool(self.controls.layers[key].value)
@@ -478,12 +636,15 @@ class MapViewer:
             g = m.gaussians(min_probability=thr)
             factor = sel
             n_sel = len(g["n"])
-            if mode == "auto" and n_sel > self.max_splats:
-                # Estimate each coarser level's count from the parents of the drawn cells.
+            cap = self.max_ellipsoids if mode == "ellipsoids" else self.max_splats
+            if n_sel > cap:
+                # Too many to draw: the first coarser level that fits (its Gaussians are larger, so
+                # they stay visible from afar, where an even subsample of small ones fades out).
+                # Estimate each level's count from the parents of the drawn cells.
                 idx = g["index"]
                 choice = None
                 for f in _LOD_FACTORS:
-                    if len(np.unique(geo.cell_keys(idx // f))) <= self.max_splats:
+                    if len(np.unique(geo.cell_keys(idx // f))) <= cap:
                         choice = f
                         break
                 choice = choice or _LOD_FACTORS[-1]
@@ -493,11 +654,11 @@ class MapViewer:
                     del cm
                     g = m.gaussians(min_probability=thr)
                     out["notes"].append(
-                        f"{_fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {_fmt(self.max_splats)}: "
+                        f"{_fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {_fmt(cap)}: "
                         f"showing the {choice}x coarser level ({m.resolution:g} m)"
                     )
                 except (RuntimeError, MemoryError) as exc:
-                    out["notes"].append(f"a coarser level could not be made ({exc}): drawing all {_fmt(n_sel)}")
+                    out["notes"].append(f"a coarser level could not be made ({exc})")
             out.update(factor=factor, resolution=m.resolution, g=g, native_resolution=base.resolution)
             out["stats"] = {
                 "scans": base.scans_inserted,
@@ -597,6 +758,17 @@ class MapViewer:
             visible=visible,
         )  # fmt: skip
 
+    def _free_node(self, centers: np.ndarray, colors: np.ndarray, res: float, visible: bool) -> Any:
+        """Free cells as translucent boxes one cell wide: the scene stays visible through them."""
+        V, F = geo.unit_box()
+        n = len(centers)
+        return self.server.scene.add_batched_meshes_simple(
+            "/ndtom/free", V, F, batched_wxyzs=np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
+            batched_positions=centers.astype(np.float32), batched_scales=np.full((n, 3), 0.9 * res, np.float32),
+            batched_colors=colors, opacity=FREE_OPACITY, lod="off", cast_shadow=False, receive_shadow=False,
+            visible=visible,
+        )  # fmt: skip
+
     def _set(self, key: str, make: Any) -> None:
         """Replace layer ``key`` with ``make()`` (None: remove it)."""
         old = self._handles.pop(key, None)
@@ -616,14 +788,28 @@ class MapViewer:
         drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
                                  "notes": list(snap["notes"]), "skipped": list(snap["skipped"])}  # fmt: skip
         zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
-        zrange = geo.height_range(zsrc)
+        zrange = geo.height_range(zsrc)  # the legend fits the map's heights (not the clip)
+        self._update_zclip(zsrc, res)
+        clip = self._clip_range()
+        drawn["clip"] = clip
 
-        n_g = 0 if g is None else len(g["n"])
+        def inside(z: np.ndarray) -> np.ndarray:
+            return (z >= clip[0]) & (z <= clip[1])
+
+        if g is not None and clip is not None:
+            g = {k: v[inside(g["mean"][:, 2])] for k, v in g.items()}
+        n_all = 0 if g is None else len(g["n"])
         use = geometry
         if geometry == "auto":
-            use = "ellipsoids" if n_g <= self.max_ellipsoids else "splats"
-        elif geometry == "ellipsoids" and n_g > self.max_ellipsoids:
-            drawn["notes"].append(f"{_fmt(n_g)} ellipsoids: past {_fmt(self.max_ellipsoids)} the view may be slow")
+            use = "ellipsoids" if n_all <= self.max_ellipsoids else "splats"
+        cap = self.max_ellipsoids if use == "ellipsoids" else self.max_splats
+        if n_all > cap:
+            rows = geo.cap_rows(n_all, cap)
+            g = {k: v[rows] for k, v in g.items()}
+            drawn["notes"].append(f"{_fmt(n_all)} Gaussians to draw as {use}: showing an even {_fmt(len(rows))} "
+                                  f"of them (past {_fmt(cap)} the page stops responding){self._coarser_hint()}")  # fmt: skip
+        n_g = 0 if g is None else len(g["n"])
+        drawn["gaussians_total"] = n_all
         drawn["geometry"] = use
         drawn["zrange"] = zrange
 
@@ -638,7 +824,7 @@ class MapViewer:
                 self._set("gaussians", None)
             drawn["gaussians"] = n_g
 
-            # Occupied / free cells: square points one cell wide
+            # Occupied cells (square points one cell wide) and free cells (translucent boxes)
             for key in ("occupied", "free"):
                 if key in snap["skipped"]:
                     drawn[key] = self.drawn.get(key, 0) if key in self._handles else 0
@@ -646,11 +832,16 @@ class MapViewer:
                         self._handles[key].visible = False
                     continue
                 centers, p = snap[key]
+                if clip is not None:
+                    keep = inside(centers[:, 2])
+                    centers, p = centers[keep], p[keep]
                 if key == "free" and color_mode == "height":
                     cols = np.tile(np.array(geo.FREE_RGB, np.uint8), (len(p), 1))
                 else:
                     cols = geo.colors_for(color_mode, p, centers[:, 2], zrange)
-                if len(p):
+                if len(p) and key == "free":
+                    self._set(key, lambda centers=centers, cols=cols: self._free_node(centers, cols, res, want["free"]))
+                elif len(p):
                     self._set(key, lambda centers=centers, cols=cols, key=key: scene.add_point_cloud(
                         f"/ndtom/{key}", centers.astype(np.float32), cols, point_size=0.9 * res,
                         point_shape="square", precision="float32", visible=want[key]))  # fmt: skip
@@ -668,6 +859,9 @@ class MapViewer:
             # Conflicting cells: the comparison map's Gaussians where NDT-OM has none
             conf = snap.get("conflicts")
             if conf is not None:
+                if clip is not None:
+                    keep = inside(conf["mean"][:, 2])
+                    conf = {k: v[keep] for k, v in conf.items()}
                 n_c = len(conf["mean"])
                 if n_c:
                     V, F = geo.icosphere(1)
@@ -704,37 +898,72 @@ class MapViewer:
                 self._set("scan", None)
             drawn["scan"] = len(scan)
 
-            c.legend.content = geo.legend_html(color_mode, threshold=snap["threshold"], zrange=zrange,
-                                               conflicts=self.compare is not None)  # fmt: skip
+            c.legend.content = geo.legend_html(
+                color_mode, threshold=snap["threshold"], zrange=zrange, conflicts=self.compare is not None,
+                live=self._live_layers, free=want["free"], clip=clip,
+            )  # fmt: skip
             c.stats.content = self._stats_markdown(snap, drawn)
+            notes = drawn["notes"]
+            c.notice.content = "  \n".join(f"**Note**: {n}" for n in notes)
+            c.notice.visible = bool(notes)
             c.layers["conflicts"].disabled = self.compare is None
         self.drawn = drawn
         if not self._framed:
-            self._frame(g, traj)
+            self._frame(g if clip is None else snap.get("g"), traj)
+
+    def _coarser_hint(self) -> str:
+        return "; a coarser Resolution shows all of the map" if self._selected_factor() < FACTORS[-1] else ""
 
     def _frame(self, g: dict | None, traj: np.ndarray) -> None:
-        """Point the camera at the map once it has content."""
+        """Point the camera at the map once it has content: the whole map in view, seen
+        from above at an angle."""
         pts = g["mean"] if g is not None and len(g["n"]) else traj
         if len(pts) == 0:
             return
         lo, hi = np.percentile(pts, 1.0, axis=0), np.percentile(pts, 99.0, axis=0)
         center = (lo + hi) / 2.0
-        size = max(float(np.linalg.norm(hi - lo)), 2.0)
-        direction = np.array([-0.45, -0.75, 0.6])
-        self._view = (center + 0.8 * size * direction / np.linalg.norm(direction), center)
+        radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1.0)
+        direction = np.array([-0.45, -0.75, 0.8])
+        self._view = (center, radius, direction / np.linalg.norm(direction))
         cam = self.server.initial_camera
-        cam.position, cam.look_at = (tuple(float(x) for x in v) for v in self._view)
+        # pages start here: 75 degrees vertical (viser's), a view narrowed by the panel beside it
+        # (a page's first camera message comes before its layout: its size cannot be used yet)
+        cam.position, cam.look_at = self._camera_for(np.radians(75.0), 0.75)
+        with contextlib.suppress(AttributeError):
+            cam.up = (0.0, 0.0, 1.0)
         self._framed = True
         self.frame()
 
+    def _camera_for(self, fov: float, aspect: float) -> tuple[tuple, tuple]:
+        """(position, look_at) that fit the map's bounding sphere in a view of vertical field
+        of view ``fov`` (radians) and width/height ``aspect``."""
+        center, radius, direction = self._view
+        half = min(fov / 2.0, math.atan(math.tan(fov / 2.0) * max(aspect, 0.1)))
+        distance = radius / math.sin(half)
+        pos = center + distance * direction
+        return tuple(float(x) for x in pos), tuple(float(x) for x in center)
+
     def frame(self) -> None:
-        """Move every connected browser's camera to the overview of the map."""
-        view = getattr(self, "_view", None)
-        if view is None:
+        """Move every connected browser's camera to the overview of the map (fitted to
+        each page's own view)."""
+        if getattr(self, "_view", None) is None:
             return
         for client in self.server.get_clients().values():
-            client.camera.position = tuple(float(x) for x in view[0])
-            client.camera.look_at = tuple(float(x) for x in view[1])
+            self._frame_client(client)
+
+    def _frame_client(self, client: Any) -> None:
+        if getattr(self, "_view", None) is None:
+            return
+        cam = client.camera
+        try:
+            fov, aspect = float(cam.fov), float(cam.aspect)
+        except (AssertionError, AttributeError, ZeroDivisionError, TypeError, ValueError):
+            fov, aspect = math.radians(75.0), 0.75
+        if not (math.isfinite(fov) and 0.05 < fov < 3.0 and math.isfinite(aspect) and aspect > 0):
+            fov, aspect = math.radians(75.0), 0.75
+        position, look_at = self._camera_for(fov, aspect)
+        cam.position = position
+        cam.look_at = look_at
 
     def _stats_markdown(self, snap: dict, drawn: dict) -> str:
         if snap.get("g") is None:
@@ -748,8 +977,9 @@ class MapViewer:
             ),
             f"**Scans**: {_fmt(st['scans'])}, {_fmt(st['points'])} points",
             (
-                f"**Gaussians**: {_fmt(drawn['gaussians'])} with p > {snap['threshold']:.2f}, "
-                f"drawn as {drawn['geometry']}"
+                f"**Gaussians**: {_fmt(drawn['gaussians_total'])} with p > {snap['threshold']:.2f}"
+                + (f" between {drawn['clip'][0]:.2f} and {drawn['clip'][1]:.2f} m" if drawn.get("clip") else "")
+                + f", {_fmt(drawn['gaussians'])} drawn as {drawn['geometry']}"
             ),
             (
                 f"**Level of detail** (auto): ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, "

@@ -1,24 +1,32 @@
 """What ``ndtom view`` (and a live-mapping command) call; the Typer CLI stays in ndtom_ti.cli.
 
 Exit codes follow the CLI's: 0 done (Ctrl-C is the normal way to close the viewer);
-1 failed (viser missing, the map could not be drawn); 2 bad input (missing or corrupt
-map file, host that cannot be listened on, snapshot path that cannot be written).
+1 failed (viser missing, the map could not be drawn, a snapshot that could not be
+written); 2 bad input (missing or corrupt map file, host that cannot be listened on,
+snapshot folder missing); 130 live mapping interrupted (what was mapped is saved).
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
+import signal
 import sys
-from collections.abc import Iterable
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 from ._deps import ViewerNotInstalledError, require_viser
 
-__all__ = ["live_command", "live_demo_command", "view_command"]
+__all__ = ["live_command", "live_demo_command", "live_recording_command", "view_command"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
 
 def _error(message: str, hint: str | None = None) -> None:
@@ -54,6 +62,29 @@ def _load(path: Path, what: str = "map") -> Any:
     return None
 
 
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+@contextlib.contextmanager
+def _ticking(what: str, every: float = 10.0) -> Any:
+    """Say every ``every`` seconds that ``what`` is still going (big maps take a while)."""
+    done = threading.Event()
+    t0 = time.perf_counter()
+
+    def tick() -> None:
+        while not done.wait(every):
+            _say(f"  ... {what} ({time.perf_counter() - t0:.0f} s)")
+
+    th = threading.Thread(target=tick, name="ndtom-view-progress", daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        done.set()
+        th.join()
+
+
 def view_command(
     map_path: Path,
     host: str = "127.0.0.1",
@@ -64,10 +95,12 @@ def view_command(
 ) -> int:
     """``ndtom view MAP [--host 127.0.0.1] [--port N] [--html snapshot.html] [--compare RNDT_MAP]``.
 
-    Serves the map at ``http://HOST:PORT`` (prints the URL with the real port: a busy
-    port is replaced by the next free one) until Ctrl-C; with ``html`` writes a
-    standalone page of the scene instead and returns. ``compare``: a map of the same
-    scans built with ``occupancy=False`` (shows the conflicting cells).
+    Says what it does while a big map loads, then serves the map and prints its URL
+    (with the real port: a busy port is replaced by the next free one; beyond loopback
+    with its access token, after a warning) until Ctrl-C. With ``html`` it writes a
+    standalone page of the scene instead (atomically), says where, and returns.
+    ``compare``: a map of the same scans built with ``occupancy=False`` (shows the
+    conflicting cells).
     """
     try:
         require_viser()
@@ -75,14 +108,27 @@ def view_command(
         _error(str(exc))
         return EXIT_FAILURE
     if html is not None:
-        html = Path(html)
+        html = Path(html).expanduser()
         parent = html.parent if str(html.parent) else Path(".")
         if not parent.is_dir():
-            _error(f"cannot write {html}: folder {parent} does not exist")
+            _error(f"cannot write {html}: folder {parent} does not exist", "create the folder first")
             return EXIT_USAGE
-    m = _load(Path(map_path))
+        if html.exists() and not html.is_file():
+            _error(f"cannot write {html}: it exists and is not a regular file", "choose another --html path")
+            return EXIT_USAGE
+    t0 = time.perf_counter()
+    path = Path(map_path)
+    if path.is_file():
+        _say(f"Loading {path} ({path.stat().st_size / 2**20:.1f} MiB) ...")
+    try:
+        with _ticking("loading"):
+            m = _load(path)
+    except KeyboardInterrupt:
+        _error("interrupted (Ctrl-C) while loading the map")
+        return EXIT_INTERRUPTED
     if m is None:
         return EXIT_USAGE
+    _say(f"Loaded {len(m):,} Gaussians at {m.resolution:g} m in {time.perf_counter() - t0:.1f} s")
     cmp_map = None
     if compare is not None:
         cmp_map = _load(Path(compare), "comparison map")
@@ -91,23 +137,30 @@ def view_command(
 
     from .app import MapViewer
 
-    try:
-        # a snapshot is lit by plain lights: it draws at once (an environment map fades in slowly)
-        viewer = MapViewer(m, compare=cmp_map, host=host, port=0 if html is not None else port,
-                           verbose=html is None, environment_map=html is None)  # fmt: skip
+    try:  # (Ctrl-C while the scene is prepared: no traceback)
+        # a snapshot needs no server beyond this machine, and is lit by plain lights: it draws at
+        # once (an environment map fades in slowly)
+        with _ticking("preparing the scene"):
+            viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
+                               port=0 if html is not None else port, verbose=html is None,
+                               environment_map=html is None, progress=_say)  # fmt: skip
     except ValueError as exc:
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine, "
                "and a --port in 0..65535 (0: any free port)")
         return EXIT_USAGE
+    except KeyboardInterrupt:
+        _error("interrupted (Ctrl-C) while preparing the scene")
+        return EXIT_INTERRUPTED
     if html is not None:
         try:
             viewer.save_html(html)
         except OSError as exc:
-            _error(f"cannot write {html}: {exc.strerror or exc}")
-            return EXIT_USAGE
+            _error(f"cannot write {html}: {exc.strerror or exc}", "the previous file, if any, is unchanged")
+            return EXIT_FAILURE
         finally:
             viewer.close()
-        print(f"Wrote {html} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser", flush=True)
+        _say(f"Wrote {html.resolve()} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser "
+             f"({html.resolve().as_uri()})")  # fmt: skip
         return EXIT_OK
     print("Press Ctrl-C to stop.", flush=True)
     try:
@@ -115,6 +168,93 @@ def view_command(
     finally:
         viewer.close()
     return EXIT_OK
+
+
+# ---------------------------------------------------------------------------- live mapping
+def parse_rate(text: str) -> float | None:
+    """``--rate``: a positive factor of the recording's rate, or ``max`` (None: no pacing)."""
+    t = str(text).strip().lower()
+    if t in ("max", "inf", "fastest"):
+        return None
+    try:
+        v = float(t.rstrip("x"))
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"--rate must be a positive number (1: the recording's own rate, 2: twice as fast) or "
+                         f"max, got {text!r}")  # fmt: skip
+    return v
+
+
+class _StopSignals:
+    """Ctrl-C (SIGINT) and SIGTERM while mapping live: the first asks mapping to stop after
+    the scan in hand; during the save, further ones wait until the map is on disk."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.event = threading.Event()
+        self.saving = False
+        self.serving = False  # mapping is over, the viewer shows the map
+        self._old: dict[int, Any] = {}
+
+    def handler(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        self.event.set()
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        if self.saving:
+            print(f"{name}: saving the map, please wait until it is on disk ...", file=sys.stderr, flush=True)
+        elif self.serving:
+            print(f"{name}: closing the viewer", file=sys.stderr, flush=True)
+        elif self.count == 1:
+            print(f"{name}: stopping after the scan in hand, then saving ...", file=sys.stderr, flush=True)
+
+    def __enter__(self) -> _StopSignals:  # noqa: PYI034
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(ValueError, OSError):
+                    self._old[sig] = signal.signal(sig, self.handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(sig, old)
+        self._old.clear()
+
+
+def _wait_for_browser(viewer: Any, stop: threading.Event) -> bool:
+    """Block until a browser shows the viewer (True) or a stop signal came (False)."""
+    while not viewer.server.get_clients():
+        if stop.wait(0.1):
+            return False
+    return True
+
+
+def _serve_until_stopped(viewer: Any, stop: threading.Event) -> None:
+    """After mapping: keep serving the final map until Ctrl-C or SIGTERM (tests replace this)."""
+    stop.wait()
+
+
+def _default_finish(save: Path | None) -> Callable[[Any, Any], int]:
+    def finish(m: Any, summary: Any) -> int:
+        if save is not None and summary.scans_used:
+            m.save(save)
+            print(f"Wrote {save} ({summary.scans_used} scans)", flush=True)
+        return EXIT_INTERRUPTED if summary.stopped == "interrupted" else EXIT_OK
+
+    return finish
+
+
+def _add_report(summary: Any, rep: Any) -> None:
+    """Count one inserted scan into a MappingSummary, as ``ndtom map`` does."""
+    summary.scans_used += 1
+    summary.points_in += rep.points_in
+    summary.points_used += rep.points_used
+    summary.free_rays += rep.free_rays
+    summary.dropped["nonfinite"] += rep.dropped_nonfinite
+    summary.dropped["range"] += rep.dropped_range
+    summary.dropped["outside_grid"] += rep.dropped_outside_grid
+    summary.scan_seconds.append(rep.seconds)
 
 
 def live_command(
@@ -125,43 +265,166 @@ def live_command(
     *,
     compare: bool = True,
     config: Any = None,
+    occupancy: bool = True,
     total: int | None = None,
-    play: bool = True,
+    speed: float | None = 1.0,
     rate_hz: float = 0.0,
+    wait_for_browser: bool = True,
     save: Path | None = None,
+    summary: Any = None,
+    metadata: dict | None = None,
+    progress: Callable[[Any, Any], None] | None = None,
+    finish: Callable[[Any, Any], int] | None = None,
+    after_loop: Callable[[], None] | None = None,
 ) -> int:
-    """Map ``scans`` live in the viewer (objects with ``.points``/``.T_world_sensor``, e.g.
-    ``Recording.scans(...)``): builds an NDT-OM map (and with ``compare`` a Recursive NDT
-    map) while serving, until Ctrl-C; ``save`` writes the NDT-OM map on exit."""
+    """Map ``scans`` live in the viewer (objects with ``.points``/``.T_world_sensor`` and,
+    for pacing, ``.stamp_ns``, e.g. ``Recording.scans(...)``).
+
+    Builds an NDT-OM map (and with ``compare`` a Recursive NDT map beside it) while
+    serving: prints the URL, waits for the first browser (unless ``wait_for_browser`` is
+    False), then plays at ``speed`` x the recording's rate (None: as fast as mapping
+    goes). ``progress(summary, report)`` is called before the first scan (report None)
+    and after each, as by ``ndtom map``. At the end, and on Ctrl-C or SIGTERM (after the
+    scan in hand), ``finish(map, summary)`` saves the map and prints the summary (the
+    default writes ``save``) and returns the exit code; after a complete run the viewer
+    keeps showing the map until Ctrl-C. Returns the exit code: ``finish``'s, 130 when
+    stopped before any scan, 1 when the viewer could not start or mapping failed.
+    """
     try:
         require_viser()
     except ViewerNotInstalledError as exc:
         _error(str(exc))
         return EXIT_FAILURE
     from ndtom_ti import NdtOmMap
+    from ndtom_ti.pipeline import (
+        MappingSummary,
+        _base_metadata,
+        _finish,
+        _record_result,
+        config_with_ranges,
+    )
+    from ndtom_ti.runtime import MapMemoryError
 
     from .app import MapViewer
 
-    m = NdtOmMap(resolution, config=config)
+    cfg = config_with_ranges(config)
+    if summary is None:
+        summary = MappingSummary(source="scans", resolution=float(resolution), occupancy=bool(occupancy),
+                                 config=cfg.to_dict(), scans_expected=total)  # fmt: skip
+    finish = finish or _default_finish(save)
+    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, metadata))
     try:
-        viewer = MapViewer(m, host=host, port=port)
+        viewer = MapViewer(m, host=host, port=port, progress=_say)
     except ValueError as exc:
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine")
         return EXIT_USAGE
-    lm = viewer.live(scans, m, compare=compare, play=play, total=total, rate_hz=rate_hz)
-    print("Press Ctrl-C to stop.", flush=True)
+
+    def on_scan(rep: Any, item: Any) -> None:
+        _add_report(summary, rep)
+        summary.wall_seconds = lm.work_seconds
+        if progress is not None:
+            progress(summary, rep)
+
+    code = EXIT_OK
+    lm = None
     try:
-        _block(viewer)
+        with _StopSignals() as sig:
+            lm = viewer.live(scans, m, compare=compare, play=False, total=total or summary.scans_expected,
+                             speed=speed if speed is not None else math.inf, rate_hz=rate_hz,
+                             on_scan=on_scan)  # fmt: skip
+            started = True
+            if wait_for_browser:
+                _say(f"Waiting for a browser at {viewer.url} (mapping starts when one connects; --no-wait starts "
+                     "at once) ...")  # fmt: skip
+                started = _wait_for_browser(viewer, sig.event)
+            if started:
+                if progress is not None:
+                    progress(summary, None)
+                lm.play()
+                while not lm.wait(0.2) and not sig.event.is_set():
+                    pass
+            lm.stop()  # after the scan in hand
+            if after_loop is not None:
+                after_loop()
+            summary.clouds_seen = max(summary.clouds_seen, summary.scans_used)
+            summary.wall_seconds = lm.work_seconds
+            exc = lm.exception
+            if isinstance(exc, MapMemoryError):
+                summary.stopped = "memory"
+                summary.error = (f"scan {summary.scans_used + 1} was refused: {exc} "
+                                 f"The map holds the {summary.scans_used} scans before it.")  # fmt: skip
+            elif exc is not None:
+                summary.stopped, summary.error = "error", f"{type(exc).__name__}: {exc}"
+            elif not lm.completed:
+                summary.stopped = "interrupted"
+                summary.error = f"interrupted after {summary.scans_used} scans"
+            sig.saving = True
+            with viewer.map_lock:  # the viewer's threads read the map meanwhile
+                _finish(m, summary)
+                _record_result(m, summary)
+                code = finish(m, summary)
+            sig.saving = False
+            if exc is not None and not isinstance(exc, MapMemoryError):
+                _error(f"live mapping stopped at scan {summary.scans_used + 1}: {summary.error}",
+                       f"the {summary.scans_used} scans before it are in the map" if summary.scans_used else None)  # fmt: skip
+                code = EXIT_USAGE if isinstance(exc, (ValueError, TypeError, LookupError)) else EXIT_FAILURE
+            if summary.stopped is None and not sig.count:
+                _say(f"Mapping done; the viewer keeps showing the map at {viewer.url}: Ctrl-C to quit.")
+                sig.serving = True
+                _serve_until_stopped(viewer, sig.event)
     finally:
-        lm.stop()
+        if lm is not None:
+            lm.stop()
         viewer.close()
-        if save is not None:
-            m.save(save)
-            print(f"Wrote {save} ({lm.scans_done} scans)", flush=True)
-    if lm.error:
-        _error(f"live mapping stopped: {lm.error}")
-        return EXIT_FAILURE
-    return EXIT_OK
+    return code
+
+
+def live_recording_command(
+    bag: Path,
+    resolution: float,
+    *,
+    scan_options: dict,
+    occupancy: bool = True,
+    config: Any = None,
+    metadata: dict | None = None,
+    **live: Any,
+) -> int:
+    """``ndtom map BAG --view``: the recording's scans (``scan_options`` as for
+    ``Recording.scans``) mapped live; the summary and metadata are those of ``ndtom map``.
+    Raises RecordingError / ValueError for a recording that cannot be mapped."""
+    from ndtom_ti.io import open_recording
+    from ndtom_ti.pipeline import MappingSummary, _expected_scans, config_with_ranges
+
+    cfg = config_with_ranges(config)
+    o = scan_options
+    options = {
+        "cloud_topic": o.get("cloud_topic"), "fixed_frame": o.get("fixed_frame"), "pose_topic": o.get("pose_topic"),
+        "poses_file": str(Path(o["poses_file"]).resolve()) if o.get("poses_file") is not None else None,
+        "sensor_frame_only": o.get("sensor_frame_only", False), "every": o.get("every", 1),
+        "every_distance": o.get("every_distance"), "start": o.get("t_start"), "end": o.get("t_end"),
+        "max_scans": o.get("max_scans"),
+    }  # fmt: skip
+    with open_recording(bag) as rec:
+        stream = rec.scans(**scan_options)
+        summary = MappingSummary(
+            source=str(Path(bag).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
+            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
+            occupancy=bool(occupancy), config=cfg.to_dict(), options=options,
+            scans_expected=_expected_scans(rec, stream.cloud_topic, o.get("every", 1), o.get("t_start"),
+                                           o.get("t_end"), o.get("max_scans")),
+        )  # fmt: skip
+        extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
+        extra.update(metadata or {})
+
+        def counts() -> None:
+            summary.clouds_seen = stream.total_seen
+            summary.skipped = dict(Counter(stream.skipped).most_common())
+            summary.skip_notes = list(stream.notes)
+
+        # no Recursive NDT map beside it by default: a recording's map costs what `ndtom map` costs
+        live.setdefault("compare", False)
+        return live_command(stream, resolution, occupancy=occupancy, config=cfg, summary=summary, metadata=extra,
+                            after_loop=counts, **live)  # fmt: skip
 
 
 def live_demo_command(
@@ -170,11 +433,18 @@ def live_demo_command(
     *,
     resolution: float = 0.2,
     n_scans: int = 40,
-    rate_hz: float = 4.0,
-    play: bool = True,
+    speed: float | None = 1.0,
+    scans: list | None = None,
+    **live: Any,
 ) -> int:
-    """The built-in demo room (``ndtom_ti.demo``) mapped live, NDT-OM beside Recursive NDT."""
+    """The built-in demo room (``ndtom_ti.demo``) mapped live, NDT-OM beside Recursive NDT
+    (``scans``: made here when not given); ``live`` as for :func:`live_command` (``save``
+    or ``finish`` writes the map)."""
     from ndtom_ti.demo import make_scans
+    from ndtom_ti.pipeline import MappingSummary
 
-    scans = make_scans(n_scans)
-    return live_command(scans, resolution, host, port, compare=True, total=len(scans), play=play, rate_hz=rate_hz)
+    scans = scans if scans is not None else make_scans(n_scans)
+    summary = MappingSummary(source="ndtom demo (synthetic room)", pose_source="exact (synthetic)",
+                             fixed_frame="world", resolution=float(resolution), scans_expected=len(scans))  # fmt: skip
+    return live_command(scans, resolution, host, port, compare=True, total=len(scans), speed=speed, summary=summary,
+                        **live)  # fmt: skip

@@ -25,6 +25,7 @@ __all__ = [
     "occupancy_colors",
     "rotation_to_wxyz",
     "turbo",
+    "unit_box",
 ]
 
 # Fixed colours of the layers that are not colour-mapped.
@@ -76,6 +77,17 @@ def icosphere(subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
         faces = new
     V = np.array(verts, np.float32)
     F = np.array(faces, np.uint32)
+    V.setflags(write=False)
+    F.setflags(write=False)
+    return V, F
+
+
+@functools.cache
+def unit_box() -> tuple[np.ndarray, np.ndarray]:
+    """Unit cube centred on the origin: vertices (8, 3) float32, faces (12, 3) uint32 (outward)."""
+    V = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)], np.float32)
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)  # fmt: skip
     V.setflags(write=False)
     F.setflags(write=False)
     return V, F
@@ -177,27 +189,41 @@ def _css(rgb) -> str:
     return f"rgb({int(rgb[0])},{int(rgb[1])},{int(rgb[2])})"
 
 
-def legend_html(mode: str, *, threshold: float, zrange: tuple[float, float], conflicts: bool) -> str:
-    """A small colour bar with its scale, and the fixed colours of the other layers."""
+def legend_html(
+    mode: str,
+    *,
+    threshold: float,
+    zrange: tuple[float, float],
+    conflicts: bool,
+    live: bool = False,
+    free: bool = False,
+    clip: tuple[float, float] | None = None,
+) -> str:
+    """A small colour bar with its scale (fitted to the map), and the fixed colours of the
+    layers the view offers (conflicting cells with a comparison map, trajectory and latest
+    scan while mapping live, free cells when drawn)."""
+    ts = np.linspace(0.0, 1.0, 9)
     if mode == "height":
-        ts = np.linspace(0.0, 1.0, 9)
         cols = turbo(ts)
         lo, hi = zrange
-        left, mid, right = f"{lo:.2f} m", f"{(lo + hi) / 2:.2f} m", f"{hi:.2f} m"
-        title = "Colour: height z of the Gaussian's mean"
+        left, mid, right = (f"{v + 0.0:.2f} m".replace("-0.00", "0.00") for v in (lo, (lo + hi) / 2, hi))
+        title = "Colour: height of the Gaussian's mean"
     else:
-        ts = np.linspace(0.0, 1.0, 9)
         cols = occupancy_colors(ts)
         left, mid, right = "p = 0 (free)", "0.5", "1 (occupied)"
         title = f"Colour: occupancy probability (Gaussians shown where p > {threshold:.2f})"
     grad = ", ".join(f"{_css(c)} {100 * t:.0f}%" for t, c in zip(ts, cols))
-    extra = [f'<span style="color:{_css(SCAN_RGB)}">&#9632;</span> latest scan',
-             f'<span style="color:{_css(TRAJECTORY_RGB)}">&#9632;</span> trajectory']  # fmt: skip
-    if mode == "height":
-        extra.insert(0, f'<span style="color:{_css(FREE_RGB)}">&#9632;</span> free cells')
+    extra = []
     if conflicts:
-        extra.insert(0, f'<span style="color:{_css(CONFLICT_RGB)}">&#9632;</span> conflicting cells '
-                        "(a Gaussian in Recursive NDT, none in NDT-OM)")  # fmt: skip
+        extra.append(f'<span style="color:{_css(CONFLICT_RGB)}">&#9632;</span> conflicting cells '
+                     "(a Gaussian in Recursive NDT, none in NDT-OM)")  # fmt: skip
+    if free and mode == "height":
+        extra.append(f'<span style="color:{_css(FREE_RGB)}">&#9632;</span> free cells')
+    if live:
+        extra += [f'<span style="color:{_css(SCAN_RGB)}">&#9632;</span> latest scan',
+                  f'<span style="color:{_css(TRAJECTORY_RGB)}">&#9632;</span> trajectory']  # fmt: skip
+    if clip is not None:
+        extra.append(f"Height clip: {clip[0]:.2f} to {clip[1]:.2f} m")
     return (
         '<div style="font-size:0.8em;padding:0 0.5em">'
         f"<div>{title}</div>"

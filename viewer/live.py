@@ -6,13 +6,22 @@ viewer's ``map_lock``; nothing else waits on it), and records the time per scan,
 pose and the scan's points. A second thread redraws the viewer at most every
 ``refresh_interval`` seconds (longer when a redraw takes long), so drawing never holds
 up mapping.
+
+Pacing: with ``speed`` the scans play at their recording's own rate (their ``stamp_ns``)
+times ``speed``; a scan that is late (mapping slower than the recording) goes at once
+and the clock restarts from it, so there is no catch-up burst; a gap of more than
+``max_gap_s`` in the recording is shortened to it. Without ``speed``, ``rate_hz`` caps
+the scans per second (0: as fast as mapping goes). ``clock`` and ``sleep`` can be given
+(tests pace without waiting).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -44,7 +53,9 @@ class LiveMapper:
 
     Starts paused: :meth:`play`, :meth:`pause`, :meth:`step` (or the GUI buttons).
     ``scans_done``, ``times_ms`` (NDT-OM insert time per scan), ``finished`` and
-    ``error`` report progress; :meth:`wait` blocks until the scans run out.
+    ``error`` (``exception``) report progress; :meth:`wait` blocks until the scans run
+    out. ``on_scan(report, scan)`` is called from the worker thread after each insert.
+    ``work_seconds``: time spent reading and inserting (not waiting for the pace).
     """
 
     def __init__(
@@ -58,8 +69,16 @@ class LiveMapper:
         refresh_interval: float = 0.5,
         max_scan_points: int = 50_000,
         rate_hz: float = 0.0,
+        speed: float | None = None,
+        max_gap_s: float = 2.0,
+        on_scan: Callable[[Any, Any], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], bool] | None = None,
     ):
         from ndtom_ti import NdtOmMap
+
+        if speed is not None and not (speed > 0):
+            raise ValueError(f"speed must be positive (1: the recording's own rate), got {speed}")
 
         if m is None:
             raise ValueError("live mapping needs a map: pass m=NdtOmMap(resolution)")
@@ -81,11 +100,22 @@ class LiveMapper:
         self.refresh_interval = float(refresh_interval)
         self.max_scan_points = int(max_scan_points)
         self.rate_hz = float(rate_hz)
+        self.speed = None if speed is None or math.isinf(speed) else float(speed)
+        self.paced_by_stamps = speed is not None
+        self.max_gap_s = float(max_gap_s)
+        self.on_scan = on_scan
+        self._clock = clock
+        self._sleep = sleep if sleep is not None else self._stop_wait
+        self._anchor: tuple[float, int] | None = None  # (clock, stamp_ns) the pace is measured from
+        self.waits: list[float] = []  # seconds waited for the pace before each scan
+        self.work_seconds = 0.0
+        self.exception: BaseException | None = None
         self.scans_done = 0
         self.times_ms: list[float] = []
         self.compare_times_ms: list[float] = []
         self.points_used: list[int] = []
-        self.finished = False
+        self.finished = False  # the worker ended: scans ran out, stopped, or an error
+        self.completed = False  # every scan was inserted
         self.error: str | None = None
         self.reports: list = []
 
@@ -122,13 +152,22 @@ class LiveMapper:
 
     def pause(self) -> None:
         self._playing.clear()
+        self._anchor = None  # the pace restarts at the next scan
         self._update_status()
+
+    def set_speed(self, speed: float | None) -> None:
+        """Playback speed (x the recording's rate; None: as fast as mapping goes)."""
+        self.speed = None if speed is None or speed <= 0 or math.isinf(speed) else float(speed)
+        self._anchor = None
 
     def step(self, n: int = 1) -> None:
         """Insert the next ``n`` scans (while paused)."""
         with self._step_lock:
             self._steps += int(n)
         self._wake.set()
+
+    def _stop_wait(self, seconds: float) -> bool:
+        return self._stop.wait(seconds)
 
     def stop(self) -> None:
         """End mapping (the maps keep what was inserted) and the drawing thread."""
@@ -164,8 +203,13 @@ class LiveMapper:
             c.pause = gui.add_button("Pause")
             c.step = gui.add_button("Step")
             c.scan = gui.add_markdown(self._counter_text())
-            c.rate = gui.add_slider("Max scans per second", min=0.0, max=50.0, step=0.5,
-                                    initial_value=min(self.rate_hz, 50.0), hint="0: as fast as mapping goes")  # fmt: skip
+            if self.paced_by_stamps:
+                c.rate = gui.add_slider("Speed (x recording)", min=0.0, max=10.0, step=0.25,
+                                        initial_value=min(self.speed or 0.0, 10.0),
+                                        hint="1: the recording's own rate; 0: as fast as mapping goes")  # fmt: skip
+            else:
+                c.rate = gui.add_slider("Max scans per second", min=0.0, max=50.0, step=0.5,
+                                        initial_value=min(self.rate_hz, 50.0), hint="0: as fast as mapping goes")  # fmt: skip
             c.live_status = gui.add_markdown("Paused: press Play or Step.")
             series = [{"label": "scan"}, {"label": "NDT-OM ms", "stroke": "#c81e1e", "width": 2}]
             if self.compare is not None:
@@ -181,7 +225,10 @@ class LiveMapper:
         c.play.on_click(lambda _: self.play())
         c.pause.on_click(lambda _: self.pause())
         c.step.on_click(lambda _: self.step())
-        c.rate.on_update(lambda _: setattr(self, "rate_hz", float(c.rate.value)))
+        if self.paced_by_stamps:
+            c.rate.on_update(lambda _: self.set_speed(float(c.rate.value)))
+        else:
+            c.rate.on_update(lambda _: setattr(self, "rate_hz", float(c.rate.value)))
 
     def _counter_text(self) -> str:
         of = f" / {self.total}" if self.total is not None else ""
@@ -200,7 +247,8 @@ class LiveMapper:
         else:
             text = "Paused: press Play or Step."
         c.live_status.content = text
-        c.play.disabled = self.finished
+        # nothing left to play: the buttons say so
+        c.play.disabled = c.pause.disabled = c.step.disabled = self.finished
 
     def _update_gui(self) -> None:
         c = self.viewer.controls
@@ -231,24 +279,59 @@ class LiveMapper:
             self._wake.clear()
         return False
 
+    def _pace(self, item: Any, last: float) -> bool:
+        """Wait until ``item`` is due; False when stopping meanwhile."""
+        now = self._clock()
+        if self.paced_by_stamps:
+            stamp, speed = getattr(item, "stamp_ns", None), self.speed
+            if stamp is None or speed is None:
+                self._anchor = None
+                return True
+            stamp = int(stamp)
+            if self._anchor is None:
+                self._anchor = (now, stamp)
+                return True
+            t_prev, s_prev = self._anchor  # when the previous scan was due, and its stamp
+            gap = min(max((stamp - s_prev) / 1e9, 0.0), self.max_gap_s)
+            due = t_prev + gap / speed
+            if due <= now:
+                self._anchor = (now, stamp)  # late: go now, and no catch-up burst later
+                return True
+            self.waits.append(due - now)
+            if self._sleep(due - now):
+                return False
+            self._anchor = (due, stamp)
+            return True
+        if self.rate_hz > 0:
+            wait = last + 1.0 / self.rate_hz - now
+            if wait > 0:
+                self.waits.append(wait)
+                return not self._sleep(wait)
+        return True
+
     def _run(self) -> None:
         v = self.viewer
-        last = 0.0
+        last = -math.inf
         try:
             while self._take_turn():
-                if self.rate_hz > 0:
-                    wait = last + 1.0 / self.rate_hz - time.perf_counter()
-                    if wait > 0 and self._stop.wait(wait):
-                        break
-                last = time.perf_counter()
+                t_read = self._clock()
                 try:
                     item = next(self._it)
                 except StopIteration:
+                    self.completed = True
                     break
+                work = self._clock() - t_read
+                if not self._pace(item, last):
+                    break
+                last = self._clock()
                 pts, T = scan_parts(item)
+                t_ins = self._clock()
                 with v.map_lock:
+                    if self.map is None:  # the viewer was closed
+                        break
                     rep = self.map.insert_scan(pts, T)
                     rep2 = self.compare.insert_scan(pts, T) if self.compare is not None else None
+                self.work_seconds += work + (self._clock() - t_ins)
                 self.reports.append(rep)
                 self.times_ms.append(rep.seconds * 1e3)
                 if rep2 is not None:
@@ -263,8 +346,11 @@ class LiveMapper:
                 v.set_trajectory(np.array(self._positions))
                 v.set_scan(world)
                 self.scans_done += 1
+                if self.on_scan is not None:
+                    self.on_scan(rep, item)
                 self._dirty.set()
         except Exception as exc:  # noqa: BLE001 - shown on screen; the maps keep what was inserted
+            self.exception = exc
             self.error = f"{type(exc).__name__}: {exc}"
             self._error_traceback = traceback.format_exc()
         finally:
