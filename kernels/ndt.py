@@ -343,7 +343,9 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                   rec_miss: ti.template()):  # fmt: skip
         # A ray passing a cell of the block marked as holding a usable Gaussian.
         r = gslot[at(slot, c)] - 1
-        ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov))
+        v = ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov)
+        if v != 0:
+            ti.atomic_add(rec_miss[r], v)
 
     @ti.func
     def ndt_tree_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_n: ti.template(),
@@ -356,24 +358,29 @@ def make_kernels(f: Storage) -> SimpleNamespace:
     @ti.func
     def ndt_floor(s0, s1, s2, s3, s4, s5, prm: ti.template()) -> ti.f64:
         # Variance added on every axis of a Gaussian (xx xy xz yy yz zz) before it is
-        # inverted: a share prm[2] of its largest eigenvalue always (flat ones stay
-        # invertible), and for a line-like Gaussian (middle eigenvalue < prm[3] x the
-        # largest: one scan line across the cell) up to prm[4] x the largest, so that it
-        # stands for the surface the line samples, not for the line alone.
-        q = (s0 + s3 + s5) / 3.0
-        p1 = s1 * s1 + s2 * s2 + s4 * s4
-        p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * p1
-        l1, l2, l3 = q, q, q
-        if p2 > 1e-30 * q * q:
-            p = ti.sqrt(p2 / 6.0)
-            b0, b3, b5 = (s0 - q) / p, (s3 - q) / p, (s5 - q) / p
-            b1, b2, b4 = s1 / p, s2 / p, s4 / p
-            hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
-            phi = ti.acos(ti.min(ti.max(hdet, -1.0), 1.0)) / 3.0
-            l3 = q + 2.0 * p * ti.cos(phi)
-            l1 = q + 2.0 * p * ti.cos(phi + 2.0943951023931957)
-            l2 = 3.0 * q - l1 - l3
-        return prm[2] * l3 + prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3] + 1e-12
+        # inverted: a share prm[2] of its trace always (flat ones stay invertible), and for
+        # a line-like Gaussian (middle eigenvalue l2 < prm[3] x the largest l3: one scan
+        # line across the cell) prm[4] x (prm[3] l3 - l2) / prm[3] more, so that it stands
+        # for the surface the line samples.
+        tr = s0 + s3 + s5
+        out = prm[2] * tr + 1e-12
+        # l2 < rho l3 needs c2 = l1 l2 + l1 l3 + l2 l3 <= (2 rho + rho^2) tr^2: the
+        # eigenvalues are worked out only then.
+        c2 = s0 * s3 + s0 * s5 + s3 * s5 - s1 * s1 - s2 * s2 - s4 * s4
+        if c2 <= (2.0 * prm[3] + prm[3] * prm[3]) * tr * tr:
+            q = tr / 3.0
+            p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * (s1 * s1 + s2 * s2 + s4 * s4)
+            if p2 > 1e-30 * q * q:
+                p = ti.sqrt(p2 / 6.0)
+                b0, b3, b5 = (s0 - q) / p, (s3 - q) / p, (s5 - q) / p
+                b1, b2, b4 = s1 / p, s2 / p, s4 / p
+                hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
+                phi = ti.acos(ti.min(ti.max(hdet, -1.0), 1.0)) / 3.0
+                l3 = q + 2.0 * p * ti.cos(phi)
+                l1 = q + 2.0 * p * ti.cos(phi + 2.0943951023931957)
+                l2 = 3.0 * q - l1 - l3
+                out += prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
+        return out
 
     @ti.func
     def ndt_icov(r, rec_n: ti.template(), rec_scat: ti.template(), rec_mean: ti.template(), prm: ti.template(),
@@ -550,7 +557,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
             rec_icov: f64_2d,  # [C, 9] out (ndt != 0): ndt_icov of the changed records
             prm: f64_1d,  # [5] NDT miss model parameters (see ndt_miss)
-            ndt: ti.i32,  # 1: the map uses the NDT miss model
+            ndt: ti.i32,  # the NDT miss model's min_points (0: the paper's model)
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             # Records are not reserved for the worst case (every hit cell new): a cell that
@@ -624,9 +631,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                         rec_scat[r, a] = rec_scat[r, a] * k
                     tot_i = n_max
                 rec_n[r] = tot_i
-                rec_miss[r] = ti.i64(0)
-                if ndt != 0:
-                    ndt_icov(r, rec_n, rec_scat, rec_mean, prm, rec_icov)
+                if ndt != 0:  # (the paper's model passes no NDT arrays)
+                    rec_miss[r] = ti.i64(0)
+                    if tot_i >= ndt:  # what rays read of a Gaussian of enough points
+                        ndt_icov(r, rec_n, rec_scat, rec_mean, prm, rec_icov)
                 hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
         def make_rays(mode: str, flags: bool = True, ndt: bool = False):

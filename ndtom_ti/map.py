@@ -15,7 +15,7 @@ from . import runtime
 from .cellkeys import count_distinct, lex_order, pack
 from .config import MapConfig
 from .kernels.layout import Layout
-from .kernels.layout import RECORD_BYTES
+from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
 from .kernels.ndt import (
     C_BLOCK_CELLS,
     C_ERASED,
@@ -42,8 +42,8 @@ _TOUCHED_START = 1 << 20
 BLOCK_CELLS = 1 << 25
 _SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
 # NDT miss model: variance added on every axis of a Gaussian's covariance before it is
-# inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * l3 keeps flat
-# Gaussians invertible; a line-like one (l2 < NDT_LINE * l3: the points of one scan line
+# inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * trace keeps
+# flat Gaussians invertible; a line-like one (l2 < NDT_LINE * l3: the points of one scan line
 # across the cell, at the ranges where a lidar's rings are a cell or more apart) gets up to
 # NDT_LINE_FLOOR * l3 more, so that it stands for the surface the line samples. Without it,
 # rays of the other rings never pass within the line's millimetre thickness and the
@@ -525,7 +525,7 @@ class NdtOmMap:
                 kb.merge(slot, hitlist, acc, todo, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat,
                          ctr, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
                          hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left,
-                         self._rec_miss, self._rec_icov, self._ndt_prm, int(cfg.ndt_misses))  # fmt: skip
+                         self._rec_miss, self._rec_icov, self._ndt_prm, int(cfg.min_points) if cfg.ndt_misses else 0)  # fmt: skip
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
                 self._nrec, self._nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
@@ -578,13 +578,17 @@ class NdtOmMap:
         mean = np.zeros((capacity, 3), np.float64)
         scat = np.zeros((capacity, 6), np.float64)
         free = np.zeros(capacity, np.int32)
-        miss = np.zeros(capacity, np.int64)  # NDT miss sums, zero between updates
-        icov = np.zeros((capacity, 9), np.float64)  # NDT miss model: inverse covariance and mean
+        # NDT miss model: the scan's miss sums (zero between updates), the inverse covariance
+        # and mean rays read; a placeholder row with the paper's model.
+        ndt = self.config.ndt_misses
+        miss = np.zeros(capacity if ndt else 1, np.int64)
+        icov = np.zeros((capacity if ndt else 1, 9), np.float64)
         if old is not None:
             k = self._nrec
             n_[:k], cell[:k], mean[:k], scat[:k] = self._rec_n[:k], self._rec_cell[:k], self._rec_mean[:k], self._rec_scat[:k]
-            miss[:k] = self._rec_miss[:k]  # grown mid-update: the rays' sums are not applied yet
-            icov[:k] = self._rec_icov[:k]
+            if ndt:
+                miss[:k] = self._rec_miss[:k]  # grown mid-update: the rays' sums are not applied yet
+                icov[:k] = self._rec_icov[:k]
             free[: self._nfree] = self._rec_free[: self._nfree]
         self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat, self._rec_free = n_, cell, mean, scat, free
         self._rec_miss, self._rec_icov = miss, icov
@@ -652,10 +656,13 @@ class NdtOmMap:
             f"(ndtom_ti.init(memory_limit_GB=...) before the first map), or use CUDA. The map is unchanged."
         )
 
+    def _record_bytes(self) -> int:
+        return len(self._rec_n) * (RECORD_BYTES + (NDT_RECORD_BYTES if self.config.ndt_misses else 0))
+
     def memory_bytes(self) -> int:
         """Bytes this map holds: nodes of its sparse trees (counted exactly by the
         kernels) plus its Gaussian records."""
-        return self._st.slot_bytes(self._slot) + len(self._rec_n) * RECORD_BYTES
+        return self._st.slot_bytes(self._slot) + self._record_bytes()
 
     def memory_report(self) -> dict:
         """Memory held, by part, with bytes per known cell and per Gaussian."""
@@ -666,7 +673,7 @@ class NdtOmMap:
         return {
             "total_bytes": total,
             "node_bytes": self._st.slot_bytes(self._slot),
-            "record_bytes": len(self._rec_n) * RECORD_BYTES,
+            "record_bytes": self._record_bytes(),
             "records_in_use": self._nrec - self._nfree,
             "occupancy_regions": int(nodes[0]),
             "occupancy_leaves": int(nodes[1]),

@@ -253,10 +253,11 @@ def eq12_logodds(
 
 def ndt_cov_floor(cov, floor: float, line: float, line_floor: float) -> float:
     """Variance the map adds on every axis of a Gaussian's covariance before inverting it:
-    ``floor * l3``, plus ``line_floor * max(0, line * l3 - l2) / line`` for a line-like one
-    (eigenvalues ``l1 <= l2 <= l3``)."""
-    l1, l2, l3 = np.linalg.eigvalsh(np.asarray(cov, np.float64))
-    return floor * l3 + line_floor * max(0.0, line * l3 - l2) / line + 1e-12
+    ``floor * trace``, plus ``line_floor * max(0, line * l3 - l2) / line`` for a line-like
+    one (eigenvalues ``l1 <= l2 <= l3``)."""
+    C = np.asarray(cov, np.float64)
+    l1, l2, l3 = np.linalg.eigvalsh(C)
+    return floor * np.trace(C) + line_floor * max(0.0, line * l3 - l2) / line + 1e-12
 
 
 def ndt_miss_term(o, z, hit: bool, mean, cov, eta: float, sigma_s: float, floors=None) -> float:
