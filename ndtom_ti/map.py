@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import weakref
@@ -59,6 +60,23 @@ class ScanReport:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def _locked(method):
+    """Run a public method holding the map's lock (see NdtOmMap: thread safety)."""
+
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return call
+
+
+def _release_slot(st, slot: int) -> None:
+    # A dead map's slot is emptied by a kernel: never while another thread's kernels run.
+    with st.lock:
+        runtime.release_slot(st, slot)
 
 
 def cell_box(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,6 +139,11 @@ class NdtOmMap:
     The grid spans ``layout.cells`` cells per axis centred on the origin (default
     32768 x 32768 x 4096: +-1.6 km x +-1.6 km x +-205 m at 0.1 m). Points outside it are
     dropped and counted.
+
+    Thread safety: every public method holds the map's lock (``_lock``, re-entrant). It is
+    one lock for all maps of the process, because they share Taichi's runtime, the sparse
+    trees and the scan scratch: calls from several threads, on one map or on several, are
+    safe and run one at a time.
     """
 
     def __init__(
@@ -149,9 +172,11 @@ class NdtOmMap:
         self.points_inserted = 0
 
         self._st, self._slot = runtime.acquire_slot(self.layout)
-        self._k = make_kernels(self._st)
+        self._lock = self._st.lock
+        with self._lock:
+            self._k = make_kernels(self._st)
         # Empty the slot for the next map; nothing to do at interpreter exit.
-        weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
+        weakref.finalize(self, _release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(CTR_SIZE, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
@@ -271,6 +296,7 @@ class NdtOmMap:
                                 rlo.astype(np.int32), rseen, st.occ_regions, st.gidx_regions, new)  # fmt: skip
         return new[[2, 0, 3, 1]]
 
+    @_locked
     def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Benchmark floor: the scan's rays traversed through the same sparse layout with
         one integer atomic per visited cell and nothing else. It leaves ray counters set:
@@ -540,11 +566,13 @@ class NdtOmMap:
                 f"(ndtom_ti.init(arch='cuda', device_memory_GB=...)). The map is unchanged."
             )
 
+    @_locked
     def memory_bytes(self) -> int:
         """Bytes this map holds: nodes of its sparse trees (counted exactly by the
         kernels) plus its Gaussian records."""
         return self._st.slot_bytes(self._slot) + len(self._rec_n) * RECORD_BYTES
 
+    @_locked
     def memory_report(self) -> dict:
         """Memory held, by part, with bytes per known cell and per Gaussian."""
         nodes = self._st.nodes(self._slot)
@@ -590,6 +618,7 @@ class NdtOmMap:
             "logodds": lo,
         }
 
+    @_locked
     def gaussians(self, min_points: int | None = None, min_probability: float = 0.5) -> dict:
         """The map's Gaussians, sorted by cell index.
 
@@ -627,6 +656,7 @@ class NdtOmMap:
             "logodds": lo[keep],
         }
 
+    @_locked
     def known_cells(self) -> dict:
         """Every cell with a non-zero log-odds (occupied and free), sorted by index:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
@@ -643,6 +673,7 @@ class NdtOmMap:
         lo = val[order].astype(np.float64)
         return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
 
+    @_locked
     def occupancy(self, points: Any, *, return_known: bool = False):
         """Occupancy probability of the cells holding world ``points`` (N, 3).
 
@@ -665,6 +696,7 @@ class NdtOmMap:
             known[ok] = lo != 0.0
         return (out, known) if return_known else out
 
+    @_locked
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
         return int(np.count_nonzero(self._occupied_gaussian_mask()))
@@ -679,6 +711,7 @@ class NdtOmMap:
         self._k.query(self._slot, np.ascontiguousarray(self._rec_cell[cand]), len(cand), lo)
         return lo > 0.0
 
+    @_locked
     def __repr__(self) -> str:
         return (
             f"NdtOmMap(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
@@ -688,6 +721,7 @@ class NdtOmMap:
 
     # ------------------------------------------------------------------ state in/out
 
+    @_locked
     def state(self) -> dict:
         """All cell state as numpy arrays (what ``save`` writes)."""
         g = self._raw_gaussians()
@@ -748,6 +782,7 @@ class NdtOmMap:
 
         return load_map(path)
 
+    @_locked
     def coarsen(self, factor: int) -> NdtOmMap:
         """A new map at ``factor * resolution`` (method.md sec. 4).
 
