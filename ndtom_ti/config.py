@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, fields
 
 
@@ -31,6 +32,15 @@ class MapConfig:
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:
             raise ValueError(f"MapConfig: {msg}")
+
+        # Types first (a config file may hold "0.6" or [1]): comparisons below need numbers.
+        for f in fields(self):
+            value, default = getattr(self, f.name), f.default
+            if isinstance(default, str):
+                if not isinstance(value, str):
+                    bad(f"{f.name} must be a string, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+                bad(f"{f.name} must be a number, got {value!r} ({type(value).__name__})")
 
         if not 0.5 < self.p_occupied < 1.0:
             bad(f"p_occupied must be in (0.5, 1), got {self.p_occupied}")
