@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .atomic import atomic_write
+from .atomic import atomic_write, check_target
 from .config import MapConfig
 
 if TYPE_CHECKING:
@@ -50,9 +50,22 @@ class MapFileError(ValueError):
 
 
 def save_map(m: NdtOmMap, path: str | Path) -> Path:
-    path = Path(path)
-    if not (path.parent if str(path.parent) else Path(".")).is_dir():
-        raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
+    path = check_target(path)  # before the work: a FIFO, device or folder is refused
+    with m._lock:  # one consistent snapshot; the file is written after the lock is released
+        hbytes, blobs = _snapshot(m)
+
+    def write(fh) -> None:
+        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
+        fh.write(hbytes)
+        for a in blobs:
+            fh.write(_bytes(a))
+
+    atomic_write(path, write)
+    return path
+
+
+def _snapshot(m: NdtOmMap) -> tuple[bytes, list]:
+    """The header bytes and the arrays of a map file."""
     st = m.state()
     table, offset = [], 0
     blobs = []
@@ -78,15 +91,7 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
         "payload_bytes": offset,
         "payload_sha256": sha.hexdigest(),
     }
-    hbytes = json.dumps(header, default=_json_default).encode("utf-8")
-    def write(fh) -> None:
-        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
-        fh.write(hbytes)
-        for a in blobs:
-            fh.write(_bytes(a))
-
-    atomic_write(path, write)
-    return path
+    return json.dumps(header, default=_json_default).encode("utf-8"), blobs
 
 
 def _bytes(a: np.ndarray) -> memoryview:
