@@ -529,7 +529,16 @@ def map_(
                     sensor_frame_only=sensor_frame, every=every, every_distance=every_distance, t_start=start,
                     t_end=end, max_scans=max_scans,
                 )  # fmt: skip
-                raise typer.Exit(live_command(stream, resolution, host, port, config=mapcfg, save=out_path))
+                import datetime
+
+                md = {"command": "ndtom map --view", "ndtom_ti_version": __version__,
+                      "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                      "source": str(bag.resolve()), "cloud_topic": stream.cloud_topic, "frame_id": stream.frame_id,
+                      "fixed_frame": stream.fixed_frame, "pose_source": stream.pose_source,
+                      "resolution": resolution, "occupancy": True, "config": mapcfg.to_dict(),
+                      "config_file": str(config.resolve()) if config else None}  # fmt: skip
+                raise typer.Exit(live_command(stream, resolution, host, port, config=mapcfg, save=out_path,
+                                              metadata=md))
 
         bar = _Bar(arch, progress)
         # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit
@@ -783,6 +792,8 @@ def export(
             raise ValueError(f"--min-probability must be in [0, 1), got {min_probability}")
         if not map_file.exists():
             _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
+        if map_file.is_dir():
+            _fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
         out_path = _check_writable(output if output is not None else map_file.with_suffix("." + fmt.value),
                                    f"{fmt.value} file")
         if out_path.resolve() == map_file.resolve():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import time
 import weakref
 from dataclasses import asdict, dataclass
@@ -631,6 +632,12 @@ class NdtOmMap:
         """
         if min_points is None:
             min_points = self.config.min_points
+        if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
+            raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
+        if isinstance(min_probability, bool) or not isinstance(min_probability, numbers.Real) or not (
+            0.0 <= min_probability <= 1.0  # NaN fails: it would have kept every Gaussian
+        ):
+            raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
         raw = self._raw_gaussians()
         keep = raw["n"] >= max(int(min_points), 1)
         lo = raw["logodds"].astype(np.float64)

@@ -1,7 +1,7 @@
 """What ``ndtom view`` (and a live-mapping command) call; the Typer CLI stays in ndtom_ti.cli.
 
-Exit codes follow the CLI's: 0 done (Ctrl-C is the normal way to close the viewer);
-1 failed (viser missing, the map could not be drawn); 2 bad input (missing or corrupt
+Exit codes follow the CLI's: 0 done (Ctrl-C is the normal way to close the viewer;
+live mapping stopped by Ctrl-C before its scans ran out: 130, the map saved); 1 failed (viser missing, the map could not be drawn); 2 bad input (missing or corrupt
 map file, host that cannot be listened on, snapshot path that cannot be written).
 """
 
@@ -19,6 +19,7 @@ __all__ = ["live_command", "live_demo_command", "view_command"]
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
 
 def _error(message: str, hint: str | None = None) -> None:
@@ -129,10 +130,13 @@ def live_command(
     play: bool = True,
     rate_hz: float = 0.0,
     save: Path | None = None,
+    metadata: dict | None = None,
 ) -> int:
     """Map ``scans`` live in the viewer (objects with ``.points``/``.T_world_sensor``, e.g.
     ``Recording.scans(...)``): builds an NDT-OM map (and with ``compare`` a Recursive NDT
-    map) while serving, until Ctrl-C; ``save`` writes the NDT-OM map on exit."""
+    map) while serving, until Ctrl-C; ``save`` writes the NDT-OM map on exit, with
+    ``metadata`` and whether every scan was mapped. Returns 0, or 130 when Ctrl-C came
+    before the scans ran out (like ``ndtom map``), 1 when mapping failed."""
     try:
         require_viser()
     except ViewerNotInstalledError as exc:
@@ -142,7 +146,7 @@ def live_command(
 
     from .app import MapViewer
 
-    m = NdtOmMap(resolution, config=config)
+    m = NdtOmMap(resolution, config=config, metadata=metadata)
     try:
         viewer = MapViewer(m, host=host, port=port)
     except ValueError as exc:
@@ -153,15 +157,21 @@ def live_command(
     try:
         _block(viewer)
     finally:
+        complete = lm.finished and lm.error is None  # read before stop() ends the scans early
         lm.stop()
         viewer.close()
         if save is not None:
-            m.save(save)
-            print(f"Wrote {save} ({lm.scans_done} scans)", flush=True)
+            from ndtom_ti.pipeline import stop_signals
+
+            m.metadata.update(complete=complete, summary={"scans_used": lm.scans_done, "error": lm.error,
+                                                          "stopped": None if complete else "error" if lm.error else "interrupted"})
+            with stop_signals(phase="saving"):  # a Ctrl-C now waits for the map to be on disk
+                m.save(save)
+            print(f"Wrote {save} ({lm.scans_done} scans{'' if complete else ', marked incomplete'})", flush=True)
     if lm.error:
         _error(f"live mapping stopped: {lm.error}")
         return EXIT_FAILURE
-    return EXIT_OK
+    return EXIT_OK if complete else EXIT_INTERRUPTED
 
 
 def live_demo_command(
