@@ -298,6 +298,8 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
     def bad(what: str):
         raise MapFileError(f"{path} is corrupt: {what}")
 
+    if not math.isfinite(resolution * 2.0 * max(layout.cells)):
+        bad(f"resolution {resolution} m makes the grid's extent overflow")
     lo, hi = np.array(layout.lo, np.int64), np.array(layout.hi, np.int64)
     for name in ("occ_index", "g_index"):
         idx = arrays[name].astype(np.int64)
@@ -324,12 +326,13 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
     if not np.isfinite(s).all():
         bad("g_scatter holds values that are not finite")
     xx, xy, xz, yy, yz, zz = (s[:, i] for i in range(6))
-    scale = xx + yy + zz
-    tol = 1e-6 * scale * scale
     top = gn.astype(np.float64) * resolution**2 * (1.0 + 1e-6)
-    det = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
     ok = (xx >= -1e-12) & (yy >= -1e-12) & (zz >= -1e-12) & (xx <= top) & (yy <= top) & (zz <= top)
-    ok &= (xx * yy - xy * xy >= -tol) & (xx * zz - xz * xz >= -tol) & (yy * zz - yz * yz >= -tol)
-    ok &= det >= -1e-6 * scale**3
+    with np.errstate(over="ignore", invalid="ignore"):  # huge values: NaN compares false, refused
+        scale = xx + yy + zz
+        tol = 1e-6 * scale * scale
+        det = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
+        ok &= (xx * yy - xy * xy >= -tol) & (xx * zz - xz * xz >= -tol) & (yy * zz - yz * yz >= -tol)
+        ok &= det >= -1e-6 * scale**3
     if not ok.all():
         bad("g_scatter holds a scatter matrix that is not positive semi-definite or exceeds its cell")
