@@ -6,10 +6,11 @@ npz or CSV). The work is done by :mod:`ndtom_ti.pipeline` and :mod:`ndtom_ti.exp
 this module parses options, shows progress and tables, and turns errors into one red
 line and a hint.
 
-Exit codes: 0 done; 1 failed (the memory budget stopped mapping: what was mapped is
-saved; or the map could not be written; or an internal error); 2 bad input or usage
-(unreadable recording, missing topic or poses, bad option or config file, output path
-that cannot be written); 130 interrupted by Ctrl-C (what was mapped is saved).
+Exit codes: 0 done; 1 failed (the memory budget or a bad scan stopped mapping: what was
+mapped is saved; or the map could not be written; or an internal error); 2 bad input or
+usage (unreadable recording, missing topic or poses, bad option or config file, output
+path that cannot be written); 130 interrupted by Ctrl-C, 143 by SIGTERM (what was mapped
+is saved).
 """
 
 from __future__ import annotations
@@ -198,7 +199,7 @@ def _main(
     """Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).
 
     Exit codes: 0 ok, 1 failed (e.g. memory budget; what was mapped is saved), 2 bad
-    input or usage, 130 interrupted (what was mapped is saved).
+    input or usage, 130 interrupted by Ctrl-C, 143 by SIGTERM (what was mapped is saved).
     """
 
 
@@ -496,8 +497,8 @@ def map_(
     """Map a recording into an NDT Occupancy Map file.
 
     Prints a progress bar, then a summary (scans used and skipped and why, points,
-    Gaussians, memory, time per scan). Ctrl-C stops after the current scan and saves
-    what was mapped (exit 130).
+    Gaussians, memory, time per scan). Ctrl-C (or SIGTERM) stops after the current scan
+    and saves what was mapped (exit 130, or 143).
     """
     from .pipeline import load_config_file, map_recording, stop_signals
 
