@@ -323,6 +323,7 @@ def _run(
 
     t0 = time.perf_counter()
     end = object()
+    ran_out = False  # every scan was inserted: a signal after that stops nothing
     with _loop_signals() as sig:
         it = iter(scans)
         try:
@@ -337,7 +338,10 @@ def _run(
                     break
                 finally:
                     sig.reading = False
-                if scan is end or sig.count:
+                if scan is end:
+                    ran_out = True
+                    break
+                if sig.count:
                     break
                 points, T = (scan.points, scan.T_world_sensor) if hasattr(scan, "points") else scan
                 try:
@@ -363,7 +367,7 @@ def _run(
                     progress(summary, rep)
         except KeyboardInterrupt:
             sig.count = max(sig.count, 1)
-        if sig.count and summary.stopped is None:
+        if sig.count and summary.stopped is None and not ran_out:
             summary.stopped = "interrupted"
             summary.error = f"interrupted ({sig.name}) after {summary.scans_used} scans"
     summary.wall_seconds = time.perf_counter() - t0

@@ -191,8 +191,8 @@ def _special(dtype: np.dtype) -> st.SearchStrategy:
             st.sampled_from([0.0, -0.0, 1e-300, 2.0, 2.0001, -2.0001, 0.2, 0.25, 0.2500001, 1e10]),
         )
     info = np.iinfo(dtype)
-    return st.one_of(st.integers(min_value=int(info.min), max_value=int(info.max)),
-                     st.sampled_from([0, -1, 1, 2, int(info.min), int(info.max), 2**14, -(2**14) - 1]))  # fmt: skip
+    edges = [v for v in (0, -1, 1, 2, int(info.min), int(info.max), 2**14, -(2**14) - 1) if info.min <= v <= info.max]
+    return st.one_of(st.integers(min_value=int(info.min), max_value=int(info.max)), st.sampled_from(edges))
 
 
 @st.composite
