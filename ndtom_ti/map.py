@@ -69,14 +69,33 @@ def _locked(method):
     @functools.wraps(method)
     def call(self, *args, **kwargs):
         with self._lock:
+            if _dead_slots:
+                _release_dead()
             return method(self, *args, **kwargs)
 
     return call
 
 
+_dead_slots: list = []  # (storage, slot) of maps collected while another thread held the lock
+
+
 def _release_slot(st, slot: int) -> None:
-    # A dead map's slot is emptied by a kernel: never while another thread's kernels run.
-    with st.lock:
+    """Empty a dead map's slot (a kernel: never while another thread's kernels run). The
+    garbage collector calls this in any thread, maybe inside another lock's holder: it
+    never waits; a slot it cannot empty now is emptied by the next map call."""
+    if not st.lock.acquire(blocking=False):
+        _dead_slots.append((st, slot))
+        return
+    try:
+        runtime.release_slot(st, slot)
+        _release_dead()
+    finally:
+        st.lock.release()
+
+
+def _release_dead() -> None:
+    while _dead_slots:
+        st, slot = _dead_slots.pop()
         runtime.release_slot(st, slot)
 
 
@@ -172,6 +191,9 @@ class NdtOmMap:
         self.scans_inserted = 0
         self.points_inserted = 0
 
+        with runtime.storage(self.layout).lock:
+            if _dead_slots:  # slots of maps collected while the lock was held: free them first
+                _release_dead()
         self._st, self._slot = runtime.acquire_slot(self.layout)
         self._lock = self._st.lock
         with self._lock:

@@ -191,6 +191,34 @@ def test_two_maps_in_two_threads():
     maps.clear()
 
 
+def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
+    """The garbage collector may drop a map in any thread, even inside another lock's
+    holder; its slot is then emptied later instead of waiting for the map lock."""
+    from ndtom_ti import map as map_module
+
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(300, 3)) + [3, 0, 0], np.eye(4))
+    st, slot = m._st, m._slot
+    holding, release = threading.Event(), threading.Event()
+
+    def hold():
+        with st.lock:
+            holding.set()
+            release.wait(5)
+
+    t = threading.Thread(target=hold)
+    t.start()
+    assert holding.wait(10)
+    del m  # the finalizer runs here, while the other thread holds the lock
+    pending = [s for _, s in map_module._dead_slots]
+    release.set()
+    t.join(10)
+    assert pending == [slot] and slot not in st.free_slots
+    fresh = NdtOmMap(0.5)  # frees the pending slot first
+    assert not map_module._dead_slots and (fresh._slot == slot or slot in st.free_slots)
+    assert len(fresh.known_cells()["index"]) == 0  # the slot was emptied
+
+
 # ---------------------------------------------------------------------------- signals, real process
 # The command runs as `ndtom map` does, with two test-only wrappers (not product code):
 # a line on stderr after each insert (so the test knows where the run is) and an
