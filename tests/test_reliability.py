@@ -260,13 +260,13 @@ SHIM = textwrap.dedent(
 class Ndtom:
     """`ndtom map BAG -r R -o OUT` in a process of its own; stderr read line by line."""
 
-    def __init__(self, tmp: Path, bag: Path, out: Path, **env: str):
+    def __init__(self, tmp: Path, bag: Path, out: Path, res: float = pb.RES, **env: str):
         shim = tmp / "ndtom_shim.py"
         shim.write_text(SHIM)
         self.lines: queue.Queue = queue.Queue()
         self.seen: list[str] = []
         self.p = subprocess.Popen(
-            [sys.executable, str(shim), "map", str(bag), "-r", str(pb.RES), "-o", str(out), "--no-progress",
+            [sys.executable, str(shim), "map", str(bag), "-r", str(res), "-o", str(out), "--no-progress",
              "--arch", "cpu"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp,
             env={**os.environ, "COLUMNS": "200", **env},
@@ -375,6 +375,23 @@ def test_ctrl_c_then_more_during_the_save(tmp_path, plane_bag):
     assert rc == 130, (rc, stdout, err)
     n = err.count("TEST: scan")
     assert "saving the map; wait" in err
+    assert_saved(out, n, complete=False)
+
+
+def test_ctrl_c_twice_then_sigterm_on_a_real_recording(tmp_path):
+    from conftest import DATA
+
+    bag = DATA / "balm_hall_every4"
+    if not bag.exists():
+        pytest.skip(f"real recording not found at {bag}")
+    out = tmp_path / "balm.ndtom"
+    run = Ndtom(tmp_path, bag, out, res=0.4, TEST_SCAN_SLEEP="0.1")
+    run.wait_for("TEST: scan", 3)
+    run.send(signal.SIGINT, signal.SIGINT, signal.SIGTERM, gap=0.05)
+    rc, stdout, err = run.finish()
+    assert rc == 130, (rc, stdout, err)  # the first signal decides the code
+    n = err.count("TEST: scan")
+    assert 3 <= n < 45 and f"saved the {n} scans" in err
     assert_saved(out, n, complete=False)
 
 
