@@ -181,7 +181,10 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         for i in range(n):
             p = ti.Vector([ti.cast(pts[i, 0], ti.f64), ti.cast(pts[i, 1], ti.f64), ti.cast(pts[i, 2], ti.f64)])
             st = ti.i8(2)
-            if not (ti.math.isinf(p).any() or ti.math.isnan(p).any()):
+            # Exponent bits all set: inf or NaN. (ti.math.isinf/isnan cast to f32 first,
+            # which made finite points past 3.4e38 read as infinite.)
+            e = ti.Vector([(ti.bit_cast(p[a], ti.u64) >> ti.u64(52)) & ti.u64(0x7FF) for a in ti.static(range(3))])
+            if not (e == ti.u64(0x7FF)).any():
                 st = ti.i8(3)
                 d2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
                 if d2 >= r2[0] and d2 <= r2[1]:

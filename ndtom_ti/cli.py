@@ -6,10 +6,11 @@ PCD, npz, CSV, OctoMap .bt or a 2-D occupancy grid). The work is done by :mod:`n
 this module parses options, shows progress and tables, and turns errors into one red
 line and a hint.
 
-Exit codes: 0 done; 1 failed (the memory budget stopped mapping: what was mapped is
-saved; or the map could not be written; or an internal error); 2 bad input or usage
-(unreadable recording, missing topic or poses, bad option or config file, output path
-that cannot be written); 130 interrupted by Ctrl-C (what was mapped is saved).
+Exit codes: 0 done; 1 failed (the memory budget or a bad scan stopped mapping: what was
+mapped is saved; or the map could not be written; or an internal error); 2 bad input or
+usage (unreadable recording, missing topic or poses, bad option or config file, output
+path that cannot be written); 130 interrupted by Ctrl-C, 143 by SIGTERM (what was mapped
+is saved).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import contextlib
 import io
 import math
 import os
+import signal
 import tempfile
 import time
 from collections.abc import Iterator
@@ -44,6 +46,7 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
 MAP_SUFFIX = ".ndtom"
+_OWN_PROCESS = False  # main() runs the command in a process of its own (not in a test runner)
 _MAGIC = b"NDTOMTI\n"
 
 app = typer.Typer(
@@ -162,8 +165,11 @@ def _user_errors(*, recording: str | None = None, map_file: str | None = None) -
         _fail(f"{exc}", "check the path and its permissions", EXIT_FAILURE)
     except (ValueError, TypeError) as exc:
         _fail(str(exc), "`ndtom COMMAND --help` lists the options and their ranges")
-    except KeyboardInterrupt:
-        _fail("interrupted (Ctrl-C)", None, EXIT_INTERRUPTED)
+    except KeyboardInterrupt as exc:
+        from .pipeline import signal_name
+
+        signum = getattr(exc, "signum", signal.SIGINT)
+        _fail(f"interrupted ({signal_name(signum)}); nothing was written", None, 128 + signum)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback for users
         if os.environ.get("NDTOM_DEBUG"):
             raise
@@ -259,7 +265,7 @@ def _main(
     """Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).
 
     Exit codes: 0 ok, 1 failed (e.g. memory budget; what was mapped is saved), 2 bad
-    input or usage, 130 interrupted (what was mapped is saved).
+    input or usage, 130 interrupted by Ctrl-C, 143 by SIGTERM (what was mapped is saved).
     """
 
 
@@ -481,8 +487,13 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     return t
 
 
-def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: list | None = None) -> int:
-    """Print the summary, write the map (also after Ctrl-C or a memory stop), return the exit code."""
+def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: list | None = None,
+                    signals: Any = None) -> int:
+    """Print the summary, write the map (also after Ctrl-C, SIGTERM, a memory stop or a bad
+    scan), return the exit code. ``signals``: the command's StopSignals; from here on a
+    signal only waits for the map to be on disk."""
+    if signals is not None:
+        signals.phase = "saving"
     bar.stop(summary)
     out, err = _out(), _err()
     wrote: Path | None = None
@@ -499,16 +510,26 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
     for note in summary.skip_notes:
         err.print(Text(f"note: {note}", style="dim"))
     if summary.stopped == "interrupted":
-        msg = (f"Interrupted: saved the {summary.scans_used} scans mapped so far to {wrote}" if wrote
-               else "Interrupted before any scan was mapped; no map written")
+        name = signals.name if signals is not None and signals.count else "Ctrl-C"
+        n = summary.scans_used
+        msg = (f"Interrupted: saved the {n} scan{'s' if n != 1 else ''} mapped so far to {wrote} ({name}; the map is "
+               "marked incomplete)" if wrote else f"Interrupted ({name}) before any scan was mapped; no map written")
         err.print(Text(msg, style="bold yellow"))
-        return EXIT_INTERRUPTED
+        return signals.exit_code if signals is not None and signals.count else EXIT_INTERRUPTED
     if summary.stopped == "memory":
-        saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote}." if wrote
+        saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)." if wrote
                  else "Nothing was mapped; no map written.")
         error, hint = _memory_refusal(summary, saved)
         err.print(Text.assemble(("Error: ", "bold red"), (error, "red")))
         err.print(Text.assemble(("Hint: ", "bold"), hint))
+        return EXIT_FAILURE
+    if summary.stopped == "error":
+        err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "a scan could not be mapped", "red")))
+        saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)." if wrote
+                 else "Nothing was mapped; no map written.")
+        fix = ("Check that scan's pose and cloud (`ndtom info BAG`), or end the run before it with --end or "
+               "--max-scans.")
+        err.print(Text.assemble(("Hint: ", "bold"), f"{saved} {fix}"))
         return EXIT_FAILURE
     if not summary.scans_used:
         why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
@@ -573,10 +594,10 @@ def map_(
     """Map a recording into an NDT Occupancy Map file.
 
     Prints a progress bar, then a summary (scans used and skipped and why, points,
-    Gaussians, memory, time per scan). Ctrl-C stops after the current scan and saves
-    what was mapped (exit 130).
+    Gaussians, memory, time per scan). Ctrl-C (or SIGTERM) stops after the current scan
+    and saves what was mapped (exit 130, or 143).
     """
-    from .pipeline import load_config_file, map_recording
+    from .pipeline import load_config_file, map_recording, stop_signals
 
     code = EXIT_OK
     with _user_errors():
@@ -626,19 +647,21 @@ def map_(
             raise typer.Exit(code)
 
         bar = _Bar(arch, progress, memory_limit)
-        try:
-            m, summary = map_recording(
-                bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
-                poses_file=poses, sensor_frame_only=sensor_frame, every=every, every_distance=every_distance,
-                t_start=start, t_end=end, max_scans=max_scans, occupancy=occupancy, config=mapcfg,
-                metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
-                progress=bar,
-            )  # fmt: skip
-        except BaseException:
-            bar.stop()
-            raise
-        code = _finish_mapping(m, summary, out_path, bar)
-        del m
+        # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit
+        with stop_signals(restore=not _OWN_PROCESS) as sig:
+            try:
+                m, summary = map_recording(
+                    bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
+                    poses_file=poses, sensor_frame_only=sensor_frame, every=every, every_distance=every_distance,
+                    t_start=start, t_end=end, max_scans=max_scans, occupancy=occupancy, config=mapcfg,
+                    metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
+                    progress=bar,
+                )  # fmt: skip
+            except BaseException:
+                bar.stop()
+                raise
+            code = _finish_mapping(m, summary, out_path, bar, signals=sig)
+            del m
     raise typer.Exit(code)
 
 
@@ -663,7 +686,7 @@ def demo(
     """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
     halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
     from . import demo as demo_scene
-    from .pipeline import map_scans
+    from .pipeline import map_scans, stop_signals
 
     code = EXIT_OK
     with _user_errors():
@@ -703,25 +726,26 @@ def demo(
                 bar.stop()
             raise typer.Exit(code)
         bar = _Bar(arch, progress)
-        try:
-            m, summary = map_scans(
-                data, resolution, source="ndtom demo (synthetic room)", scans_expected=len(data),
-                pose_source="exact (synthetic)", fixed_frame="world",
-                metadata={"command": "ndtom demo", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
-                progress=bar,
-            )
-        except BaseException:
-            bar.stop()
-            raise
-        check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
-        m.metadata["ground_truth_check"] = check
-        gt = _table("Against the ground truth", "", "", header=False)
-        gt.add_row("Gaussians on a true surface", f"{check['on_surface'] * 100:.1f}% (mean within "
-                   f"{resolution / 4:g} m)")
-        gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
-        gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
-        code = _finish_mapping(m, summary, out_path, bar, [gt])
-        del m
+        with stop_signals(restore=not _OWN_PROCESS) as sig:  # as in `ndtom map`
+            try:
+                m, summary = map_scans(
+                    data, resolution, source="ndtom demo (synthetic room)", scans_expected=len(data),
+                    pose_source="exact (synthetic)", fixed_frame="world",
+                    metadata={"command": "ndtom demo", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                    progress=bar,
+                )
+            except BaseException:
+                bar.stop()
+                raise
+            check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
+            m.metadata["ground_truth_check"] = check
+            gt = _table("Against the ground truth", "", "", header=False)
+            gt.add_row("Gaussians on a true surface", f"{check['on_surface'] * 100:.1f}% (mean within "
+                       f"{resolution / 4:g} m)")
+            gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
+            gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
+            code = _finish_mapping(m, summary, out_path, bar, [gt], signals=sig)
+            del m
         if code == EXIT_OK:
             _out().print(f"Next: ndtom export {out_path} --format ply", soft_wrap=True, markup=False)
     raise typer.Exit(code)
@@ -935,6 +959,8 @@ def export(
             raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
         if not map_file.exists():
             _fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
+        if map_file.is_dir():
+            _fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
         out_path = _check_writable(output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]),
                                    f"{fmt_name} file")
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
@@ -957,7 +983,15 @@ def export(
 
 def main() -> None:
     """Entry point of the ``ndtom`` command."""
-    app(prog_name="ndtom")
+    global _OWN_PROCESS
+    _OWN_PROCESS = True  # signal handlers may stay until the process exits
+    try:
+        app(prog_name="ndtom")
+    finally:
+        # The work is saved; Python drops its handlers before Taichi's teardown, where a
+        # late Ctrl-C or SIGTERM would otherwise kill the process instead of it exiting.
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
 
 
 if __name__ == "__main__":  # pragma: no cover

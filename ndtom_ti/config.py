@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, fields
 
 
@@ -48,6 +49,15 @@ class MapConfig:
         def bad(msg: str) -> None:
             raise ValueError(f"MapConfig: {msg}")
 
+        # Types first (a config file may hold "0.6" or [1]): comparisons below need numbers.
+        for f in fields(self):
+            value, default = getattr(self, f.name), f.default
+            if isinstance(default, str):
+                if not isinstance(value, str):
+                    bad(f"{f.name} must be a string, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+                bad(f"{f.name} must be a number, got {value!r} ({type(value).__name__})")
+
         if not 0.5 < self.p_occupied < 1.0:
             bad(f"p_occupied must be in (0.5, 1), got {self.p_occupied}")
         if not 0.0 < self.p_empty < 0.5:
@@ -70,9 +80,9 @@ class MapConfig:
             bad(f"n_max must be 0 (off) or an integer >= 2, got {self.n_max}")
         if self.miss_model not in MISS_MODELS:
             bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
-        if not (isinstance(self.sigma_s, (int, float)) and math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
+        if not (math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
             bad(f"sigma_s must be a positive number of metres, got {self.sigma_s!r}")
-        if not (isinstance(self.eta, (int, float)) and 0.0 < self.eta < 0.5):
+        if not 0.0 < self.eta < 0.5:
             bad(f"eta must be in (0, 0.5), got {self.eta!r}")
 
     @property

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
+import numbers
 import time
 import weakref
 from dataclasses import asdict, dataclass
@@ -73,6 +75,42 @@ class ScanReport:
         return asdict(self)
 
 
+def _locked(method):
+    """Run a public method holding the map's lock (see NdtOmMap: thread safety)."""
+
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._lock:
+            if _dead_slots:
+                _release_dead()
+            return method(self, *args, **kwargs)
+
+    return call
+
+
+_dead_slots: list = []  # (storage, slot) of maps collected while another thread held the lock
+
+
+def _release_slot(st, slot: int) -> None:
+    """Empty a dead map's slot (a kernel: never while another thread's kernels run). The
+    garbage collector calls this in any thread, maybe inside another lock's holder: it
+    never waits; a slot it cannot empty now is emptied by the next map call."""
+    if not st.lock.acquire(blocking=False):
+        _dead_slots.append((st, slot))
+        return
+    try:
+        runtime.release_slot(st, slot)
+        _release_dead()
+    finally:
+        st.lock.release()
+
+
+def _release_dead() -> None:
+    while _dead_slots:
+        st, slot = _dead_slots.pop()
+        runtime.release_slot(st, slot)
+
+
 def cell_box(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest and largest index per axis of (N, 3) cells, as int64. Per column: numpy's
     reduction over axis 0 of an (N, 3) array is ~20x slower."""
@@ -133,6 +171,11 @@ class NdtOmMap:
     The grid spans ``layout.cells`` cells per axis centred on the origin (default
     32768 x 32768 x 4096: +-1.6 km x +-1.6 km x +-205 m at 0.1 m). Points outside it are
     dropped and counted.
+
+    Thread safety: every public method holds the map's lock (``_lock``, re-entrant). It is
+    one lock for all maps of the process, because they share Taichi's runtime, the sparse
+    trees and the scan scratch: calls from several threads, on one map or on several, are
+    safe and run one at a time.
     """
 
     def __init__(
@@ -198,10 +241,15 @@ class NdtOmMap:
         self.scans_inserted = 0
         self.points_inserted = 0
 
+        with runtime.storage(self.layout).lock:
+            if _dead_slots:  # slots of maps collected while the lock was held: free them first
+                _release_dead()
         self._st, self._slot = runtime.acquire_slot(self.layout)
-        self._k = make_kernels(self._st)
+        self._lock = self._st.lock
+        with self._lock:
+            self._k = make_kernels(self._st)
         # Empty the slot for the next map; nothing to do at interpreter exit.
-        weakref.finalize(self, runtime.release_slot, self._st, self._slot).atexit = False
+        weakref.finalize(self, _release_slot, self._st, self._slot).atexit = False
         self._ctr = np.zeros(CTR_SIZE, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
@@ -345,6 +393,7 @@ class NdtOmMap:
                                 rlo.astype(np.int32), rseen, st.occ_regions, st.gidx_regions, new)  # fmt: skip
         return new[[2, 0, 3, 1]]
 
+    @_locked
     def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Benchmark floor: the scan's rays traversed through the same sparse layout with
         one integer atomic per visited cell and nothing else. It leaves ray counters set:
@@ -659,11 +708,13 @@ class NdtOmMap:
     def _record_bytes(self) -> int:
         return len(self._rec_n) * (RECORD_BYTES + (NDT_RECORD_BYTES if self.config.ndt_misses else 0))
 
+    @_locked
     def memory_bytes(self) -> int:
         """Bytes this map holds: nodes of its sparse trees (counted exactly by the
         kernels) plus its Gaussian records."""
         return self._st.slot_bytes(self._slot) + self._record_bytes()
 
+    @_locked
     def memory_report(self) -> dict:
         """Memory held, by part, with bytes per known cell and per Gaussian."""
         nodes = self._st.nodes(self._slot)
@@ -709,6 +760,7 @@ class NdtOmMap:
             "logodds": lo,
         }
 
+    @_locked
     def gaussians(self, min_points: int | None = None, min_probability: float = 0.5) -> dict:
         """The map's Gaussians, sorted by cell index.
 
@@ -721,6 +773,12 @@ class NdtOmMap:
         """
         if min_points is None:
             min_points = self.config.min_points
+        if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
+            raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
+        if isinstance(min_probability, bool) or not isinstance(min_probability, numbers.Real) or not (
+            0.0 <= min_probability <= 1.0  # NaN fails: it would have kept every Gaussian
+        ):
+            raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
         raw = self._raw_gaussians()
         keep = raw["n"] >= max(int(min_points), 1)
         lo = raw["logodds"].astype(np.float64)
@@ -746,6 +804,7 @@ class NdtOmMap:
             "logodds": lo[keep],
         }
 
+    @_locked
     def known_cells(self) -> dict:
         """Every cell with a non-zero log-odds (occupied and free), sorted by index:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
@@ -762,6 +821,7 @@ class NdtOmMap:
         lo = val[order].astype(np.float64)
         return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
 
+    @_locked
     def occupancy(self, points: Any, *, return_known: bool = False):
         """Occupancy probability of the cells holding world ``points`` (N, 3), or of one
         point (3,) (then a float, and a bool with ``return_known``).
@@ -788,6 +848,7 @@ class NdtOmMap:
             known[ok] = lo != 0.0
         return (out, known) if return_known else out
 
+    @_locked
     def logodds_at(self, index: Any) -> np.ndarray:
         """Log-odds (float64) of cells given by integer index (K, 3); unknown cells and
         cells outside the grid read 0."""
@@ -802,6 +863,7 @@ class NdtOmMap:
             out[ok] = lo
         return out
 
+    @_locked
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
         return int(np.count_nonzero(self._occupied_gaussian_mask()))
@@ -816,6 +878,7 @@ class NdtOmMap:
         self._k.query(self._slot, np.ascontiguousarray(self._rec_cell[cand]), len(cand), lo)
         return lo > 0.0
 
+    @_locked
     def __repr__(self) -> str:
         return (
             f"NdtOmMap(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
@@ -825,6 +888,7 @@ class NdtOmMap:
 
     # ------------------------------------------------------------------ state in/out
 
+    @_locked
     def state(self) -> dict:
         """All cell state as numpy arrays (what ``save`` writes)."""
         g = self._raw_gaussians()
@@ -887,6 +951,7 @@ class NdtOmMap:
 
         return load_map(path)
 
+    @_locked
     def coarsen(self, factor: int) -> NdtOmMap:
         """A new map at ``factor * resolution`` (method.md sec. 4).
 

@@ -12,14 +12,18 @@ Layout (little endian):
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
+import math
+import os
+import stat
 import struct
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .atomic import atomic_write
+from .atomic import atomic_write, check_target
 from .config import MapConfig
 
 if TYPE_CHECKING:
@@ -35,6 +39,8 @@ _ARRAYS = {
     "g_mean_rel": ("<f8", 2),
     "g_scatter": ("<f8", 2),
 }
+# Trailing dimensions of each array (the first is its row count).
+_COLUMNS = {"occ_index": (3,), "occ_logodds": (), "g_index": (3,), "g_n": (), "g_mean_rel": (3,), "g_scatter": (6,)}
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
 
@@ -44,9 +50,22 @@ class MapFileError(ValueError):
 
 
 def save_map(m: NdtOmMap, path: str | Path) -> Path:
-    path = Path(path)
-    if not (path.parent if str(path.parent) else Path(".")).is_dir():
-        raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
+    path = check_target(path)  # before the work: a FIFO, device or folder is refused
+    with m._lock:  # one consistent snapshot; the file is written after the lock is released
+        hbytes, blobs = _snapshot(m)
+
+    def write(fh) -> None:
+        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
+        fh.write(hbytes)
+        for a in blobs:
+            fh.write(_bytes(a))
+
+    atomic_write(path, write)
+    return path
+
+
+def _snapshot(m: NdtOmMap) -> tuple[bytes, list]:
+    """The header bytes and the arrays of a map file."""
     st = m.state()
     table, offset = [], 0
     blobs = []
@@ -72,15 +91,7 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
         "payload_bytes": offset,
         "payload_sha256": sha.hexdigest(),
     }
-    hbytes = json.dumps(header, default=_json_default).encode("utf-8")
-    def write(fh) -> None:
-        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
-        fh.write(hbytes)
-        for a in blobs:
-            fh.write(_bytes(a))
-
-    atomic_write(path, write)
-    return path
+    return json.dumps(header, default=_json_default).encode("utf-8"), blobs
 
 
 def _bytes(a: np.ndarray) -> memoryview:
@@ -107,8 +118,8 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
         raise FileNotFoundError(f"no map file at {path}")
     if path.is_dir():
         raise MapFileError(f"{path} is a folder, not an ndtom_ti map file")
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
+    with _open_regular(path) as fh:
+        size = os.fstat(fh.fileno()).st_size
         prefix = fh.read(_PREFIX.size)
         if not MAGIC.startswith(prefix[:8]) or not prefix:
             raise MapFileError(f"{path} is not an ndtom_ti map file (wrong magic bytes)")
@@ -128,9 +139,12 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
             header = json.loads(fh.read(hlen).decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise MapFileError(f"{path} is corrupt: unreadable header ({exc})") from None
+        except RecursionError:
+            raise MapFileError(f"{path} is corrupt: unreadable header (nested too deeply)") from None
         if not isinstance(header, dict) or header.get("format") != "ndtom_ti map":
             raise MapFileError(f"{path} is corrupt: header is not an ndtom_ti map header")
-        expected = _PREFIX.size + hlen + int(header.get("payload_bytes", -1))
+        _check_header(path, header)
+        expected = _PREFIX.size + hlen + header["payload_bytes"]
         if size < expected:
             raise MapFileError(f"{path} is truncated: {size} bytes, expected {expected}")
         if size > expected:
@@ -168,6 +182,8 @@ def load_map(path: str | Path) -> NdtOmMap:
         config = MapConfig.from_dict(header["config"])
         lay = header["layout"]
         layout = Layout(l1=tuple(lay["l1"]), l2=int(lay["l2"]), leaf=int(lay["leaf"]))
+        layout.validate()
+        _check_values(path, arrays, layout, config, header["resolution"])
         m = NdtOmMap(
             float(header["resolution"]),
             occupancy=bool(header["occupancy"]),
@@ -175,9 +191,148 @@ def load_map(path: str | Path) -> NdtOmMap:
             layout=layout,
             metadata=header.get("metadata") or {},
         )
+    except MapFileError:
+        raise
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"{path} has invalid settings: {exc}") from None
-    m._load_state(arrays)
-    m.scans_inserted = int(header.get("scans_inserted", 0))
-    m.points_inserted = int(header.get("points_inserted", 0))
+    with m._lock:
+        m._load_state(arrays)
+        m.scans_inserted = header["scans_inserted"]
+        m.points_inserted = header["points_inserted"]
     return m
+
+
+def _open_regular(path: Path):
+    """``path`` opened for reading, refused unless it is a regular file (opening a FIFO
+    without O_NONBLOCK would wait for a writer)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise MapFileError(f"{path} is not a regular file (a pipe, device or socket), not an ndtom_ti map file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_header(path: Path, header: dict) -> None:
+    """Every header field the reader and ``ndtom info`` use, by type and range, and the
+    array table against itself: all arrays present once, each with its dtype, its number
+    of columns and the bytes its shape needs, inside the payload, not overlapping, and
+    arrays that describe the same cells of one length. Any fault: MapFileError."""
+
+    def bad(what: str):
+        raise MapFileError(f"{path} is corrupt: {what}")
+
+    pb = header.get("payload_bytes")
+    if not _is_int(pb) or pb < 0:
+        bad(f"payload_bytes must be a non-negative integer, got {pb!r}")
+    sha = header.get("payload_sha256")
+    if not isinstance(sha, str) or len(sha) != 64:
+        bad("payload_sha256 is not a SHA-256 hex digest")
+    for key in ("scans_inserted", "points_inserted"):
+        if not _is_int(header.get(key)) or header[key] < 0:
+            bad(f"{key} must be a non-negative integer, got {header.get(key)!r}")
+    res = header.get("resolution")
+    if isinstance(res, bool) or not isinstance(res, (int, float)) or not (math.isfinite(res) and res > 0):
+        bad(f"resolution must be a positive number of metres, got {res!r}")
+    if not isinstance(header.get("occupancy"), bool):
+        bad(f"occupancy must be true or false, got {header.get('occupancy')!r}")
+    if not isinstance(header.get("config"), dict):
+        bad("config is not a table of map options")
+    if header.get("metadata") is not None and not isinstance(header["metadata"], dict):
+        bad("metadata is not a table")
+    lay = header.get("layout")
+    if not (isinstance(lay, dict) and isinstance(lay.get("l1"), list) and len(lay["l1"]) == 3
+            and all(_is_int(v) and v > 0 for v in [*lay["l1"], lay.get("l2"), lay.get("leaf")])):  # fmt: skip
+        bad(f"layout must hold l1 (3 positive integers), l2 and leaf (positive integers), got {lay!r}")
+    table = header.get("arrays")
+    if not isinstance(table, list):
+        bad("the array table is not a list")
+    rows, spans = {}, []
+    for entry in table:
+        name = entry.get("name") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or name not in _ARRAYS:
+            bad(f"unexpected array {name!r}")
+        if name in rows:
+            bad(f"array {name!r} appears twice")
+        dtype = _ARRAYS[name][0]
+        if entry.get("dtype") != dtype:
+            bad(f"array {name!r} has dtype {entry.get('dtype')!r}, expected {dtype!r}")
+        shape, cols = entry.get("shape"), _COLUMNS[name]
+        if not (isinstance(shape, list) and len(shape) == 1 + len(cols) and all(_is_int(n) and n >= 0 for n in shape)
+                and tuple(shape[1:]) == cols):  # fmt: skip
+            bad(f"array {name!r} has shape {shape!r}, expected [rows{''.join(f', {c}' for c in cols)}]")
+        nbytes, offset = math.prod(shape) * np.dtype(dtype).itemsize, entry.get("offset")
+        if entry.get("nbytes") != nbytes or isinstance(entry.get("nbytes"), bool):
+            bad(f"array {name!r} of shape {shape} needs {nbytes} bytes, the table says {entry.get('nbytes')!r}")
+        if not _is_int(offset) or offset < 0 or offset + nbytes > pb:
+            bad(f"array {name!r} (offset {offset!r}, {nbytes} bytes) lies outside the {pb}-byte payload")
+        rows[name] = shape[0]
+        spans.append((offset, offset + nbytes, name))
+    missing = set(_ARRAYS) - set(rows)
+    if missing:
+        bad(f"arrays {sorted(missing)} missing")
+    spans.sort()
+    for (_, end, a), (start, _, b) in itertools.pairwise(spans):
+        if start < end:
+            bad(f"arrays {a!r} and {b!r} overlap in the payload")
+    for first, others in (("occ_index", ("occ_logodds",)), ("g_index", ("g_n", "g_mean_rel", "g_scatter"))):
+        for name in others:
+            if rows[name] != rows[first]:
+                bad(f"array {name!r} has {rows[name]} rows but {first!r} has {rows[first]}")
+
+
+def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolution: float) -> None:
+    """Cell values a map can hold, before any kernel sees them: cells inside the grid and
+    each listed once, log-odds finite and inside the clamps, Gaussians of at least one
+    point whose mean lies in its cell and whose scatter is finite and positive
+    semi-definite. Any fault: MapFileError."""
+
+    def bad(what: str):
+        raise MapFileError(f"{path} is corrupt: {what}")
+
+    if not math.isfinite(resolution * 2.0 * max(layout.cells)):
+        bad(f"resolution {resolution} m makes the grid's extent overflow")
+    lo, hi = np.array(layout.lo, np.int64), np.array(layout.hi, np.int64)
+    for name in ("occ_index", "g_index"):
+        idx = arrays[name].astype(np.int64)
+        if len(idx) == 0:
+            continue
+        if ((idx < lo) | (idx >= hi)).any():
+            bad(f"{name} holds cells outside the grid of {layout.cells} cells")
+        n = (hi - lo).tolist()
+        key = ((idx[:, 0] - lo[0]) * n[1] + (idx[:, 1] - lo[1])) * n[2] + (idx[:, 2] - lo[2])
+        if not (np.diff(key) > 0).all() and len(np.unique(key)) != len(key):  # written sorted: cheap check first
+            bad(f"{name} lists a cell twice")
+    lod = arrays["occ_logodds"]
+    if len(lod) and not (np.isfinite(lod).all() and (lod >= np.float32(config.logodds_min)).all()
+                         and (lod <= np.float32(config.logodds_max)).all()):  # fmt: skip
+        bad(f"occ_logodds holds values that are not finite or outside [{config.logodds_min}, {config.logodds_max}]")
+    gn, mean, s = arrays["g_n"], arrays["g_mean_rel"], arrays["g_scatter"]
+    if len(gn) == 0:
+        return
+    if (gn < 1).any():
+        bad("g_n holds Gaussians of fewer than one point")
+    half = 0.5 * resolution * (1.0 + 1e-6)
+    if not (np.isfinite(mean).all() and (np.abs(mean) <= half).all()):
+        bad("g_mean_rel holds means that are not finite or outside their cells")
+    if not np.isfinite(s).all():
+        bad("g_scatter holds values that are not finite")
+    xx, xy, xz, yy, yz, zz = (s[:, i] for i in range(6))
+    top = gn.astype(np.float64) * resolution**2 * (1.0 + 1e-6)
+    ok = (xx >= -1e-12) & (yy >= -1e-12) & (zz >= -1e-12) & (xx <= top) & (yy <= top) & (zz <= top)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge values: NaN compares false, refused
+        scale = xx + yy + zz
+        tol = 1e-6 * scale * scale
+        det = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
+        ok &= (xx * yy - xy * xy >= -tol) & (xx * zz - xz * xz >= -tol) & (yy * zz - yz * yz >= -tol)
+        ok &= det >= -1e-6 * scale**3
+    if not ok.all():
+        bad("g_scatter holds a scatter matrix that is not positive semi-definite or exceeds its cell")

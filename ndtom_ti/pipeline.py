@@ -8,10 +8,14 @@ and skipped, and records the settings in the map's ``metadata``. The CLI
 Stopping early is not an error here: Ctrl-C (SIGINT) finishes the scan being inserted
 and stops; a scan that would take the map past its memory budget
 (:class:`~ndtom_ti.MapMemoryError`) is refused (the map is unchanged) and the loop
-stops. Both return the map built so far, with ``summary.stopped`` set
-('interrupted' or 'memory') and ``summary.error`` saying why; check
-``summary.complete`` before trusting a map to cover the whole recording. Bad input
+stops; so does a scan that cannot be read or inserted (a pose outside the grid, a
+damaged message) once some scans are mapped. All return the map built so far, with
+``summary.stopped`` set ('interrupted', 'memory' or 'error') and ``summary.error``
+saying why; check ``summary.complete`` before trusting a map to cover the whole
+recording. Bad input before the first scan is mapped
 (:class:`~ndtom_ti.io.RecordingError`, ``ValueError``) raises, and no map is returned.
+A command that maps and then saves wraps both in :func:`stop_signals` (SIGINT and
+SIGTERM: the map is saved, and signals during the save wait for it).
 
 Example::
 
@@ -26,6 +30,7 @@ Example::
 from __future__ import annotations
 
 import math
+import os
 import signal
 import threading
 import time
@@ -43,7 +48,8 @@ from .config import MapConfig
 from .map import NdtOmMap, ScanReport
 from .runtime import MapMemoryError
 
-__all__ = ["MappingSummary", "config_with_ranges", "load_config_file", "map_recording", "map_scans", "version"]
+__all__ = ["Interrupted", "MappingSummary", "StopSignals", "config_with_ranges", "load_config_file", "map_recording",
+           "map_scans", "stop_signals", "version"]
 
 #: Called once before the map is made (report None; the recording's topic and pose source
 #: are known by then) and after every inserted scan.
@@ -85,12 +91,12 @@ class MappingSummary:
     pool_budget_bytes: int = 0
     scan_seconds: list = field(default_factory=list, repr=False)  # insert_scan time per scan
     wall_seconds: float = 0.0  # the whole loop: reading, decoding, inserting
-    stopped: str | None = None  # None (ran to the end), 'interrupted' or 'memory'
+    stopped: str | None = None  # None (ran to the end), 'interrupted', 'memory' or 'error' (a bad scan)
     error: str | None = None  # why it stopped early
 
     @property
     def complete(self) -> bool:
-        """True when every selected scan was inserted (no Ctrl-C, no memory stop)."""
+        """True when every selected scan was inserted (no signal, memory stop or bad scan)."""
         return self.stopped is None
 
     @property
@@ -198,36 +204,120 @@ def config_with_ranges(
     return replace(base, **changes) if changes else base
 
 
-# ---------------------------------------------------------------------------- Ctrl-C
-class _Interrupts:
-    """SIGINT while mapping: the first Ctrl-C asks the loop to stop after the current scan
-    (an insert is never cut in half); another one while reading (not inserting) stops at once."""
+# ---------------------------------------------------------------------------- Ctrl-C, SIGTERM
+class Interrupted(KeyboardInterrupt):
+    """A stop signal (SIGINT or SIGTERM) at a point where there is no map to keep."""
 
-    def __init__(self) -> None:
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal_name(signum))
+        self.signum = signum
+
+
+def signal_name(signum: int | None) -> str:
+    return "SIGTERM" if signum == signal.SIGTERM else "Ctrl-C"
+
+
+class StopSignals:
+    """What SIGINT (Ctrl-C) and SIGTERM do while a map is made and saved.
+
+    ``phase`` is "idle" (no map yet: the first signal raises :class:`Interrupted`),
+    "mapping" (the first signal lets the scan in hand finish, then the loop stops;
+    another one stops a read that is under way, never an insert), "saving" (signals
+    are counted and only told to wait until the map is on disk) or "done" (ignored). ``count`` and
+    ``signum`` (the first signal) say what arrived.
+    """
+
+    def __init__(self, phase: str = "mapping", say: Callable[[str], None] | None = None) -> None:
+        self.phase = phase
         self.count = 0
-        self.inserting = False
+        self.signum: int | None = None
+        self.reading = False  # the loop is waiting for the next scan: a second signal may stop it
+        self._say = say
+
+    @property
+    def name(self) -> str:
+        return signal_name(self.signum)
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the first signal's number (130 for Ctrl-C, 143 for SIGTERM)."""
+        return 128 + int(self.signum or signal.SIGINT)
+
+    def say(self, text: str) -> None:
+        if self._say is not None:
+            self._say(text)
 
     def handler(self, signum: int, frame: Any) -> None:
         self.count += 1
-        if self.count > 1 and not self.inserting:
-            raise KeyboardInterrupt
+        if self.signum is None:
+            self.signum = signum
+        name = signal_name(signum)
+        if self.phase == "idle":
+            raise Interrupted(signum)
+        if self.phase == "done":  # the map is on disk and the command is ending
+            return
+        if self.phase == "saving":
+            self.say(f"{name}: saving the map; wait, it is on disk in a moment.")
+        elif self.count == 1:
+            self.say(f"{name}: stopping after the scan in hand; what was mapped will be saved.")
+        elif self.reading:
+            self.reading = False  # raise at most once, and only out of a read
+            raise Interrupted(signum)
+        else:
+            self.say(f"{name}: finishing the scan in hand, then saving the map.")
+
+
+_active: StopSignals | None = None  # installed by stop_signals(); _run uses it when set
+
+
+def _stderr(text: str) -> None:
+    # os.write: a handler may run while the main thread is inside a print to stderr.
+    try:
+        os.write(2, (text + "\n").encode("utf-8", "replace"))
+    except OSError:
+        pass
 
 
 @contextmanager
-def _deferred_sigint() -> Iterator[_Interrupts]:
-    state = _Interrupts()
-    if threading.current_thread() is not threading.main_thread():
-        yield state  # signals reach the main thread only; nothing to install
-        return
+def stop_signals(
+    signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM), phase: str = "idle", say=_stderr,
+    restore: bool = True,
+) -> Iterator[StopSignals]:
+    """Handle ``signums`` with a :class:`StopSignals` for the whole block (a command that
+    maps, then saves): mapping loops inside it use this one. Outside the main thread
+    signals cannot be handled; the state is returned all the same. ``restore=False``
+    (a process that exits after the block) leaves the handler in place, in phase "done"
+    when the block ran through: a late signal cannot break the exit."""
+    global _active
+    state = StopSignals(phase, say)
+    old: dict = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in signums:
+            try:
+                old[signum] = signal.signal(signum, state.handler)
+            except (ValueError, OSError):  # pragma: no cover - embedded interpreters
+                pass
+    outer, _active = _active, state
     try:
-        old = signal.signal(signal.SIGINT, state.handler)
-    except (ValueError, OSError):  # pragma: no cover - embedded interpreters
         yield state
-        return
-    try:
-        yield state
+        if not restore:
+            state.phase = "done"
     finally:
-        signal.signal(signal.SIGINT, old)
+        _active = outer
+        for signum, handler in old.items():
+            if restore or state.phase != "done":
+                signal.signal(signum, handler)
+
+
+@contextmanager
+def _loop_signals() -> Iterator[StopSignals]:
+    """The active StopSignals, or SIGINT handled for the loop alone (API use)."""
+    if _active is not None:
+        _active.phase = "mapping"
+        yield _active
+        return
+    with stop_signals((signal.SIGINT,), phase="mapping", say=None) as state:
+        yield state
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -248,18 +338,41 @@ def _run(
     after_loop: Callable[[], None] | None = None,
 ) -> None:
     """Insert every (points, T_world_sensor) of ``scans`` into ``m``, filling ``summary``."""
+    from .io import RecordingError
+
     t0 = time.perf_counter()
-    with _deferred_sigint() as sig:
+    end = object()
+    ran_out = False  # every scan was inserted: a signal after that stops nothing
+    with _loop_signals() as sig:
+        it = iter(scans)
         try:
-            for scan in scans:
+            while not sig.count:
+                sig.reading = True
+                try:
+                    scan = next(it, end)
+                except (RecordingError, ValueError, OSError) as exc:
+                    if not summary.scans_used:
+                        raise
+                    _stopped(summary, "error", f"scan {summary.scans_used + 1} could not be read: {exc}")
+                    break
+                finally:
+                    sig.reading = False
+                if scan is end:
+                    ran_out = True
+                    break
                 if sig.count:
                     break
                 points, T = (scan.points, scan.T_world_sensor) if hasattr(scan, "points") else scan
-                sig.inserting = True
                 try:
                     rep = m.insert_scan(points, T)
-                finally:
-                    sig.inserting = False
+                except MapMemoryError as exc:
+                    _stopped(summary, "memory", f"scan {summary.scans_used + 1} was refused: {exc}")
+                    break
+                except (ValueError, TypeError) as exc:  # a bad pose or cloud: the map is unchanged
+                    if not summary.scans_used:
+                        raise
+                    _stopped(summary, "error", f"scan {summary.scans_used + 1} could not be inserted: {exc}")
+                    break
                 summary.scans_used += 1
                 summary.points_in += rep.points_in
                 summary.points_used += rep.points_used
@@ -271,23 +384,20 @@ def _run(
                 summary.wall_seconds = time.perf_counter() - t0
                 if progress is not None:
                     progress(summary, rep)
-                if sig.count:
-                    break
         except KeyboardInterrupt:
-            sig.count += 1
-        except MapMemoryError as exc:
-            summary.stopped = "memory"
-            summary.error = (
-                f"scan {summary.scans_used + 1} was refused: {exc} "
-                f"The map holds the {summary.scans_used} scans before it."
-            )
-        if sig.count and summary.stopped is None:
+            sig.count = max(sig.count, 1)
+        if sig.count and summary.stopped is None and not ran_out:
             summary.stopped = "interrupted"
-            summary.error = f"interrupted (Ctrl-C) after {summary.scans_used} scans"
+            summary.error = f"interrupted ({sig.name}) after {summary.scans_used} scans"
     summary.wall_seconds = time.perf_counter() - t0
     if after_loop is not None:
         after_loop()
     _finish(m, summary)
+
+
+def _stopped(summary: MappingSummary, why: str, text: str) -> None:
+    summary.stopped = why
+    summary.error = f"{text} The map holds the {summary.scans_used} scans before it."
 
 
 def _base_metadata(summary: MappingSummary, extra: dict | None) -> dict:

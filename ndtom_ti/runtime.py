@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
+import numbers
 import os
 import threading
 import warnings
@@ -86,6 +88,13 @@ def init(
     """
     if arch not in ARCHS:
         raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
+    for name, gib in (("device_memory_GB", device_memory_GB), ("memory_limit_GB", memory_limit_GB)):
+        if gib is None:
+            continue
+        if isinstance(gib, bool) or not isinstance(gib, numbers.Real):  # "1" * 2**30 would build a string
+            raise TypeError(f"{name} must be a number of GiB, got {gib!r} ({type(gib).__name__})")
+        if not (math.isfinite(gib) and gib > 0):
+            raise ValueError(f"{name} must be a positive number of GiB, got {gib!r}")
     with _lock:
         if _state.arch is not None:
             if arch not in ("auto", _state.arch):

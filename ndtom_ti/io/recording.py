@@ -181,6 +181,9 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
         m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text(errors='replace'))
         storage = m.group(1).strip('\'"') if m else 'sqlite3'
         return path, 'ros2', storage
+    if not path.is_file():  # opening a FIFO would wait for a writer
+        raise RecordingError(f'{path} is neither a regular file nor a folder (a pipe, device or socket). Give a '
+                             'ROS1 .bag file or a ROS2 bag folder.')
     with path.open('rb') as fh:
         head = fh.read(len(_ROS1_MAGIC))
     if head == _ROS1_MAGIC:

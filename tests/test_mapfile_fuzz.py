@@ -1,0 +1,354 @@
+"""Property-based tests of the map reader: mutated valid files (header fields, array
+shapes and lengths, values, raw bytes; the checksum recomputed where the mutation would
+otherwise only trip it) either raise MapFileError or load a map that passes validation:
+its cells, log-odds and Gaussians are those of the file, finite and within range, and it
+saves and loads back unchanged. Never another exception, a crash or garbage.
+
+CI runs a small number of examples; NDTOM_FUZZ_EXAMPLES=10000 runs more (the counts of
+each outcome are printed with -s).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import hashlib
+import json
+import math
+import os
+import struct
+import tempfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, note, settings
+from hypothesis import strategies as st
+
+from ndtom_ti import MapFileError, MapMemoryError, NdtOmMap
+from ndtom_ti.mapfile import read_header
+
+EXAMPLES = int(os.environ.get("NDTOM_FUZZ_EXAMPLES", "150"))
+OUTCOMES: Counter = Counter()
+_PREFIX = struct.Struct("<8sIQ")
+
+
+def _build_bases() -> dict[str, bytes]:
+    rng = np.random.default_rng(7)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, res, occ, n_scans in (("ndtom", 0.5, True, 2), ("rndt", 0.4, False, 1), ("empty", 0.3, True, 0)):
+            m = NdtOmMap(res, occupancy=occ, metadata={"source": "fuzz", "nested": {"a": [1, 2]}})
+            for k in range(n_scans):
+                T = np.eye(4)
+                T[:3, 3] = [0.3 * k, -0.2 * k, 0.1]
+                m.insert_scan(rng.normal(size=(400, 3)) * [2.0, 1.5, 0.3] + [3.0, 0.0, 0.0], T)
+            out[name] = m.save(Path(tmp) / f"{name}.ndtom").read_bytes()
+            del m
+    gc.collect()
+    return out
+
+
+_BASES: dict[str, bytes] = {}
+
+
+def bases() -> dict[str, bytes]:
+    if not _BASES:
+        _BASES.update(_build_bases())
+    return _BASES
+
+
+# ---------------------------------------------------------------------------- file <-> parts
+def split(data: bytes) -> tuple[bytes, dict, bytes]:
+    hlen = struct.unpack("<Q", data[12:20])[0]
+    return data[:12], json.loads(data[20 : 20 + hlen]), data[20 + hlen :]
+
+
+def join(head: bytes, header: dict, payload: bytes, *, fix_sha: bool = True) -> bytes:
+    if fix_sha:
+        header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
+    hb = json.dumps(header).encode()
+    return head + struct.pack("<Q", len(hb)) + hb + payload
+
+
+def arrays_of(header: dict, payload: bytes) -> dict[str, np.ndarray]:
+    out = {}
+    for e in header["arrays"]:
+        a = np.frombuffer(payload, dtype=e["dtype"], count=math.prod(e["shape"]), offset=e["offset"])
+        out[e["name"]] = a.reshape(e["shape"]).copy()
+    return out
+
+
+def repack(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """Write ``arrays`` back to back with a table that describes them exactly."""
+    blobs, off = [], 0
+    for e in header["arrays"]:
+        a = np.ascontiguousarray(arrays[e["name"]])
+        e.update(dtype=a.dtype.str, shape=list(a.shape), offset=off, nbytes=a.nbytes)
+        blobs.append(a.tobytes())
+        off += a.nbytes
+    payload = b"".join(blobs)
+    header["payload_bytes"] = len(payload)
+    return payload
+
+
+# ---------------------------------------------------------------------------- mutations
+JSON_VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(min_value=-(2**70), max_value=2**70),
+    st.sampled_from([0, 1, -1, 3, 6, 2**31, 2**63, 10**30]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=6),
+    st.lists(st.integers(min_value=-3, max_value=40), max_size=4),
+    st.dictionaries(st.text(max_size=4), st.integers(min_value=-3, max_value=3), max_size=3),
+)
+
+
+def header_paths(header: dict) -> list[tuple]:
+    """Paths to every field of the header (dict keys and list positions)."""
+    out: list[tuple] = []
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                out.append((*path, k))
+                walk(v, (*path, k))
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                out.append((*path, i))
+                walk(v, (*path, i))
+
+    walk(header, ())
+    return out
+
+
+def set_path(node, path: tuple, value, delete: bool) -> None:
+    for key in path[:-1]:
+        node = node[key]
+    if delete:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+
+
+@st.composite
+def mutate_header(draw, data: bytes) -> bytes:
+    head, header, payload = split(data)
+    paths = header_paths(header)
+    path = draw(st.sampled_from(paths))
+    delete = isinstance(path[-1], str) and draw(st.booleans())
+    set_path(header, path, draw(JSON_VALUES), delete)
+    return join(head, header, payload, fix_sha=path != ("payload_sha256",))
+
+
+@st.composite
+def mutate_rows(draw, data: bytes) -> bytes:
+    """An array gets more or fewer rows (others unchanged); table and checksum consistent."""
+    head, header, payload = split(data)
+    arrays = arrays_of(header, payload)
+    name = draw(st.sampled_from(sorted(arrays)))
+    a = arrays[name]
+    rows = draw(st.integers(min_value=0, max_value=len(a) + 3))
+    if rows <= len(a):
+        arrays[name] = a[:rows]
+    else:
+        extra = draw(st.binary(min_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0,
+                               max_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0))  # fmt: skip
+        if len(a):
+            arrays[name] = np.concatenate([a, np.frombuffer(extra, a.dtype).reshape(-1, *a.shape[1:])])
+    return join(head, header, repack(header, arrays))
+
+
+@st.composite
+def mutate_shape(draw, data: bytes) -> bytes:
+    """An array's bytes read with another shape (columns, dimensions, dtype)."""
+    head, header, payload = split(data)
+    arrays = arrays_of(header, payload)
+    name = draw(st.sampled_from(sorted(arrays)))
+    a = arrays[name]
+    how = draw(st.sampled_from(["flat", "cols", "dtype", "3d"]))
+    if how == "flat":
+        a = a.reshape(-1)
+    elif how == "cols" and a.size:
+        cols = draw(st.sampled_from([c for c in (1, 2, 3, 6, 9) if a.size % c == 0]))
+        a = a.reshape(-1, cols)
+    elif how == "dtype":
+        dt = draw(st.sampled_from(["<i4", "<f4", "<f8", "<i8", "<u2", "|i1"]))
+        raw = a.tobytes()
+        a = np.frombuffer(raw[: len(raw) - len(raw) % np.dtype(dt).itemsize], dt)
+    elif how == "3d":
+        a = a.reshape(1, *a.shape)
+    arrays[name] = a
+    return join(head, header, repack(header, arrays))
+
+
+def _special(dtype: np.dtype) -> st.SearchStrategy:
+    if dtype.kind == "f":
+        return st.one_of(
+            st.floats(allow_nan=True, allow_infinity=True, width=dtype.itemsize * 8),
+            st.sampled_from([0.0, -0.0, 1e-300, 2.0, 2.0001, -2.0001, 0.2, 0.25, 0.2500001, 1e10]),
+        )
+    info = np.iinfo(dtype)
+    edges = [v for v in (0, -1, 1, 2, int(info.min), int(info.max), 2**14, -(2**14) - 1) if info.min <= v <= info.max]
+    return st.one_of(st.integers(min_value=int(info.min), max_value=int(info.max)), st.sampled_from(edges))
+
+
+@st.composite
+def mutate_value(draw, data: bytes) -> bytes:
+    """One element of one array set to another value (checksum recomputed)."""
+    head, header, payload = split(data)
+    arrays = arrays_of(header, payload)
+    names = sorted(n for n, a in arrays.items() if a.size)
+    if not names:
+        return data
+    name = draw(st.sampled_from(names))
+    a = arrays[name].copy()
+    flat = a.reshape(-1)
+    i = draw(st.integers(min_value=0, max_value=len(flat) - 1))
+    flat[i] = draw(_special(a.dtype))
+    if draw(st.booleans()) and name.endswith("index") and len(a) > 1:  # or copy a whole row: duplicate cells
+        j = draw(st.integers(min_value=0, max_value=len(a) - 1))
+        a[j] = a[i // a.shape[1]]
+    arrays[name] = a
+    return join(head, header, repack(header, arrays))
+
+
+@st.composite
+def mutate_bytes(draw, data: bytes) -> bytes:
+    """Raw byte edits anywhere: flips, a cut, bytes inserted; optionally a fresh checksum."""
+    b = bytearray(data)
+    for _ in range(draw(st.integers(min_value=1, max_value=4))):
+        kind = draw(st.sampled_from(["flip", "cut", "insert"]))
+        pos = draw(st.integers(min_value=0, max_value=max(len(b) - 1, 0)))
+        if kind == "flip" and b:
+            b[pos] ^= draw(st.integers(min_value=1, max_value=255))
+        elif kind == "cut":
+            del b[pos : pos + draw(st.integers(min_value=1, max_value=16))]
+        else:
+            b[pos:pos] = draw(st.binary(min_size=1, max_size=8))
+    out = bytes(b)
+    if draw(st.booleans()):
+        with contextlib.suppress(Exception):  # the edit broke the header: keep the raw bytes
+            head, header, payload = split(out)
+            header["payload_bytes"] = len(payload)
+            out = join(head, header, payload)
+    return out
+
+
+@st.composite
+def mutated_file(draw) -> tuple[str, bytes]:
+    name = draw(st.sampled_from(sorted(bases())))
+    data = bases()[name]
+    kinds = {"header": mutate_header, "rows": mutate_rows, "shape": mutate_shape, "value": mutate_value,
+             "bytes": mutate_bytes}  # fmt: skip
+    steps = draw(st.lists(st.sampled_from(sorted(kinds)), min_size=1, max_size=3))
+    for kind in steps:
+        try:
+            data = draw(kinds[kind](data))
+        except Exception:  # noqa: BLE001 - an earlier step broke the file beyond this one's reach
+            break  # (the next step cannot parse it): test it as it is
+    return "+".join(steps), data
+
+
+# ---------------------------------------------------------------------------- the property
+def validate(m: NdtOmMap, data: bytes, path: Path) -> None:
+    """A loaded map holds what its file says, within range, and saves back unchanged."""
+    _, header, payload = split(data)
+    arrays = arrays_of(header, payload)
+    cfg = m.config
+    lo, hi = np.array(m.layout.lo), np.array(m.layout.hi)
+    assert math.isfinite(m.resolution) and m.resolution > 0
+    assert m.occupancy_enabled == header["occupancy"] and m.resolution == header["resolution"]
+
+    k = m.known_cells()
+    idx, lod = k["index"], k["logodds"]
+    assert ((idx >= lo) & (idx < hi)).all()
+    assert np.isfinite(lod).all() and (lod >= np.float32(cfg.logodds_min)).all()
+    assert (lod <= np.float32(cfg.logodds_max)).all() and ((k["p_occ"] >= 0) & (k["p_occ"] <= 1)).all()
+    # exactly the file's known cells (log-odds 0 reads as unknown), with their values
+    fo, fl = arrays["occ_index"].astype(np.int64), arrays["occ_logodds"]
+    keep = fl != 0
+    order = np.lexsort(fo[keep].T[::-1])
+    assert np.array_equal(idx, fo[keep][order])
+    assert np.array_equal(lod.astype(np.float32), fl[keep][order])
+
+    g = m.gaussians(min_points=1, min_probability=0.0)
+    fg = arrays["g_index"].astype(np.int64)
+    gorder = np.lexsort(fg.T[::-1])
+    assert np.array_equal(g["index"], fg[gorder]) and np.array_equal(g["n"], arrays["g_n"][gorder])
+    assert np.isfinite(g["mean"]).all() and np.isfinite(g["cov"]).all()
+    rel = g["mean"] - m.cell_center(g["index"])
+    assert (np.abs(rel) <= 0.5 * m.resolution * (1 + 1e-6) + 1e-9 * np.abs(m.cell_center(g["index"]))).all()
+    assert np.allclose(g["cov"], np.swapaxes(g["cov"], 1, 2))
+    if len(g["cov"]):
+        ev = np.linalg.eigvalsh(g["cov"])
+        assert (ev >= -1e-6 * np.maximum(np.abs(ev).max(axis=1, keepdims=True), 1e-30)).all()
+    assert 0 <= len(m) <= len(g["n"])
+    m.gaussians(), m.memory_report()
+
+    back = NdtOmMap.load(m.save(path.with_name("back.ndtom")))
+    a, b = m.state(), back.state()
+    for key in a:
+        assert a[key].shape == b[key].shape and a[key].tobytes() == b[key].tobytes(), key
+    del back
+
+
+@settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=EXAMPLES <= 500,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
+@given(case=mutated_file())
+def test_mutated_map_files_raise_map_file_error_or_load_valid(case):
+    kinds, data = case
+    note(f"mutations: {kinds}")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "m.ndtom"
+        path.write_bytes(data)
+        try:
+            m = NdtOmMap.load(path)
+        except MapFileError:
+            try:  # the header alone may still be fine; when it is not, the same error type
+                read_header(path)
+            except MapFileError:
+                pass
+            OUTCOMES["MapFileError"] += 1
+            return
+        except MapMemoryError:  # a valid file bigger than the budget: a clear refusal
+            OUTCOMES["MapMemoryError"] += 1
+            return
+        try:
+            validate(m, data, path)
+        finally:
+            del m
+            gc.collect()
+        OUTCOMES["loaded and valid"] += 1
+
+
+def test_base_files_load_and_validate(tmp_path):
+    for name, data in bases().items():
+        path = tmp_path / f"{name}.ndtom"
+        path.write_bytes(data)
+        m = NdtOmMap.load(path)
+        validate(m, data, path)
+        del m
+
+
+def teardown_module(module):
+    if OUTCOMES:
+        print(f"\nmap file fuzz ({EXAMPLES} examples asked): {dict(OUTCOMES)}")
+
+
+@pytest.mark.parametrize("name", ["ndtom", "rndt"])
+def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
+    """Deterministic companion: each array one row short (checksum valid) is refused."""
+    head, header, payload = split(bases()[name])
+    for target in [e["name"] for e in header["arrays"]]:
+        h = json.loads(json.dumps(header))
+        arrays = arrays_of(h, payload)
+        if not len(arrays[target]):
+            continue
+        arrays[target] = arrays[target][:-1]
+        path = tmp_path / f"{target}.ndtom"
+        path.write_bytes(join(head, h, repack(h, arrays)))
+        with pytest.raises(MapFileError, match="rows"):
+            NdtOmMap.load(path)

@@ -1,0 +1,808 @@
+"""Reliability and security: maps used from several threads, Ctrl-C / SIGTERM while a
+real `ndtom map` process maps and saves, a bad scan mid-run, crafted map files, save
+targets and inputs that are not regular files, and small input checks."""
+
+from __future__ import annotations
+
+import gc
+import hashlib
+import json
+import math
+import os
+import queue
+import signal
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import test_pipeline_bags as pb
+
+import ndtom_ti
+from ndtom_ti import MapFileError, NdtOmMap
+from ndtom_ti.cli import app
+from ndtom_ti.mapfile import read_header
+from ndtom_ti.pipeline import map_scans
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _free_maps():
+    yield
+    gc.collect()
+
+
+def run_cli(*args: object):
+    r = CliRunner(env={"COLUMNS": "250"}).invoke(app, [str(a) for a in args])
+    assert "Traceback" not in r.output, r.output
+    return r
+
+
+def in_thread(fn, timeout: float = 60.0):
+    """fn() in a daemon thread; fails (instead of hanging the run) if it does not return."""
+    out: dict = {}
+
+    def target():
+        try:
+            out["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            out["error"] = exc
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), f"{fn} still running after {timeout} s (hung)"
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+# ---------------------------------------------------------------------------- threads
+def scans(seed: int, n: int, points: int = 20_000):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        T = np.eye(4)
+        T[:3, 3] = rng.normal(size=3)
+        pts = rng.normal(size=(points, 3)) * [5.0, 5.0, 1.0] + [6.0, 0.0, 0.0]
+        out.append((pts, T))
+    return out
+
+
+def assert_same_map(a: NdtOmMap, b: NdtOmMap) -> None:
+    ka, kb = a.known_cells(), b.known_cells()
+    assert np.array_equal(ka["index"], kb["index"])
+    np.testing.assert_allclose(ka["logodds"], kb["logodds"], atol=1e-5)
+    ga, gb = a.gaussians(min_points=1, min_probability=0), b.gaussians(min_points=1, min_probability=0)
+    assert np.array_equal(ga["index"], gb["index"]) and np.array_equal(ga["n"], gb["n"])
+    np.testing.assert_allclose(ga["mean"], gb["mean"], atol=1e-9)
+    np.testing.assert_allclose(ga["cov"], gb["cov"], atol=1e-9)
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    for k in ("occ_index", "g_index", "g_n"):
+        assert np.array_equal(a[k], b[k]), k
+    for k in ("occ_logodds", "g_mean_rel", "g_scatter"):
+        np.testing.assert_allclose(a[k], b[k], atol=1e-6, err_msg=k)
+
+
+def test_readers_and_writer_on_one_map(tmp_path):
+    """One thread inserts while others read, save and coarsen the same map: without the
+    map's lock this segfaulted (a reader's kernel shared the insert's counters)."""
+    data = scans(1, 8)
+    ref = NdtOmMap(0.2)
+    after = [ref.state()]  # the map's state after k scans, built alone
+    for pts, T in data:
+        ref.insert_scan(pts, T)
+        after.append(ref.state())
+    m = NdtOmMap(0.2)
+    done = threading.Event()
+    errors: list = []
+    reads = {"n": 0}
+
+    def writer():
+        try:
+            for pts, T in data:
+                m.insert_scan(pts, T)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+        finally:
+            done.set()
+
+    def reader(k: int):
+        try:
+            while not done.is_set():
+                k_ = m.known_cells()
+                g = m.gaussians(min_probability=0)
+                assert len(k_["index"]) == len(k_["logodds"]) and len(g["index"]) == len(g["n"])
+                assert np.isfinite(g["mean"]).all() and np.isfinite(k_["logodds"]).all()
+                len(m), m.memory_report(), repr(m), m.occupancy(np.zeros((3, 3)))
+                st = m.state()
+                assert len(st["g_index"]) == len(st["g_n"]) == len(st["g_scatter"])
+                reads["n"] += 1
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    def saver():
+        try:
+            i = 0
+            while not done.is_set():
+                path = m.save(tmp_path / f"snap{i % 2}.ndtom")
+                loaded = NdtOmMap.load(path)
+                assert_same_state(loaded.state(), after[loaded.scans_inserted])  # one consistent snapshot
+                del loaded
+                coarse = m.coarsen(2)
+                del coarse
+                i += 1
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer), threading.Thread(target=reader, args=(0,)),
+               threading.Thread(target=reader, args=(1,)), threading.Thread(target=saver)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(300)
+    assert not any(t.is_alive() for t in threads)
+    assert not errors, errors
+    assert reads["n"] > 0 and m.scans_inserted == len(data)
+    assert_same_map(m, ref)  # the readers changed nothing
+    snap = NdtOmMap.load(m.save(tmp_path / "final.ndtom"))
+    assert_same_map(snap, ref)
+
+
+def test_two_maps_in_two_threads():
+    """Two maps, each built and read in its own thread, equal the same maps built alone."""
+    data = {0: scans(2, 5), 1: scans(3, 5, points=15_000)}
+    maps = {k: NdtOmMap(0.25 if k else 0.2, occupancy=bool(k)) for k in data}
+    errors: list = []
+
+    def work(k: int):
+        try:
+            for pts, T in data[k]:
+                maps[k].insert_scan(pts, T)
+                maps[k].gaussians(), maps[k].known_cells(), len(maps[k])
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in data]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(300)
+    assert not errors, errors
+    for k, items in data.items():
+        ref = NdtOmMap(0.25 if k else 0.2, occupancy=bool(k))
+        for pts, T in items:
+            ref.insert_scan(pts, T)
+        assert_same_map(maps[k], ref)
+        del ref
+    maps.clear()
+
+
+def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
+    """The garbage collector may drop a map in any thread, even inside another lock's
+    holder; its slot is then emptied later instead of waiting for the map lock."""
+    from ndtom_ti import map as map_module
+
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(300, 3)) + [3, 0, 0], np.eye(4))
+    st, slot = m._st, m._slot
+    holding, release = threading.Event(), threading.Event()
+
+    def hold():
+        with st.lock:
+            holding.set()
+            release.wait(5)
+
+    t = threading.Thread(target=hold)
+    t.start()
+    assert holding.wait(10)
+    del m  # the finalizer runs here, while the other thread holds the lock
+    pending = [s for _, s in map_module._dead_slots]
+    release.set()
+    t.join(10)
+    assert pending == [slot] and slot not in st.free_slots
+    fresh = NdtOmMap(0.5)  # frees the pending slot first
+    assert not map_module._dead_slots and (fresh._slot == slot or slot in st.free_slots)
+    assert len(fresh.known_cells()["index"]) == 0  # the slot was emptied
+
+
+# ---------------------------------------------------------------------------- signals, real process
+# The command runs as `ndtom map` does, with two test-only wrappers (not product code):
+# a line on stderr after each insert (so the test knows where the run is) and an
+# optional pause inside the save, while its temporary file exists.
+SHIM = textwrap.dedent(
+    """
+    import os, sys, time
+    import ndtom_ti.map as M
+    import ndtom_ti.mapfile as F
+
+    scan_sleep = float(os.environ.get("TEST_SCAN_SLEEP", "0"))
+    save_sleep = float(os.environ.get("TEST_SAVE_SLEEP", "0"))
+    insert = M.NdtOmMap.insert_scan
+
+    def slow_insert(self, points, T):
+        rep = insert(self, points, T)
+        os.write(2, b"TEST: scan\\n")
+        time.sleep(scan_sleep)
+        return rep
+
+    M.NdtOmMap.insert_scan = slow_insert
+    atomic_write = F.atomic_write
+
+    def slow_atomic_write(path, write):
+        def slow(fh):
+            os.write(2, b"TEST: saving\\n")
+            time.sleep(save_sleep)
+            write(fh)
+        return atomic_write(path, slow)
+
+    F.atomic_write = slow_atomic_write
+    from ndtom_ti.cli import main
+    sys.argv[0] = "ndtom"
+    main()
+    """
+)
+
+
+class Ndtom:
+    """`ndtom map BAG -r R -o OUT` in a process of its own; stderr read line by line."""
+
+    def __init__(self, tmp: Path, bag: Path, out: Path, res: float = pb.RES, **env: str):
+        shim = tmp / "ndtom_shim.py"
+        shim.write_text(SHIM)
+        self.lines: queue.Queue = queue.Queue()
+        self.seen: list[str] = []
+        self.p = subprocess.Popen(
+            [sys.executable, str(shim), "map", str(bag), "-r", str(res), "-o", str(out), "--no-progress",
+             "--arch", "cpu"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp,
+            env={**os.environ, "COLUMNS": "200", **env},
+        )  # fmt: skip
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.p.stderr:
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def wait_for(self, text: str, count: int = 1, timeout: float = 120.0) -> None:
+        t_end = time.monotonic() + timeout
+        while sum(text in s for s in self.seen) < count:
+            line = self.lines.get(timeout=max(0.1, t_end - time.monotonic()))
+            assert line is not None, f"process ended before {count} x {text!r}:\n{''.join(self.seen)}"
+            self.seen.append(line)
+
+    def send(self, *signums: int, gap: float = 0.05) -> None:
+        for s in signums:
+            self.p.send_signal(s)
+            time.sleep(gap)
+
+    def finish(self, timeout: float = 180.0) -> tuple[int, str, str]:
+        timer = threading.Timer(timeout, self.p.kill)  # a hung process fails the test, not the run
+        timer.start()
+        try:
+            out = self.p.stdout.read()  # stderr belongs to the reader thread
+            self.p.wait()
+        finally:
+            timer.cancel()
+        self._reader.join(10)
+        while True:
+            try:
+                line = self.lines.get_nowait()
+            except queue.Empty:
+                break
+            if line is not None:
+                self.seen.append(line)
+        return self.p.returncode, out, "".join(self.seen)
+
+
+@pytest.fixture(scope="module")
+def plane_bag(tmp_path_factory) -> Path:
+    return pb.write_plane_bag(tmp_path_factory.mktemp("sigbag"))
+
+
+def assert_saved(out: Path, scans_done: int, complete: bool) -> None:
+    assert out.is_file()
+    leftovers = [p.name for p in out.parent.iterdir() if p.name.endswith(".tmp")]
+    assert leftovers == [], leftovers
+    m = NdtOmMap.load(out)
+    assert m.metadata["complete"] is complete
+    assert m.scans_inserted == scans_done and len(m) > 0
+    del m
+
+
+@pytest.mark.parametrize(
+    "signums,gap,code",
+    [
+        ((signal.SIGINT,), 0.0, 130),
+        ((signal.SIGINT, signal.SIGINT), 0.05, 130),  # Ctrl-C twice, quickly
+        ((signal.SIGINT, signal.SIGINT), 0.3, 130),
+        ((signal.SIGINT,) * 5, 0.02, 130),
+        ((signal.SIGTERM,), 0.0, 143),  # timeout, docker stop, systemd
+        ((signal.SIGTERM, signal.SIGINT, signal.SIGTERM), 0.05, 143),
+    ],
+)
+def test_signals_while_mapping_save_what_was_mapped(tmp_path, plane_bag, signums, gap, code):
+    out = tmp_path / "m.ndtom"
+    run = Ndtom(tmp_path, plane_bag, out, TEST_SCAN_SLEEP="0.4")
+    run.wait_for("TEST: scan", 2)
+    run.send(*signums, gap=gap)
+    rc, stdout, err = run.finish()
+    assert rc == code, (rc, stdout, err)
+    # the signal came while scan 2's pause ran (or scan 3 was being read or inserted)
+    n = int(err.count("TEST: scan"))
+    assert 2 <= n < pb.N_CLOUDS, err
+    assert f"Interrupted: saved the {n} scans mapped so far" in err
+    assert "stopping after the scan in hand" in err
+    assert_saved(out, n, complete=False)
+
+
+def test_signals_during_the_save_wait_for_it(tmp_path, plane_bag):
+    out = tmp_path / "m.ndtom"
+    out.write_bytes(b"previous file")
+    run = Ndtom(tmp_path, plane_bag, out, TEST_SAVE_SLEEP="1.5")
+    run.wait_for("TEST: saving")
+    run.send(signal.SIGINT, signal.SIGINT, signal.SIGTERM, gap=0.1)
+    rc, stdout, err = run.finish()
+    assert rc == 0, (rc, stdout, err)  # every scan was mapped; the signals only waited
+    assert "saving the map; wait" in err
+    assert "Map written to" in stdout
+    assert_saved(out, pb.N_CLOUDS, complete=True)
+
+
+def test_ctrl_c_then_more_during_the_save(tmp_path, plane_bag):
+    out = tmp_path / "m.ndtom"
+    run = Ndtom(tmp_path, plane_bag, out, TEST_SCAN_SLEEP="0.3", TEST_SAVE_SLEEP="1.0")
+    run.wait_for("TEST: scan", 1)
+    run.send(signal.SIGINT)
+    run.wait_for("TEST: saving")
+    run.send(signal.SIGINT, signal.SIGTERM, signal.SIGINT, gap=0.1)
+    rc, stdout, err = run.finish()
+    assert rc == 130, (rc, stdout, err)
+    n = err.count("TEST: scan")
+    assert "saving the map; wait" in err
+    assert_saved(out, n, complete=False)
+
+
+def test_ctrl_c_twice_then_sigterm_on_a_real_recording(tmp_path):
+    from conftest import DATA
+
+    bag = DATA / "balm_hall_every4"
+    if not bag.exists():
+        pytest.skip(f"real recording not found at {bag}")
+    out = tmp_path / "balm.ndtom"
+    run = Ndtom(tmp_path, bag, out, res=0.4, TEST_SCAN_SLEEP="0.1")
+    run.wait_for("TEST: scan", 3)
+    run.send(signal.SIGINT, signal.SIGINT, signal.SIGTERM, gap=0.05)
+    rc, stdout, err = run.finish()
+    assert rc == 130, (rc, stdout, err)  # the first signal decides the code
+    n = err.count("TEST: scan")
+    assert 3 <= n < 45 and f"saved the {n} scans" in err
+    assert_saved(out, n, complete=False)
+
+
+def test_sigterm_before_any_scan_writes_nothing(tmp_path, plane_bag):
+    out = tmp_path / "m.ndtom"
+    run = Ndtom(tmp_path, plane_bag, out)
+    run.wait_for("Mapping")  # the recording is checked; Taichi is starting
+    run.send(signal.SIGTERM)
+    rc, _, err = run.finish()
+    assert rc in (143, 0), (rc, err)  # 0: the five scans were done before the signal
+    if rc == 143:
+        assert not out.exists() or read_header(out)["metadata"]["complete"] is False
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+# ---------------------------------------------------------------------------- a bad scan mid-run
+def poses_file(tmp_path: Path, far_from: int | None) -> Path:
+    from ndtom_ti.io import rot_to_quat
+
+    lines = []
+    for k, t in enumerate(pb.STAMPS):
+        T = pb.T_map_lidar(k)
+        if far_from is not None and k >= far_from:
+            T[0, 3] += 20_000.0  # 20 km: outside the grid at 0.25 m (+-4 km)
+        q = rot_to_quat(T[:3, :3])
+        lines.append(f"{t / 1e9:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {q[0]} {q[1]} {q[2]} {q[3]}")
+    path = tmp_path / "poses.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_pose_outside_the_grid_mid_run_saves_the_scans_before(tmp_path, plane_bag):
+    out = tmp_path / "m.ndtom"
+    r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, 3), "-o", out)
+    assert r.exit_code == 1, r.output
+    assert "scan 4 could not be inserted" in r.output and "outside the map grid" in r.output
+    assert "Saved the 3 scans mapped before it" in r.output and "marked incomplete" in r.output
+    m = NdtOmMap.load(out)
+    assert m.scans_inserted == 3 and m.metadata["complete"] is False
+    assert m.metadata["summary"]["stopped"] == "error" and "outside the map grid" in m.metadata["summary"]["error"]
+    del m
+
+
+def test_pose_outside_the_grid_at_the_first_scan_is_bad_input(tmp_path, plane_bag):
+    out = tmp_path / "m.ndtom"
+    r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, 0), "-o", out)
+    assert r.exit_code == 2 and "outside the map grid" in r.output, r.output
+    assert not out.exists()
+
+
+def test_map_scans_stops_at_a_bad_scan_or_a_damaged_message():
+    from ndtom_ti.io import RecordingError
+
+    rng = np.random.default_rng(0)
+    good = [(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(3)]
+    far = pb.T_map_lidar(3)
+    far[0, 3] = 1e5
+    m, s = map_scans([*good, (good[0][0], far), good[0]], pb.RES)
+    assert s.stopped == "error" and s.scans_used == 3 and not s.complete
+    assert "scan 4 could not be inserted" in s.error and "holds the 3 scans" in s.error
+    assert m.metadata["complete"] is False and m.scans_inserted == 3
+    del m
+
+    def damaged():
+        yield from good[:2]
+        raise RecordingError("message 3 is truncated")
+
+    m, s = map_scans(damaged(), pb.RES)
+    assert s.stopped == "error" and s.scans_used == 2 and "could not be read: message 3" in s.error
+    del m
+
+
+# ---------------------------------------------------------------------------- crafted map files
+def parse(data: bytes) -> tuple[dict, dict]:
+    hlen = struct.unpack("<Q", data[12:20])[0]
+    header = json.loads(data[20 : 20 + hlen])
+    payload = data[20 + hlen :]
+    arrays = {}
+    for e in header["arrays"]:
+        a = np.frombuffer(payload, dtype=e["dtype"], count=math.prod(e["shape"]), offset=e["offset"])
+        arrays[e["name"]] = a.reshape(e["shape"]).copy()
+    return header, arrays
+
+
+def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None) -> bytes:
+    """A map file of ``arrays`` (in header order) with a consistent table and a valid
+    checksum, unless ``table`` (a function of the table) or ``header_bytes`` change it."""
+    header = json.loads(json.dumps(header))
+    entries, blobs, off = [], [], 0
+    for e in header["arrays"]:
+        a = np.ascontiguousarray(arrays[e["name"]], dtype=e["dtype"])
+        entries.append({"name": e["name"], "dtype": e["dtype"], "shape": list(a.shape), "offset": off,
+                        "nbytes": a.nbytes})  # fmt: skip
+        blobs.append(a.tobytes())
+        off += a.nbytes
+    header["arrays"] = table(entries) if table else entries
+    payload = b"".join(blobs)
+    header["payload_bytes"] = len(payload)
+    header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
+    hb = header_bytes if header_bytes is not None else json.dumps(header).encode()
+    return b"NDTOMTI\n" + struct.pack("<IQ", 1, len(hb)) + hb + payload
+
+
+@pytest.fixture(scope="module")
+def good_file(tmp_path_factory) -> bytes:
+    m = NdtOmMap(0.25)
+    for pts, T in scans(5, 3, points=3000):
+        m.insert_scan(pts, T)
+    data = m.save(tmp_path_factory.mktemp("good") / "good.ndtom").read_bytes()
+    del m
+    return data
+
+
+def shorter(name: str, by: int = 1):
+    return lambda a: {**a, name: a[name][:-by]}
+
+
+def setv(name: str, where, value):
+    def f(a):
+        b = {k: v.copy() for k, v in a.items()}
+        b[name][where] = value
+        return b
+
+    return f
+
+
+CRAFTED = {
+    # arrays that disagree in length, checksum valid (occ_logodds short: read past its buffer)
+    "occ_logodds short": (shorter("occ_logodds"), None, "rows"),
+    "occ_index short": (shorter("occ_index", 5), None, "rows"),
+    "g_n short": (shorter("g_n"), None, "rows"),
+    "g_mean_rel short": (shorter("g_mean_rel"), None, "rows"),
+    "g_scatter short": (shorter("g_scatter", 3), None, "rows"),
+    "g_index short": (shorter("g_index"), None, "rows"),
+    "occ_index 2 columns": (lambda a: {**a, "occ_index": a["occ_index"][:, :2]}, None, "shape"),
+    "g_scatter 1-d": (lambda a: {**a, "g_scatter": a["g_scatter"].reshape(-1)}, None, "shape"),
+    # table entries that do not describe the payload
+    "nbytes off": (None, lambda t: [{**e, "nbytes": e["nbytes"] + 4} if e["name"] == "g_n" else e for e in t], "bytes"),
+    "overlap": (None, lambda t: [{**e, "offset": 0} if e["name"] == "g_n" else e for e in t], "overlap"),
+    "past payload": (None, lambda t: [{**e, "offset": 10**9} if e["name"] == "g_n" else e for e in t], "outside"),
+    "dtype": (None, lambda t: [{**e, "dtype": "<f8"} if e["name"] == "g_n" else e for e in t], "dtype"),
+    "array twice": (None, lambda t: [*t, t[0]], "twice"),
+    "array missing": (None, lambda t: t[1:], "missing"),
+    "unknown array": (None, lambda t: [*t, {**t[0], "name": "extra"}], "unexpected array"),
+    "shape of strings": (None, lambda t: [{**e, "shape": ["3", 3]} if e["name"] == "g_index" else e for e in t],
+                         "shape"),
+    # values
+    "nan log-odds": (setv("occ_logodds", 0, np.nan), None, "occ_logodds"),
+    "log-odds past the clamp": (setv("occ_logodds", 1, 7.5), None, "occ_logodds"),
+    "cell outside the grid": (setv("occ_index", (0, 0), 2**30), None, "outside the grid"),
+    "cell twice": (lambda a: {**setv("occ_index", 1, a["occ_index"][0])(a)}, None, "twice"),
+    "gaussian outside the grid": (setv("g_index", (0, 2), -(2**31)), None, "outside the grid"),
+    "zero points": (setv("g_n", 0, 0), None, "g_n"),
+    "negative points": (setv("g_n", 0, -5), None, "g_n"),
+    "mean outside its cell": (setv("g_mean_rel", (0, 1), 3.0), None, "g_mean_rel"),
+    "nan mean": (setv("g_mean_rel", (0, 0), np.nan), None, "g_mean_rel"),
+    "inf scatter": (setv("g_scatter", (0, 3), np.inf), None, "g_scatter"),
+    "negative variance": (setv("g_scatter", (0, 0), -1.0), None, "g_scatter"),
+    "not PSD": (setv("g_scatter", 0, [1e-3, 5e-3, 0, 1e-3, 0, 1e-3]), None, "g_scatter"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CRAFTED))
+def test_crafted_arrays_are_map_file_errors(tmp_path, good_file, case):
+    arrays_fn, table_fn, message = CRAFTED[case]
+    header, arrays = parse(good_file)
+    if arrays_fn is not None:
+        arrays = arrays_fn(arrays)
+    path = tmp_path / "crafted.ndtom"
+    path.write_bytes(build(header, arrays, table=table_fn))
+    with pytest.raises(MapFileError, match=message):
+        NdtOmMap.load(path)
+
+
+HEADER_CASES = {
+    "scans_inserted": ("scans_inserted", "12"),
+    "points_inserted": ("points_inserted", -1),
+    "resolution string": ("resolution", "0.25"),
+    "resolution nan": ("resolution", float("nan")),
+    "resolution zero": ("resolution", 0),
+    "resolution huge": ("resolution", 1e306),
+    "occupancy": ("occupancy", "yes"),
+    "config list": ("config", [1, 2]),
+    "config value type": ("config", {"p_occupied": "0.6"}),
+    "config unknown": ("config", {"bogus": 1}),
+    "layout": ("layout", {"l1": [128, 128], "l2": 32, "leaf": 8}),
+    "layout leaf": ("layout", {"l1": [128, 128, 16], "l2": 32, "leaf": 6}),
+    "layout types": ("layout", {"l1": ["a", 1, 1], "l2": 32, "leaf": 8}),
+    "metadata": ("metadata", [1]),
+    "arrays": ("arrays", {"occ_index": 1}),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HEADER_CASES))
+def test_crafted_header_fields_are_map_file_errors(tmp_path, good_file, case):
+    key, value = HEADER_CASES[case]
+    header, arrays = parse(good_file)
+    data = build(header, arrays)
+    h2, _ = parse(data)
+    h2[key] = value
+    hb = json.dumps(h2).encode()
+    path = tmp_path / "crafted.ndtom"
+    path.write_bytes(data[:12] + struct.pack("<Q", len(hb)) + hb + data[20 + struct.unpack("<Q", data[12:20])[0] :])
+    with pytest.raises(MapFileError):
+        NdtOmMap.load(path)
+    if key not in ("config", "layout") and case != "resolution huge":  # `ndtom info` reads the header alone
+        with pytest.raises(MapFileError):
+            read_header(path)
+    r = run_cli("info", path)
+    assert r.exit_code in (0, 2) and "internal error" not in r.output, r.output
+    r = run_cli("export", path, "-o", tmp_path / "x.ply")
+    assert r.exit_code == 2 and "Error:" in r.output and "internal error" not in r.output, r.output
+
+
+def test_deeply_nested_header_is_a_map_file_error(tmp_path, good_file):
+    header, arrays = parse(good_file)
+    path = tmp_path / "nested.ndtom"
+    path.write_bytes(build(header, arrays, header_bytes=b"[" * 100_000 + b"]" * 100_000))
+    with pytest.raises(MapFileError, match="nested"):
+        NdtOmMap.load(path)
+    for cmd in ("info", "export"):
+        r = run_cli(cmd, path)
+        assert r.exit_code == 2 and "nested" in r.output and "internal error" not in r.output, r.output
+
+
+def test_untouched_rebuild_loads(tmp_path, good_file):
+    """The crafting helpers themselves produce a file that loads (the cases above fail
+    for what they change, not for how they were written)."""
+    header, arrays = parse(good_file)
+    path = tmp_path / "same.ndtom"
+    path.write_bytes(build(header, arrays))
+    m = NdtOmMap.load(path)
+    assert len(m.known_cells()["index"]) == len(arrays["occ_index"])
+    del m
+
+
+def test_map_with_nan_statistics_is_refused_by_the_viewer(tmp_path, good_file, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    header, arrays = parse(good_file)
+    path = tmp_path / "nan.ndtom"
+    path.write_bytes(build(header, setv("g_scatter", (0, 0), np.nan)(arrays)))
+    assert view_command(path, html=tmp_path / "snap.html") == 2
+    err = capsys.readouterr().err
+    assert "corrupt" in err and "--host" not in err
+
+
+# ---------------------------------------------------------------------------- paths that are not regular files
+def fifo(path: Path) -> Path:
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs here")
+    os.mkfifo(path)
+    return path
+
+
+def test_loading_a_fifo_does_not_hang(tmp_path):
+    path = fifo(tmp_path / "m.ndtom")
+    with pytest.raises(MapFileError, match="not a regular file"):
+        in_thread(lambda: NdtOmMap.load(path))
+    with pytest.raises(MapFileError, match="not a regular file"):
+        in_thread(lambda: read_header(path))
+
+
+@pytest.mark.parametrize("command", ["info", "map", "export"])
+def test_cli_refuses_a_fifo_input_without_hanging(tmp_path, command):
+    path = fifo(tmp_path / ("in.ndtom" if command == "export" else "in.bag"))
+    args = (command, path, *(("-r", "0.5", "-o", tmp_path / "o.ndtom") if command == "map" else ()))
+    r = in_thread(lambda: run_cli(*args))
+    assert r.exit_code == 2 and "not a regular file" in r.output.replace("neither a regular file", "not a regular file")
+
+
+def special_targets(tmp_path: Path):
+    yield "fifo", fifo(tmp_path / "fifo.ndtom")
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(tmp_path / "sock.ndtom"))
+    yield "socket", tmp_path / "sock.ndtom"
+    s.close()
+    try:
+        os.mknod(tmp_path / "null.ndtom", stat.S_IFCHR | 0o666, os.makedev(1, 3))
+        yield "device", tmp_path / "null.ndtom"
+    except (PermissionError, OSError):
+        pass  # not root: no device node to try
+    link = tmp_path / "to_fifo.ndtom"
+    link.symlink_to(tmp_path / "fifo.ndtom")
+    yield "symlink to a fifo", link
+
+
+def test_save_refuses_targets_that_are_not_regular_files(tmp_path):
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(500, 3)) + [3, 0, 0], np.eye(4))
+    kinds = []
+    for kind, path in special_targets(tmp_path):
+        before = os.stat(path).st_mode
+        with pytest.raises(OSError, match="not a regular file"):
+            in_thread(lambda path=path: m.save(path))
+        assert os.stat(path).st_mode == before, kind  # left as it was
+        kinds.append(kind)
+    assert {"fifo", "socket", "symlink to a fifo"} <= set(kinds)
+    (tmp_path / "dir.ndtom").mkdir()
+    with pytest.raises(IsADirectoryError):
+        m.save(tmp_path / "dir.ndtom")
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_save_through_a_symlink_replaces_its_target(tmp_path):
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(500, 3)) + [3, 0, 0], np.eye(4))
+    (tmp_path / "maps").mkdir()
+    target = tmp_path / "maps" / "run1.ndtom"
+    target.write_bytes(b"old")
+    link = tmp_path / "latest.ndtom"
+    link.symlink_to(target)
+    assert m.save(link) == target.resolve()
+    assert link.is_symlink() and os.readlink(link) == str(target)  # the link stays
+    assert NdtOmMap.load(link).scans_inserted == 1
+    dangling = tmp_path / "new.ndtom"
+    dangling.symlink_to(tmp_path / "maps" / "run2.ndtom")
+    m.save(dangling)
+    assert dangling.is_symlink() and (tmp_path / "maps" / "run2.ndtom").is_file()
+    gc.collect()
+    del m
+
+
+def test_cli_output_that_is_not_a_regular_file(tmp_path, plane_bag):
+    out = fifo(tmp_path / "out.ndtom")
+    r = in_thread(lambda: run_cli("map", plane_bag, "-r", pb.RES, "-o", out))
+    assert r.exit_code == 2 and "not a regular file" in r.output, r.output
+    assert stat.S_ISFIFO(os.stat(out).st_mode)
+
+
+# ---------------------------------------------------------------------------- small input checks
+def test_gaussians_refuses_nan_and_out_of_range_thresholds():
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(500, 3)) + [3, 0, 0], np.eye(4))
+    for bad in (float("nan"), -0.1, 1.5, "0.5", None):
+        with pytest.raises(ValueError, match="min_probability"):
+            m.gaussians(min_probability=bad)
+    for bad in (-1, 2.5, "3"):
+        with pytest.raises(ValueError, match="min_points"):
+            m.gaussians(min_points=bad)
+    assert len(m.gaussians(min_probability=1.0)["n"]) == 0
+    assert len(m.gaussians(min_probability=0.0)["n"]) >= len(m.gaussians()["n"]) > 0
+    del m
+
+
+def test_huge_finite_points_are_outside_the_grid_not_nonfinite():
+    m = NdtOmMap(0.5)
+    pts = np.array([[1e39, 0, 0], [0, -3.5e38, 0], [0, 0, 1e300], [np.inf, 0, 0], [0, np.nan, 0], [2, 0, 0]])
+    rep = m.insert_scan(pts, np.eye(4))
+    assert (rep.dropped_outside_grid, rep.dropped_nonfinite, rep.points_used) == (3, 2, 1)
+    del m
+
+
+def test_init_checks_memory_sizes_before_using_them():
+    with pytest.raises(TypeError, match="memory_limit_GB must be a number"):
+        ndtom_ti.init(memory_limit_GB="1")
+    with pytest.raises(TypeError, match="device_memory_GB"):
+        ndtom_ti.init(device_memory_GB=[4])
+    for bad in (float("nan"), -1.0, 0, float("inf")):
+        with pytest.raises(ValueError, match="memory_limit_GB"):
+            ndtom_ti.init(memory_limit_GB=bad)
+
+
+@pytest.mark.parametrize("text", ['{"p_occupied": "0.7"}', '{"min_points": [3]}', '{"max_range_mode": 1}',
+                                  '{"logodds_max": true}'])
+def test_config_values_of_the_wrong_type_are_clear_errors(tmp_path, plane_bag, text):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(text)
+    r = run_cli("map", plane_bag, "-r", pb.RES, "--config", cfg, "-o", tmp_path / "m.ndtom")
+    assert r.exit_code == 2 and "Error:" in r.output and "must be a" in r.output, r.output
+    assert "not supported between" not in r.output and "internal error" not in r.output
+
+
+def test_export_of_a_folder_is_a_clear_error(tmp_path):
+    r = run_cli("export", tmp_path)
+    assert r.exit_code == 2 and "is a folder" in r.output, r.output
+
+
+def test_live_view_saves_metadata_and_exits_130_when_stopped_early(monkeypatch, tmp_path, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer import cli
+
+    from ndtom_ti.demo import make_scans
+
+    def block(viewer):  # Ctrl-C after the first scan, long before the scans run out
+        assert viewer.live_mapper.wait_scans(1, timeout=60)
+
+    monkeypatch.setattr(cli, "_block", block)
+    out = tmp_path / "live.ndtom"
+    data = make_scans(30, rings=8, per_ring=120)
+    code = cli.live_command(data, 0.25, "127.0.0.1", 0, total=len(data), rate_hz=2.0, save=out,
+                            metadata={"command": "ndtom map --view", "source": "test"})  # fmt: skip
+    assert code == 130
+    assert "marked incomplete" in capsys.readouterr().out
+    h = read_header(out)
+    assert h["metadata"]["command"] == "ndtom map --view" and h["metadata"]["source"] == "test"
+    assert h["metadata"]["complete"] is False and 1 <= h["scans_inserted"] < 30
+    assert h["metadata"]["summary"]["stopped"] == "interrupted"
+
+
+def test_map_view_passes_the_run_metadata(tmp_path, monkeypatch, plane_bag):
+    seen = {}
+
+    def fake_live(scans, resolution, host, port, *, config=None, save=None, metadata=None, **kw):
+        seen.update(metadata=metadata)
+        return 130
+
+    monkeypatch.setattr("ndtom_ti.viewer.cli.live_command", fake_live)
+    r = run_cli("map", plane_bag, "-r", pb.RES, "-o", tmp_path / "m.ndtom", "--view")
+    assert r.exit_code == 130
+    md = seen["metadata"]
+    assert md["command"] == "ndtom map --view" and md["cloud_topic"] == "/points"
+    assert md["source"] == str(plane_bag.resolve()) and md["config"]["p_occupied"] == 0.6
