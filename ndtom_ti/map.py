@@ -526,15 +526,20 @@ class NdtOmMap:
             if not self._warm:
                 self._warm = True
                 warm_up(self)
-            try:
-                return self._insert(points, T_world_sensor)
-            except BaseException:
-                # Interrupted between kernels (Ctrl-C) or refused: keep the shared block and
-                # the NDT miss sums zero.
-                self._st.block_buf[:] = 0
-                self._st.bflag_buf[:] = 0
-                self._rec_miss[:] = 0
-                raise
+            return self._insert_guarded(points, T_world_sensor)
+
+    def _insert_guarded(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """``_insert``, leaving the shared scratch clean when it raises (the caller holds
+        the storage's lock)."""
+        try:
+            return self._insert(points, T_world_sensor)
+        except BaseException:
+            # Interrupted between kernels (Ctrl-C) or refused: keep the shared block and
+            # the NDT miss sums zero.
+            self._st.block_buf[:] = 0
+            self._st.bflag_buf[:] = 0
+            self._rec_miss[:] = 0
+            raise
 
     def _insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
         t0 = time.perf_counter()

@@ -61,8 +61,9 @@ def warm_up(m) -> None:
                         w._u16_rays = u16
                         for k, v in opts.items():
                             setattr(w, k, v)
-                        w.insert_scan(pts.astype(dtype), T)
+                        w._insert_guarded(pts.astype(dtype), T)  # not a user's scan
                     w.block_cells, w._block_density = m.block_cells, 0.0
+        w._warm = True
         len(w)
         w.known_cells()
         w.gaussians()

@@ -289,7 +289,11 @@ def big_state(rng, cells: int, gaussians: int) -> dict:
     lo[lo == 0] = 0.5
     g = rng.choice(cells, size=gaussians, replace=False)
     n = rng.integers(1, 50, gaussians).astype(np.int32)
-    scat = rng.normal(size=(gaussians, 6)) ** 2 * 1e-3
+    # Valid scatter (xx xy xz yy yz zz): diagonally dominant, so positive semi-definite,
+    # and within what n points of a 0.1 m cell can spread.
+    d = rng.uniform(1e-4, 2e-3, (gaussians, 3)) * n[:, None]
+    off = 0.2 * rng.uniform(-1.0, 1.0, (gaussians, 3)) * np.minimum(d[:, [0, 0, 1]], d[:, [1, 2, 2]])
+    scat = np.column_stack([d[:, 0], off[:, 0], off[:, 1], d[:, 1], off[:, 2], d[:, 2]])
     return {"occ_index": idx, "occ_logodds": lo, "g_index": idx[g], "g_n": n,
             "g_mean_rel": rng.uniform(-0.05, 0.05, (gaussians, 3)), "g_scatter": scat}  # fmt: skip
 

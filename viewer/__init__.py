@@ -1,4 +1,4 @@
-"""Web viewer for NDT-OM maps (optional extra: ``pip install ndtom_ti[viewer]``).
+"""Web viewer for NDT-OM maps (optional extra ``viewer``: ``pip install -e ".[viewer]"`` in the repository).
 
 Importing this package does not need viser; making a viewer does::
 
@@ -18,11 +18,10 @@ Live mapping (a worker thread inserts scans; the viewer redraws, throttled)::
 The CLI (``ndtom view``) calls :func:`ndtom_ti.viewer.cli.view_command`.
 """
 
-from ._deps import INSTALL_HINT as INSTALL_HINT
 from ._deps import ViewerNotInstalledError as ViewerNotInstalledError
 from ._deps import require_viser as require_viser
 from .app import MapViewer as MapViewer
 from .app import show as show
 from .live import LiveMapper as LiveMapper
 
-__all__ = ["INSTALL_HINT", "LiveMapper", "MapViewer", "ViewerNotInstalledError", "require_viser", "show"]
+__all__ = ["LiveMapper", "MapViewer", "ViewerNotInstalledError", "require_viser", "show"]

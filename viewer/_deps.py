@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from types import ModuleType
 
-INSTALL_HINT = "pip install ndtom_ti[viewer]"
 
 
 class ViewerNotInstalledError(ImportError):
@@ -16,8 +15,10 @@ def require_viser() -> ModuleType:
     try:
         import viser
     except ImportError as exc:
+        from ndtom_ti.extras import install_hint
+
         raise ViewerNotInstalledError(
             f"the map viewer needs the optional package viser, which is not installed "
-            f"({exc}); install it with: {INSTALL_HINT}"
+            f"({exc}); install it with: {install_hint('viewer')}"
         ) from None
     return viser
