@@ -99,6 +99,17 @@ class MappingSummary:
         """True when every selected scan was inserted (no signal, memory stop or bad scan)."""
         return self.stopped is None
 
+    def add(self, rep: Any) -> None:
+        """Count one inserted scan's ScanReport."""
+        self.scans_used += 1
+        self.points_in += rep.points_in
+        self.points_used += rep.points_used
+        self.free_rays += rep.free_rays
+        self.dropped["nonfinite"] += rep.dropped_nonfinite
+        self.dropped["range"] += rep.dropped_range
+        self.dropped["outside_grid"] += rep.dropped_outside_grid
+        self.scan_seconds.append(rep.seconds)
+
     @property
     def skipped_total(self) -> int:
         return int(sum(self.skipped.values()))
@@ -373,14 +384,7 @@ def _run(
                         raise
                     _stopped(summary, "error", f"scan {summary.scans_used + 1} could not be inserted: {exc}")
                     break
-                summary.scans_used += 1
-                summary.points_in += rep.points_in
-                summary.points_used += rep.points_used
-                summary.free_rays += rep.free_rays
-                summary.dropped["nonfinite"] += rep.dropped_nonfinite
-                summary.dropped["range"] += rep.dropped_range
-                summary.dropped["outside_grid"] += rep.dropped_outside_grid
-                summary.scan_seconds.append(rep.seconds)
+                summary.add(rep)
                 summary.wall_seconds = time.perf_counter() - t0
                 if progress is not None:
                     progress(summary, rep)

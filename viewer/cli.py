@@ -245,18 +245,6 @@ def _default_finish(save: Path | None) -> Callable[[Any, Any], int]:
     return finish
 
 
-def _add_report(summary: Any, rep: Any) -> None:
-    """Count one inserted scan into a MappingSummary, as ``ndtom map`` does."""
-    summary.scans_used += 1
-    summary.points_in += rep.points_in
-    summary.points_used += rep.points_used
-    summary.free_rays += rep.free_rays
-    summary.dropped["nonfinite"] += rep.dropped_nonfinite
-    summary.dropped["range"] += rep.dropped_range
-    summary.dropped["outside_grid"] += rep.dropped_outside_grid
-    summary.scan_seconds.append(rep.seconds)
-
-
 def live_command(
     scans: Iterable[Any],
     resolution: float,
@@ -320,7 +308,7 @@ def live_command(
         return EXIT_USAGE
 
     def on_scan(rep: Any, item: Any) -> None:
-        _add_report(summary, rep)
+        summary.add(rep)
         summary.wall_seconds = lm.work_seconds
         if progress is not None:
             progress(summary, rep)
