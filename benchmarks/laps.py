@@ -39,7 +39,7 @@ def main() -> None:
                     "--speed", repr(speed), "--out", str(out)], check=True, capture_output=True)  # fmt: skip
     print(f"{a.laps} laps of {lap} scans at {speed:.4f} m/s, {a.res:g} m")
 
-    ndtom_ti.init("cpu")
+    ndtom_ti.init("cpu", pin_threads=True)  # as the ndtom command runs
     d = simworld.SimDataset(out / "hall.npz")
     m = ndtom_ti.NdtOmMap(a.res)
     first = None

@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--bag", type=Path, default=None)
     a = ap.parse_args(argv)
-    ndtom_ti.init()
+    ndtom_ti.init(pin_threads=True)  # as the ndtom command runs
     n = a.scans + a.warmup
     scans = bag_scans(a.bag, n) if a.bag else hall_scans(n, a.seed)
     print(f"{'res':>5} {'paper ms':>9} {'ndt ms':>8} {'ndt/paper':>9}  ({len(scans) - a.warmup} scans paired)")

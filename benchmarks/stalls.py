@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
 
         scans = hall_scans(a.scans, 7)
     t0 = time.perf_counter()
-    ndtom_ti.init()
+    ndtom_ti.init(pin_threads=True)  # as the ndtom command runs
     m = NdtOmMap(a.res, config=MapConfig(miss_model=a.miss_model))
     t_init = time.perf_counter() - t0
     times, sizes = [], []

@@ -51,7 +51,7 @@ def main() -> None:
     import ndtom_ti
     from ndtom_ti import sweep
 
-    arch = ndtom_ti.init(a.arch)
+    arch = ndtom_ti.init(a.arch, pin_threads=True)  # as the ndtom command runs
     scans = bag_scans(a.bag, a.scans) if a.bag else hall_scans(a.scans)
     res = [float(x) for x in a.resolutions.split(",")]
     baseline = None if a.no_octomap or not sweep.octomap_available() else "octomap"

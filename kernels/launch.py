@@ -21,10 +21,19 @@ from taichi.types.utils import is_signed
 _ARRAY, _INT, _UINT, _FLOAT = range(4)
 
 
+# The Taichi release whose call path the Launcher reproduces: any other gets Taichi's call.
+WRITTEN_FOR = (1, 7, 4)
+
+
 def enabled() -> bool:
-    """Whether kernels get a Launcher: off in Taichi's debug mode (its checks live in the
-    ordinary call) and with NDTOM_PLAIN_LAUNCH=1."""
+    """Whether kernels get a Launcher: only on the Taichi release it was written against
+    (it uses that release's internals), not in Taichi's debug mode (its checks live in the
+    ordinary call), and not with NDTOM_PLAIN_LAUNCH=1."""
     if os.environ.get("NDTOM_PLAIN_LAUNCH", "") not in ("", "0"):
+        return False
+    import taichi
+
+    if tuple(getattr(taichi, "__version__", ())) != WRITTEN_FOR:
         return False
     try:
         return not impl.current_cfg().debug

@@ -6,8 +6,8 @@ next run of iterations as soon as it is free. Left to the scheduler on the proje
 (0.9 ms), as when one worker does both halves before the other starts. Most loops of a
 scan are that short. Fixed to a CPU of its own, each worker is woken there: hall scans
 at 0.4 m took 8.8 ms instead of 9.5 (median) and 9.7 instead of 15 (p90).
-``NDTOM_PIN_THREADS=0`` (or ``init(pin_threads=False)``) leaves the threads to the
-scheduler."""
+Off in the library unless ``init(pin_threads=True)`` or ``NDTOM_PIN_THREADS=1``; on in the
+``ndtom`` command unless ``--no-pin-threads`` or ``NDTOM_PIN_THREADS=0``."""
 
 import os
 import sys

@@ -189,7 +189,7 @@ def _init(arch: Arch, memory_limit: float | None = None) -> str:
     with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
-            used = ndtom_ti.init(arch.value, memory_limit_GB=memory_limit)
+            used = ndtom_ti.init(arch.value, memory_limit_GB=memory_limit, pin_threads=_pin_threads())
         except RuntimeError as exc:
             _fail(str(exc), "use --arch cpu (or auto)")
         except ValueError as exc:
@@ -257,16 +257,29 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+_PIN = {"threads": True}
+
+
+def _pin_threads() -> bool:
+    """The command pins Taichi's CPU workers (affinity.py) unless --no-pin-threads or
+    NDTOM_PIN_THREADS=0 says not to."""
+    return _PIN["threads"] and os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
+
+
 @app.callback()
 def _main(
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                           help="Show the version and exit.")] = False,
+    pin_threads: Annotated[bool, typer.Option(
+        "--pin-threads/--no-pin-threads", help="Fix each of Taichi's CPU worker threads to a CPU of its own "
+        "(faster short loops; off leaves them to the scheduler, e.g. on CPUs shared with busy drivers).")] = True,
 ) -> None:
     """Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).
 
     Exit codes: 0 ok, 1 failed (e.g. memory budget; what was mapped is saved), 2 bad
     input or usage, 130 interrupted by Ctrl-C, 143 by SIGTERM (what was mapped is saved).
     """
+    _PIN["threads"] = pin_threads
 
 
 # ---------------------------------------------------------------------------- info

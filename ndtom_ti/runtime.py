@@ -80,8 +80,10 @@ def init(
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
     pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
-        its own (affinity.py: short loops then run on all of them). Default: on, unless
-        the environment variable NDTOM_PIN_THREADS is 0.
+        its own (affinity.py: short loops then run on all of them). Default: off, as a
+        library should leave its host process's threads alone, unless the environment
+        variable NDTOM_PIN_THREADS is 1; the ``ndtom`` command turns it on
+        (``--no-pin-threads`` to leave it off).
 
     Calling it again with the same arch (or "auto") is a no-op; another arch is an error
     because Taichi cannot change arch without destroying every existing map.
@@ -140,7 +142,7 @@ def init(
             _init_cpu(ti, memory_limit_GB, kwargs)
             _state.arch = "cpu"
             if pin_threads is None:
-                pin_threads = os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
+                pin_threads = os.environ.get("NDTOM_PIN_THREADS", "0") not in ("0", "")
             if pin_threads:
                 from .affinity import pin_pool
                 from .kernels.ndt import cpu_threads

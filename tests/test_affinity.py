@@ -20,19 +20,34 @@ def _cpus() -> list[int]:
     return sorted(os.sched_getaffinity(0))
 
 
+PINNED = """
+import os, threading, ndtom_ti
+from ndtom_ti import affinity, runtime
+from ndtom_ti.kernels.ndt import cpu_threads
+ndtom_ti.init("cpu", pin_threads=True)
+pinned = runtime.pinned_threads()
+tids = sorted(t for t, _ in pinned)
+print("N", len(pinned), cpu_threads(), len(os.sched_getaffinity(0)))
+print("CPUS", sorted(c for _, c in pinned) == sorted(os.sched_getaffinity(0)))
+print("MAIN", threading.get_native_id() not in tids)
+print("SET", all(os.sched_getaffinity(t) == {c} for t, c in pinned))
+print("PROBE", affinity.pool_threads(cpu_threads()) == tids)
+"""
+
+
 @linux_cpu
 def test_workers_pinned_one_per_cpu():
-    if os.environ.get("NDTOM_PIN_THREADS", "1") in ("0", "") or cpu_threads() != len(_cpus()) or cpu_threads() < 2:
-        pytest.skip("pinning is off in this process, or Taichi's threads are not one per CPU")
-    pinned = runtime.pinned_threads()
-    assert len(pinned) == cpu_threads()
-    tids, cpus = zip(*pinned)
-    assert sorted(cpus) == _cpus()
-    assert threading.get_native_id() not in tids
-    for tid, cpu in pinned:
-        assert os.sched_getaffinity(tid) == {cpu}
+    if len(_cpus()) < 2:
+        pytest.skip("one CPU: nothing to pin")
+    out = subprocess.run([sys.executable, "-c", PINNED], env={k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"},
+                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    got = dict(line.split(" ", 1) for line in out.strip().splitlines())
+    n, threads, cpus = map(int, got["N"].split())
+    if threads != cpus:
+        pytest.skip("Taichi's threads are not one per CPU")
+    assert n == cpus
     # The probe finds the same threads again: they are the ones that run Taichi's loops.
-    assert affinity.pool_threads(cpu_threads()) == sorted(tids)
+    assert got["CPUS"] == got["MAIN"] == got["SET"] == got["PROBE"] == "True", got
 
 
 @linux_cpu
@@ -51,12 +66,29 @@ def test_workers_not_found_pins_nothing(monkeypatch):
     assert affinity.pool_threads(cpu_threads()) == []
 
 
-@pytest.mark.parametrize("env, expect", [("0", False), ("1", True)])
+@pytest.mark.parametrize("env, expect", [(None, False), ("0", False), ("1", True)])
 @linux_cpu
 def test_environment_switch(env, expect):
+    """The library leaves the threads alone unless asked (NDTOM_PIN_THREADS=1)."""
     if len(_cpus()) < 2:
         pytest.skip("one CPU: nothing to pin")
     code = "import ndtom_ti; from ndtom_ti import runtime; ndtom_ti.init('cpu'); print(len(runtime.pinned_threads()))"
-    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "NDTOM_PIN_THREADS": env},
-                         capture_output=True, text=True, check=True)  # fmt: skip
+    environ = {k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"}
+    if env is not None:
+        environ["NDTOM_PIN_THREADS"] = env
+    out = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, check=True)
+    assert (int(out.stdout.split()[-1]) == len(_cpus())) is expect
+
+
+@pytest.mark.parametrize("option, expect", [("--pin-threads", True), ("--no-pin-threads", False)])
+@linux_cpu
+def test_the_command_pins_unless_told_not_to(option, expect):
+    if len(_cpus()) < 2:
+        pytest.skip("one CPU: nothing to pin")
+    code = (
+        "import sys; from ndtom_ti import cli, runtime; cli._main(pin_threads=sys.argv[1] == '--pin-threads'); "
+        "cli._init(cli.Arch.cpu); print(len(runtime.pinned_threads()))"
+    )
+    environ = {k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code, option], env=environ, capture_output=True, text=True, check=True)
     assert (int(out.stdout.split()[-1]) == len(_cpus())) is expect
