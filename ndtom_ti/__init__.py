@@ -15,6 +15,7 @@ from .map import NdtOmMap as NdtOmMap
 from .map import ScanReport as ScanReport
 from .mapfile import MapFileError as MapFileError
 from .runtime import MapMemoryError as MapMemoryError
+from .runtime import NoFreeSlotError as NoFreeSlotError
 from .runtime import current_arch as current_arch
 from .runtime import init as init
 
@@ -25,6 +26,7 @@ __all__ = [
     "MapFileError",
     "MapMemoryError",
     "NdtOmMap",
+    "NoFreeSlotError",
     "ScanReport",
     "current_arch",
     "init",

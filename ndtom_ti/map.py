@@ -81,6 +81,7 @@ def _locked(method):
     @functools.wraps(method)
     def call(self, *args, **kwargs):
         with self._lock:
+            self._check_open()
             if _dead_slots:
                 _release_dead()
             return method(self, *args, **kwargs)
@@ -248,8 +249,10 @@ class NdtOmMap:
         self._lock = self._st.lock
         with self._lock:
             self._k = make_kernels(self._st)
-        # Empty the slot for the next map; nothing to do at interpreter exit.
-        weakref.finalize(self, _release_slot, self._st, self._slot).atexit = False
+        # Empty the slot for the next map (close(), or when the map is collected); nothing
+        # to do at interpreter exit.
+        self._release = weakref.finalize(self, _release_slot, self._st, self._slot)
+        self._release.atexit = False
         self._ctr = np.zeros(CTR_SIZE, np.int64)
         self._touched = np.empty((_TOUCHED_START, 3), np.int32)
         self._chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
@@ -514,6 +517,29 @@ class NdtOmMap:
         bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
         return block, bflag, (lo * leaf).astype(np.int32)
 
+    # ------------------------------------------------------------------ lifetime
+
+    def close(self) -> None:
+        """Give the map's slot and memory back now (a process holds ``init(max_maps=...)``
+        maps at once; otherwise that happens when the map is garbage-collected). Any later
+        use of the map raises ValueError; closing again does nothing."""
+        with self._lock:
+            self._release()  # runs once: the collector will not release the slot again
+
+    @property
+    def closed(self) -> bool:
+        return not self._release.alive
+
+    def __enter__(self) -> NdtOmMap:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if not self._release.alive:
+            raise ValueError("this map is closed (NdtOmMap.close()); make a new map or load one")
+
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
         ``T_world_sensor`` (4, 4) mapping sensor-frame points into the world.
@@ -523,6 +549,7 @@ class NdtOmMap:
         unchanged.
         """
         with self._st.lock:  # the dense block is shared by the maps of the process
+            self._check_open()
             if not self._warm:
                 self._warm = True
                 warm_up(self)
@@ -883,8 +910,9 @@ class NdtOmMap:
         self._k.query(self._slot, np.ascontiguousarray(self._rec_cell[cand]), len(cand), lo)
         return lo > 0.0
 
-    @_locked
     def __repr__(self) -> str:
+        if self.closed:
+            return f"NdtOmMap(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, closed)"
         return (
             f"NdtOmMap(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
             f"scans={self.scans_inserted}, gaussians={len(self)}, arch={self.arch!r}, "

@@ -32,6 +32,10 @@ def chunk_for(budget: int) -> int:
     return -(-(budget + budget // 16 + 128 * 2**20) // 2**20) * 2**20
 
 
+class NoFreeSlotError(RuntimeError):
+    """Every map slot of the process is taken (``init(max_maps=...)``)."""
+
+
 class MapMemoryError(MemoryError):
     """A scan or load would take the map storage past its memory budget."""
 
@@ -313,10 +317,10 @@ def acquire_slot(layout):
     st = storage(layout)
     with _lock:
         if not st.free_slots:
-            raise RuntimeError(
-                f"{st.slots} maps exist already, the most this process allows at once; delete "
-                "maps you no longer need (del m) or call ndtom_ti.init(max_maps=...) before "
-                "making the first map"
+            raise NoFreeSlotError(
+                f"{st.slots} maps are open already, the most this process allows at once; close "
+                "the maps you no longer need (m.close(), or make them with `with NdtOmMap(...) as m:`) "
+                "or call ndtom_ti.init(max_maps=...) before making the first map"
             )
         return st, st.free_slots.pop()
 

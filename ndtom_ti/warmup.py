@@ -35,6 +35,7 @@ def warm_up(m) -> None:
     (miss model, occupancy). Skipped when no map slot is free for the scratch map or the
     memory budget has no room for it: those variants then compile as scans need them."""
     from .map import NdtOmMap
+    from .runtime import NoFreeSlotError
 
     key = (id(m._st), m.config.miss_model, m.occupancy_enabled)
     if key in _DONE:
@@ -42,7 +43,7 @@ def warm_up(m) -> None:
     _DONE.add(key)
     try:
         w = NdtOmMap(0.5, config=m.config, occupancy=m.occupancy_enabled, layout=m.layout)
-    except (RuntimeError, MemoryError):
+    except (NoFreeSlotError, MemoryError):
         return
     try:
         scans = _scans(w.resolution)

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ndtom_ti.runtime import NoFreeSlotError
+
 from . import geometry as geo
 from ._deps import require_viser
 from .security import AccessGuard, guarded_server, primary_address
@@ -610,7 +612,7 @@ class MapViewer:
             self._cache.popitem(last=False)
         try:
             cm = base.coarsen(factor)
-        except RuntimeError:  # all storage slots taken: drop every cached level, try once more
+        except NoFreeSlotError:  # all map slots taken: drop every cached level, try once more
             self._cache.clear()
             cm = base.coarsen(factor)
         if self.cache_size:
@@ -630,7 +632,7 @@ class MapViewer:
                 return out
             try:
                 m = self._map_at("ndtom", sel)
-            except (RuntimeError, MemoryError) as exc:  # no free map slot, or past the memory budget
+            except (NoFreeSlotError, MemoryError) as exc:  # no free map slot, or past the memory budget
                 out["notes"].append(f"the {sel}x level could not be made ({exc}); showing the native level")
                 m, sel = base, 1
             g = m.gaussians(min_probability=thr)
@@ -657,7 +659,7 @@ class MapViewer:
                         f"{_fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {_fmt(cap)}: "
                         f"showing the {choice}x coarser level ({m.resolution:g} m)"
                     )
-                except (RuntimeError, MemoryError) as exc:
+                except (NoFreeSlotError, MemoryError) as exc:
                     out["notes"].append(f"a coarser level could not be made ({exc})")
             out.update(factor=factor, resolution=m.resolution, g=g, native_resolution=base.resolution)
             out["stats"] = {
@@ -689,7 +691,7 @@ class MapViewer:
                 if want["conflicts"]:
                     try:
                         cm = self._map_at("rndt", factor) if factor in FACTORS else cmp_base.coarsen(factor)
-                    except (RuntimeError, MemoryError) as exc:
+                    except (NoFreeSlotError, MemoryError) as exc:
                         cm = None
                         out["notes"].append(f"conflicting cells: the comparison map's level could not be made ({exc})")
                     if cm is not None:
