@@ -15,7 +15,7 @@ from reference import batch_stats
 from test_core import assert_matches_batch, random_pose, to_world
 
 import ndtom_ti
-from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap
+from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap, NoFreeSlotError
 from ndtom_ti import runtime
 from ndtom_ti.kernels.layout import RECORD_BYTES
 from ndtom_ti.map import BLOCK_CELLS
@@ -419,7 +419,7 @@ def test_init_rejects_unsafe_budget_and_arch_switch(arch):
 
 def test_too_many_maps_is_a_clear_error():
     maps = []
-    with pytest.raises(RuntimeError, match="maps exist already"):
+    with pytest.raises(NoFreeSlotError, match="maps are open already"):
         for _ in range(100):
             maps.append(NdtOmMap(1.0))
     del maps

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from ndtom_ti.viewer import geometry as geo
 
-from ndtom_ti import NdtOmMap
+from ndtom_ti import NdtOmMap, NoFreeSlotError
 from ndtom_ti.demo import make_scans
 
 RES = 0.5
@@ -473,7 +473,7 @@ def test_no_free_map_slot_is_said_on_screen(maps, make_viewer):
     m, _ = maps
     v = make_viewer(m)
     hog = []
-    with pytest.raises(RuntimeError, match="maps exist already"):
+    with pytest.raises(NoFreeSlotError, match="maps are open already"):
         while True:
             hog.append(NdtOmMap(RES))
     v.controls.resolution.value = v.controls.resolution.options[1]
