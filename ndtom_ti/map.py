@@ -550,10 +550,15 @@ class NdtOmMap:
         """
         with self._st.lock:  # the dense block is shared by the maps of the process
             self._check_open()
+            warm = 0.0
             if not self._warm:
                 self._warm = True
+                t0 = time.perf_counter()
                 warm_up(self)
-            return self._insert_guarded(points, T_world_sensor)
+                warm = time.perf_counter() - t0
+            rep = self._insert_guarded(points, T_world_sensor)
+            rep.seconds += warm  # the first scan's time includes compiling its kernels
+            return rep
 
     def _insert_guarded(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """``_insert``, leaving the shared scratch clean when it raises (the caller holds

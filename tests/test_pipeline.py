@@ -224,3 +224,17 @@ def test_demo_map_matches_the_ground_truth() -> None:
     assert after["left_in_vanished"] == 0  # and erased by the rays once it was gone
     assert after["on_surface"] > 0.98 and after["median_distance"] < 0.01
     assert s.scans_used == 20 and s.gaussians > 5000
+
+
+def test_summary_gives_the_first_scan_apart():
+    """The first scan compiles the kernels: the median and p95 are of the scans after it."""
+    from ndtom_ti.pipeline import MappingSummary
+
+    s = MappingSummary(source="x", resolution=0.2)
+    s.scan_seconds = [2.5, 0.010, 0.020, 0.030]
+    assert s.ms_first_scan == pytest.approx(2500.0)
+    assert s.ms_per_scan_median == pytest.approx(20.0) and s.ms_per_scan_p95 < 31.0
+    d = s.to_dict()
+    assert d["ms_first_scan"] == 2500.0 and d["ms_per_scan_median"] == 20.0
+    s.scan_seconds = [0.5]  # one scan only: it is the median too
+    assert s.ms_per_scan_median == pytest.approx(500.0)
