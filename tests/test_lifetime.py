@@ -32,7 +32,7 @@ def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
             call()
     assert "closed" in repr(m)
     m.close()  # again: nothing
-    del m
+    m = None
     gc.collect()
     assert st.free_slots.count(slot) == 1  # the collector did not release it twice
 
@@ -43,9 +43,8 @@ def test_with_closes_the_map_even_on_an_error(rng):
         slot = m._slot
         assert len(m) > 0
     assert m.closed and slot in m._st.free_slots
-    with pytest.raises(RuntimeError, match="boom"):
-        with NdtOmMap(0.5) as m2:
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), NdtOmMap(0.5) as m2:
+        raise RuntimeError("boom")
     assert m2.closed
 
 
