@@ -260,3 +260,24 @@ def test_real_lidar_scans_match_the_reference():
         scans.append((T[:3, 3].copy(), p @ T[:3, :3].T + T[:3, 3]))
     ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
+
+
+def test_a_loaded_map_continues_as_the_one_saved(rng, tmp_path):
+    """The inverse covariances the rays read are rebuilt on load: the next scan gives the
+    same map whether or not it went through a file."""
+    scans = random_scans(rng, n_scans=3)
+    cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
+    a = build(scans[:2], 0.25, cfg)
+    b = NdtOmMap.load(a.save(tmp_path / "a.ndtom"))
+    assert b.config.miss_model == "ndt"
+    for m in (a, b):
+        o, ends, hit = scans[2]
+        T = np.eye(4)
+        T[:3, 3] = o
+        local = ends - o
+        local[~hit] *= 9.0 / np.linalg.norm(local[~hit], axis=1, keepdims=True)
+        m.insert_scan(local, T)
+    ka, kb = a.known_cells(), b.known_cells()
+    assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
+    ref_lo, _ = ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=SIGMA_S)
+    assert_matches(b, ref_lo, ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=SIGMA_S)[1])
