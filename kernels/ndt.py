@@ -342,13 +342,18 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         return changed
 
     @ti.func
-    def ndt_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
-                  rec_miss: ti.template()):  # fmt: skip
-        # A ray passing a cell of the block marked as holding a usable Gaussian.
-        r = gslot[at(slot, c)] - 1
+    def add_miss(r, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
+                 rec_miss: ti.template()):  # fmt: skip
+        # The ray's NDT miss term added to record r's sum (terms that round to zero add nothing).
         v = ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov)
         if v != 0:
             ti.atomic_add(rec_miss[r], v)
+
+    @ti.func
+    def ndt_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
+                  rec_miss: ti.template()):  # fmt: skip
+        # A ray passing a cell of the block marked as holding a usable Gaussian.
+        add_miss(gslot[at(slot, c)] - 1, c, o, z, u, length, hit, res, prm, rec_icov, rec_miss)
 
     @ti.func
     def ndt_tree_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_n: ti.template(),
@@ -356,7 +361,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         # A ray passing a cell of the tree that may hold a Gaussian (NE_GAUSS).
         r = gslot[at(slot, c)] - 1
         if r >= 0 and rec_n[r] >= ndt_minp:
-            ti.atomic_add(rec_miss[r], ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov))
+            add_miss(r, c, o, z, u, length, hit, res, prm, rec_icov, rec_miss)
 
     @ti.func
     def ndt_floor(s0, s1, s2, s3, s4, s5, prm: ti.template()) -> ti.f64:

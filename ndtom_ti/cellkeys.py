@@ -63,3 +63,11 @@ def group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     inverse = np.empty(len(keys), np.int64)
     inverse[order] = np.cumsum(first) - 1
     return s[starts], order, starts, inverse
+
+
+def isin_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Which rows of the (K, 3) cell indices ``a`` are also rows of ``b``."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(len(a), bool)
+    keys, _, _ = pack(np.concatenate([np.asarray(a, np.int64).reshape(-1, 3), np.asarray(b, np.int64).reshape(-1, 3)]))
+    return np.isin(keys[: len(a)], keys[len(a) :])

@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from .cellkeys import isin_rows
 from .er_baseline import UPDATE_RULE, ErrorRefinementMap
 from .metrics import batch_ndt, l2_similarity, mean_l2_score, regularize_cov
 
@@ -273,9 +274,7 @@ def _keys(index: np.ndarray) -> np.ndarray:
 
 def _in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rows of index array ``a`` that are also in ``b``."""
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros(len(a), bool)
-    return np.isin(_keys(a), _keys(b))
+    return isin_rows(a, b)
 
 
 def _sync() -> None:

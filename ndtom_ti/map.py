@@ -274,6 +274,8 @@ class NdtOmMap:
         self._warm = False  # warmup.warm_up done for this map (at its first scan)
         c = self.config
         self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR])
+        # Points a Gaussian needs for the NDT miss model; 0: the paper's model (kernel switch).
+        self._ndt_minp = int(c.min_points) if c.ndt_misses else 0
 
     # ------------------------------------------------------------------ properties
 
@@ -426,11 +428,10 @@ class NdtOmMap:
         block, bflag, base = self._block_for(box if dense else None, ocell, dtype)
         args = (origin, ocell.astype(np.int32), self.resolution, self._touched, len(self._touched), self._ctr,
                 st.occ_regions, st.leaf_count, block, bflag, base, block.reshape(-1), bflag.reshape(-1))  # fmt: skip
-        minp = int(self.config.min_points)
         # The Gaussians the rays test are those of the scan's start: merge runs after them.
-        recs = (self._rec_n, self._rec_icov, self._rec_miss, self._ndt_prm, minp)
+        recs = (self._rec_n, self._rec_icov, self._rec_miss, self._ndt_prm, self._ndt_minp)
         if ndt and block.size:
-            kb.mark_gaussians(self._nrec, self._rec_n, self._rec_cell, minp, block, bflag, base)
+            kb.mark_gaussians(self._nrec, self._rec_n, self._rec_cell, self._ndt_minp, block, bflag, base)
         n = len(world)
         if one_pass:
             lo, hi = np.minimum(box[0], ocell), np.maximum(box[1], ocell)
@@ -611,7 +612,7 @@ class NdtOmMap:
                 kb.merge(slot, hitlist, acc, todo, int(cfg.n_max), self._rec_n, self._rec_cell, self._rec_mean, self._rec_scat,
                          ctr, cfg.l_hit, lmin, lmax, fs.occ_regions, fs.leaf_count, block, base, int(dense is not None),
                          hcnt, fs.gidx_regions, int(dense_hits), world, order, off, res, self._rec_free, left,
-                         self._rec_miss, self._rec_icov, self._ndt_prm, int(cfg.min_points) if cfg.ndt_misses else 0)  # fmt: skip
+                         self._rec_miss, self._rec_icov, self._ndt_prm, self._ndt_minp)  # fmt: skip
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
                 self._nrec, self._nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
@@ -636,13 +637,13 @@ class NdtOmMap:
                 kb.block_apply_all(slot, block.reshape(-1).view(np.uint64), np.array(block.shape, np.int32), base, cfg.l_free, lmin, lmax,
                                   self._rec_n, ctr, fs.occ_regions, fs.leaf_count, self._rec_free, self._rec_miss)  # fmt: skip
         if self.occupancy_enabled and n:
-            ndt_minp = int(cfg.min_points) if cfg.ndt_misses else 0
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self._touched):
                 k.apply_free(slot, self._touched, nt, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss,
-                             ndt_minp)  # fmt: skip
+                             self._ndt_minp)  # fmt: skip
             elif nt:
-                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss, ndt_minp)
+                k.apply_free_all(slot, cfg.l_free, lmin, lmax, self._rec_n, ctr, self._rec_free, self._rec_miss,
+                                 self._ndt_minp)  # fmt: skip
                 self._touched = np.empty((2 * nt, 3), np.int32)
             rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
         fs.note_usage()
@@ -877,11 +878,9 @@ class NdtOmMap:
         cells[ok] = np.floor(pts[ok] / self.resolution)
         ok &= ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
         if ok.any():
-            c = np.ascontiguousarray(cells[ok].astype(np.int32))
-            lo = np.empty(len(c), np.float32)
-            self._k.query(self._slot, c, len(c), lo)
+            lo = self.logodds_at(cells[ok].astype(np.int64))
             with np.errstate(over="ignore"):  # exp of a large log-odds: p = 1
-                out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo.astype(np.float64)))
+                out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo))
             known[ok] = lo != 0.0
         return (out, known) if return_known else out
 

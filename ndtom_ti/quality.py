@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .cellkeys import group, isin_rows, pack, unpack
 from .config import MapConfig
 from .map import NdtOmMap
 from .metrics import batch_ndt
@@ -46,19 +47,6 @@ class LabelledScan:
     dyn_hi: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
-def cell_keys(index: np.ndarray) -> np.ndarray:
-    """One int64 per (N, 3) cell index (21 bits per axis, offset): for sets and joins."""
-    i = np.asarray(index, np.int64) + (1 << 20)
-    return (i[:, 0] << 42) | (i[:, 1] << 21) | i[:, 2]
-
-
-def isin_cells(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Which rows of cell array ``a`` are in ``b``."""
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros(len(a), bool)
-    return np.isin(cell_keys(a), cell_keys(b))
-
-
 @dataclass
 class GhostCandidates:
     cells: np.ndarray  # (K, 3) int64: free at the end, >= 3 moving-object points
@@ -75,21 +63,20 @@ def ghost_candidates(
     """Cells that moving objects left: >= 3 of their points over the run, and free at the
     end: grown by ``margin``, they touch no box present at the last scan (its moving
     boxes, and the static ones: ``static_boxes`` = (lo, hi), each (B, 3))."""
-    keys, last = [], []
+    cells, last = [], []
     for s, sc in enumerate(scans):
         c = np.floor(sc.points[sc.dynamic] / resolution).astype(np.int64)
-        keys.append(cell_keys(c))
+        cells.append(c)
         last.append(np.full(len(c), s))
-    if not keys or not sum(len(k) for k in keys):
+    if not cells or not sum(len(c) for c in cells):
         return GhostCandidates(np.zeros((0, 3), np.int64), np.zeros(0, np.int64))
-    k = np.concatenate(keys)
-    s = np.concatenate(last)
-    uniq, inv, counts = np.unique(k, return_inverse=True, return_counts=True)
+    keys, klo, kspan = pack(np.concatenate(cells))
+    uniq, _, _, inv = group(keys)
+    counts = np.bincount(inv, minlength=len(uniq))
     last_hit = np.zeros(len(uniq), np.int64)
-    np.maximum.at(last_hit, inv, s)
+    np.maximum.at(last_hit, inv, np.concatenate(last))
     keep = counts >= MIN_DYNAMIC_POINTS
-    uniq, last_hit = uniq[keep], last_hit[keep]
-    cells = np.column_stack([(uniq >> 42) & 0x1FFFFF, (uniq >> 21) & 0x1FFFFF, uniq & 0x1FFFFF]) - (1 << 20)
+    cells, last_hit = unpack(uniq[keep], klo, kspan), last_hit[keep]
     lo = cells * resolution - margin
     hi = (cells + 1) * resolution + margin
     end = scans[-1]
@@ -160,9 +147,8 @@ def score(
 
 def ndtom_occupied(m: NdtOmMap) -> Callable[[np.ndarray], np.ndarray]:
     """``occupied(cells)`` of an NDT-OM: an occupied Gaussian (N >= min_points, p > 0.5)."""
-    g = m.gaussians()
-    keys = cell_keys(g["index"])
-    return lambda cells: np.isin(cell_keys(cells), keys)
+    index = m.gaussians()["index"]
+    return lambda cells: isin_rows(cells, index)
 
 
 def octree_occupied(tree, resolution: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -183,5 +169,5 @@ def conflicting(rcu: NdtOmMap, ndtom: NdtOmMap) -> tuple[int, float]:
     number, and their share of NDT-OM's Gaussians."""
     a = rcu.gaussians(min_probability=0.0)["index"]
     b = ndtom.gaussians()["index"]
-    n = int((~isin_cells(a, b)).sum())
+    n = int((~isin_rows(a, b)).sum())
     return n, n / max(len(b), 1)
