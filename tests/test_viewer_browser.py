@@ -238,7 +238,8 @@ def test_controls_a_person_uses(small_page, room, viewers):
     # the height clip keeps the floor only: the walls go, far fewer pixels
     lo, _ = v._zlimits
     v.controls.zclip.value = (lo, 0.3)
-    clipped = _canvas(page, lambda c: c["drawn"] < 0.7 * back["drawn"])
+    # (the clip redraws the cloud: a frame between the old cloud and the new one may be blank)
+    clipped = _canvas(page, lambda c: 0 < c["drawn"] < 0.7 * back["drawn"])
     assert 0 < clipped["drawn"] < 0.7 * back["drawn"], (back, clipped)
     sync_api.expect(page.get_by_text(re.compile(r"Height clip: .* to 0\.30 m"))).to_be_visible()
 
