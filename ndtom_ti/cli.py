@@ -170,7 +170,7 @@ def _user_errors(*, recording: str | None = None, map_file: str | None = None) -
 
         signum = getattr(exc, "signum", signal.SIGINT)
         _fail(f"interrupted ({signal_name(signum)}); nothing was written", None, 128 + signum)
-    except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback for users
+    except Exception as exc:  # the last line of defence: no traceback for users
         if os.environ.get("NDTOM_DEBUG"):
             raise
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
@@ -416,7 +416,7 @@ def info(
 def default_output(bag: Path) -> Path:
     """The map path used without -o: the recording's name with .ndtom, in the current folder."""
     name = bag.expanduser().resolve().name if bag.name in ("", ".", "..") else bag.name
-    stem = name[: -len(".bag")] if name.endswith(".bag") else name
+    stem = name.removesuffix(".bag")
     return Path.cwd() / (stem + MAP_SUFFIX)
 
 
@@ -548,6 +548,7 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
         why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
         _fail(f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
               "check --start/--end/--every and the pose source (`ndtom info BAG`)")
+    assert wrote is not None  # scans were mapped, so the map was written (or _fail above)
     out.print(Text(f"Map written to {wrote} ({_mib(wrote.stat().st_size)})", style="green"), soft_wrap=True)
     return EXIT_OK
 
@@ -806,7 +807,7 @@ def sweep(
         out.mkdir(parents=True, exist_ok=True)
         _check_writable(out / "sweep.csv", "CSV file")
         used = _init(arch)
-        if synthetic:
+        if synthetic or bag is None:  # one of the two, checked above
             from . import demo as demo_scene
 
             data = [(s.points, s.T_world_sensor) for s in demo_scene.make_scans(scans, per_ring=1800)]

@@ -317,7 +317,7 @@ def _write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) -
     return path
 
 
-def _f(x: float) -> float | None:
+def _f(x: float | np.floating) -> float | None:
     """JSON-safe float (NaN -> None)."""
     x = float(x)
     return None if not math.isfinite(x) else x
@@ -827,7 +827,7 @@ def format_summary(s: dict) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m ndtom_ti.experiments SOURCE -r RES --out DIR [options]``: run
     :func:`run_experiments` and print :func:`format_summary`."""
-    ap = argparse.ArgumentParser(prog="ndtom experiments", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="ndtom experiments", description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("source", help="ROS1 bag, ROS2 bag folder, simworld .npz, or sim:dynamic / sim:static")
     ap.add_argument("-r", "--resolution", type=float, required=True, help="cell size (m)")
     ap.add_argument("--out", type=Path, required=True, help="output folder")

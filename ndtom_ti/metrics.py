@@ -27,11 +27,11 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
-    "cell_index",
     "batch_ndt",
-    "regularize_cov",
+    "cell_index",
     "l2_similarity",
     "mean_l2_score",
+    "regularize_cov",
 ]
 
 #: Isotropic variance floor (m^2) used by :func:`regularize_cov` for a covariance whose

@@ -8,9 +8,9 @@ import gc
 import math
 import platform
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -141,7 +141,7 @@ def run_sweep(
 def _octomap_row(scans: Sequence[Scan], res: float, full: SweepRow, max_range: float) -> SweepRow:
     import pyoctomap
 
-    tree = pyoctomap.OcTree(res)
+    tree = pyoctomap.OcTree(res)  # pyright: ignore[reportAttributeAccessIssue] (a compiled module)
     world = []
     for pts, T in scans:
         ok = np.isfinite(pts).all(axis=1)
