@@ -199,7 +199,8 @@ def read_snapshot(path: str | Path) -> MapSnapshot:
                 arrays[name] = arrays[name][order]
         settings = {"resolution": float(header["resolution"]), "occupancy_enabled": bool(header["occupancy"]),
                         "config": config, "layout": layout, "metadata": header.get("metadata") or {},
-                        "scans_inserted": header["scans_inserted"], "points_inserted": header["points_inserted"]}  # fmt: skip
+                        "scans_inserted": header["scans_inserted"],
+                        "points_inserted": header["points_inserted"]}  # fmt: skip
         return MapSnapshot._trusted(settings, arrays)
     except MapFileError:
         raise
