@@ -203,7 +203,7 @@ def test_every_export_from_a_snapshot_equals_the_maps(scene_file, tmp_path, fmt,
     b = s.export(tmp_path / f"snap{SUFFIX[fmt]}", fmt, min_probability=min_probability)
     assert (a.count, a.format, len(a.paths)) == (b.count, b.format, len(b.paths)) and a.count > 0
     assert a.summary.replace("map.", "snap.").replace("map.yaml", "snap.yaml") == b.summary
-    for pa, pb in zip(a.paths, b.paths):
+    for pa, pb in zip(a.paths, b.paths, strict=True):
         da, db = pa.read_bytes(), pb.read_bytes()
         if pa.suffix == ".yaml":  # names its image
             da = da.replace(b"map.pgm", b"snap.pgm")
