@@ -39,6 +39,17 @@ def dicts_equal(a: dict, b: dict) -> None:
         assert np.array_equal(a[k], b[k]), k
 
 
+def state_close(a: NdtOmMap, b: NdtOmMap) -> None:
+    """Equal cells, counts and log-odds; means and scatters to float tolerance (a scan's
+    scatter sums run in parallel: their last bits vary from run to run, even between two
+    maps loaded from one file)."""
+    sa, sb = a.state(), b.state()
+    for k in ("occ_index", "occ_logodds", "g_index", "g_n"):
+        assert np.array_equal(sa[k], sb[k]), k
+    for k in ("g_mean_rel", "g_scatter"):
+        np.testing.assert_allclose(sa[k], sb[k], rtol=1e-9, atol=1e-12, err_msg=k)
+
+
 def snapshot_equals_map(s: MapSnapshot, m: NdtOmMap) -> None:
     st = m.state()
     for name in ARRAYS:
@@ -66,7 +77,7 @@ def test_map_snapshot_file_map_round_trip(rng, tmp_path, occupancy):
     pts, T = scene_scans(rng, 1)[0]
     r1, r3 = m.insert_scan(pts, T), m3.insert_scan(pts, T)
     assert (r1.cells_hit, r1.cells_passed, r1.gaussians_erased) == (r3.cells_hit, r3.cells_passed, r3.gaussians_erased)
-    state_equal(m, m3)
+    state_close(m, m3)
     assert m3.scans_inserted == m.scans_inserted and m3.metadata == m.metadata
 
 
@@ -80,7 +91,7 @@ def test_ndt_miss_model_map_round_trips_and_continues(rng, tmp_path):
     assert m2.config == cfg
     m.insert_scan(*sc[2])
     m2.insert_scan(*sc[2])
-    state_equal(m, m2)
+    state_close(m, m2)
 
 
 def test_snapshot_is_frozen_and_does_not_follow_the_map(rng):
