@@ -7,6 +7,7 @@ from __future__ import annotations
 import gc
 import json
 import struct
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -363,6 +364,24 @@ def test_export_info_and_view_of_a_file_need_no_map_slot(scene_file, tmp_path, e
             v.live([], s)
     finally:
         v.close()
+
+
+def test_export_of_a_file_starts_no_taichi(scene_file, tmp_path):
+    """In a fresh process: `ndtom export` and a snapshot's queries and coarse levels run
+    without Taichi being initialised (no runtime, no map slot, no compile)."""
+    script = (
+        "import sys\n"
+        "from typer.testing import CliRunner\n"
+        "from ndtom_ti import runtime\n"
+        "from ndtom_ti.cli import app\n"
+        "from ndtom_ti.snapshot import MapSnapshot\n"
+        "r = CliRunner().invoke(app, ['export', sys.argv[1], '-o', sys.argv[2]])\n"
+        "s = MapSnapshot.load(sys.argv[1]).coarsen(2)\n"
+        "print('RESULT', r.exit_code, runtime.current_arch(), len(s.gaussians()['n']) > 0)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script, str(scene_file), str(tmp_path / "x.ply")],
+                         capture_output=True, text=True, timeout=300, check=False)  # fmt: skip
+    assert "RESULT 0 None True" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
 
 
 if __name__ == "__main__":  # pragma: no cover
