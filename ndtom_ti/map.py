@@ -1003,10 +1003,14 @@ class NdtOmMap:
 
         m = cls(s.resolution, occupancy=s.occupancy_enabled, config=s.config, layout=s.layout,
                 metadata=copy.deepcopy(s.metadata))  # the map's metadata changes; the snapshot's must not
-        with m._lock:
-            m._load_state(s.state())
-            m.scans_inserted = s.scans_inserted
-            m.points_inserted = s.points_inserted
+        try:
+            with m._lock:
+                m._load_state(s.state())
+                m.scans_inserted = s.scans_inserted
+                m.points_inserted = s.points_inserted
+        except BaseException:
+            m.close()  # the slot back at once: the map was never handed out
+            raise
         return m
 
     @_locked

@@ -80,7 +80,8 @@ class MapSnapshot:
       sample covariance is ``scatter / (N - 1)``.
 
     :meth:`gaussians`, :meth:`known_cells` and ``len()`` answer as the map's do. Arrays
-    given to the constructor are copied (unless already read-only) and checked for shape.
+    given to the constructor are copied, checked for shape and sorted (unless already
+    read-only: then they are taken as they are); a cell listed twice is a ValueError.
     """
 
     resolution: float
@@ -114,12 +115,14 @@ class MapSnapshot:
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
                 raise ValueError(f"{key} must be an integer >= 0, got {v!r}")
             object.__setattr__(self, key, int(v))
+        copied = set()
         for name, (dtype, cols) in ARRAYS.items():
             a = getattr(self, name)
             if not (isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
                     and not a.flags.writeable):  # fmt: skip
                 a = np.array(a, dtype=dtype, order="C")  # a copy: the caller's array stays theirs
                 a.flags.writeable = False
+                copied.add(name)
             if a.ndim != 1 + len(cols) or a.shape[1:] != cols:
                 want = "(rows" + "".join(f", {c}" for c in cols) + ")"
                 raise ValueError(f"{name} must have shape {want}, got {a.shape}")
@@ -129,6 +132,20 @@ class MapSnapshot:
                 if len(getattr(self, name)) != len(getattr(self, first)):
                     raise ValueError(f"{name} has {len(getattr(self, name))} rows but {first} has "
                                      f"{len(getattr(self, first))}")  # fmt: skip
+            if first in copied:  # arrays from outside: sorted here (read-only ones are the caller's word)
+                self._sort_rows(first, (first, *others))
+
+    def _sort_rows(self, first: str, names: tuple[str, ...]) -> None:
+        keys = pack(getattr(self, first))[0]
+        if len(keys) < 2 or (np.diff(keys) > 0).all():
+            return
+        order = np.argsort(keys, kind="stable")
+        if (np.diff(keys[order]) == 0).any():
+            raise ValueError(f"{first} lists a cell twice")
+        for name in names:
+            a = getattr(self, name)[order]
+            a.flags.writeable = False
+            object.__setattr__(self, name, a)
 
     # ------------------------------------------------------------------ making one
 

@@ -18,7 +18,7 @@ from test_map_api import _corrupt, scene_map, scene_scans, state_equal
 from test_memory import big_state
 from typer.testing import CliRunner
 
-from ndtom_ti import MapConfig, MapFileError, NdtOmMap, NoFreeSlotError, runtime
+from ndtom_ti import Layout, MapConfig, MapFileError, NdtOmMap, NoFreeSlotError, runtime
 from ndtom_ti.cli import app
 from ndtom_ti.export import FORMATS, export_file, grid_paths
 from ndtom_ti.snapshot import ARRAYS, MapSnapshot
@@ -119,17 +119,30 @@ def test_constructor_copies_and_checks_its_arrays():
     arrays = {"occ_index": np.array([[0, 0, 5], [2, 1, 0]]), "occ_logodds": np.array([-0.5, 1.0]),
               "g_index": g_index, "g_n": np.array([3, 1]), "g_mean_rel": np.zeros((2, 3)),
               "g_scatter": np.zeros((2, 6))}  # fmt: skip
-    settings = {"resolution": 0.5, "occupancy_enabled": True, "config": MapConfig(), "layout": NdtOmMap(0.5).layout,
+    settings = {"resolution": 0.5, "occupancy_enabled": True, "config": MapConfig(), "layout": Layout(),
                 "metadata": {}, "scans_inserted": 1, "points_inserted": 4}  # fmt: skip
     s = MapSnapshot(**settings, **arrays)
     assert s.g_index.dtype == np.int32 and s.occ_logodds.dtype == np.float32
     g_index[0, 0] = 7  # the caller's array is not the snapshot's
-    assert s.g_index[0, 0] == 2 and g_index.flags.writeable
+    assert g_index.flags.writeable
+    # rows sorted by cell, each group's arrays together
+    assert s.occ_index.tolist() == [[0, 0, 5], [2, 1, 0]] and s.g_index.tolist() == [[0, 0, 5], [2, 1, 0]]
+    assert s.g_n.tolist() == [1, 3] and s.logodds_at(np.array([[2, 1, 0], [0, 0, 5], [9, 9, 9]])).tolist() == [
+        1.0, -0.5, 0.0]
+    with NdtOmMap.from_snapshot(s) as m:
+        dicts_equal(m.gaussians(min_points=1, min_probability=0), s.gaussians(min_points=1, min_probability=0))
+        dicts_equal(m.known_cells(), s.known_cells())
     for bad, message in [({"g_n": np.array([3])}, "g_n has 1 rows"), ({"g_scatter": np.zeros((2, 3))}, "shape"),
                          ({"resolution": 0.0}, "resolution"), ({"scans_inserted": -1}, "scans_inserted"),
-                         ({"config": {}}, "MapConfig")]:  # fmt: skip
+                         ({"config": {}}, "MapConfig"), ({"occ_index": [[0, 0, 5], [0, 0, 5]]}, "twice")]:  # fmt: skip
         with pytest.raises((ValueError, TypeError), match=message):
             MapSnapshot(**{**settings, **arrays, **bad})
+    # a snapshot with cells beyond the grid: no map of it, and no slot kept by the attempt
+    far = MapSnapshot(**{**settings, **arrays, "occ_index": [[0, 0, 5], [10**7, 0, 0]]})
+    free = len(runtime.storage(far.layout).free_slots)
+    with pytest.raises(ValueError, match="outside"):
+        NdtOmMap.from_snapshot(far)
+    assert len(runtime.storage(far.layout).free_slots) == free
 
 
 # --------------------------------------------------------------------------- queries
