@@ -18,6 +18,7 @@ from .runtime import MapMemoryError as MapMemoryError
 from .runtime import NoFreeSlotError as NoFreeSlotError
 from .runtime import current_arch as current_arch
 from .runtime import init as init
+from .snapshot import MapSnapshot as MapSnapshot
 
 __version__ = "0.1.0"
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "MapConfig",
     "MapFileError",
     "MapMemoryError",
+    "MapSnapshot",
     "NdtOmMap",
     "NoFreeSlotError",
     "ScanReport",

@@ -949,7 +949,8 @@ def export(
         "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.", show_default=False)] = None,
     z_max: Annotated[float | None, typer.Option(
         help="grid: top of the height band (m, map frame), with --z-min.", show_default=False)] = None,
-    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    arch: Annotated[Arch, typer.Option(help="Unused: export runs without Taichi (kept for older scripts).",
+                                       hidden=True)] = Arch.auto,
 ) -> None:
     """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
     or a 2-D occupancy grid of a height band (grid: PGM + YAML as ROS map_server reads)."""
@@ -980,14 +981,11 @@ def export(
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
             if t.resolve() == map_file.resolve():
                 _fail(f"the output {t} is the map file itself", "choose another path with -o")
-        _init(arch)
-        from .map import NdtOmMap
+        from .snapshot import MapSnapshot
 
-        m = NdtOmMap.load(map_file)
-        try:
-            done = export_file(m, out_path, fmt_name, min_probability=min_probability, z_min=z_min, z_max=z_max)
-        finally:
-            del m
+        # a snapshot: numpy only, no map slot and no Taichi (--arch has nothing to choose)
+        done = export_file(MapSnapshot.load(map_file), out_path, fmt_name, min_probability=min_probability,
+                           z_min=z_min, z_max=z_max)  # fmt: skip
         size = sum(p.stat().st_size for p in done.paths)
         size_text = _mib(size) if size >= 2**20 else f"{size / 1024:.1f} KiB"
         _out().print(Text(f"Exported {done.summary} ({fmt_name}, {size_text})", style="green"), soft_wrap=True)

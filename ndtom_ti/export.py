@@ -4,7 +4,9 @@ a 2-D occupancy grid of a height band (PGM + YAML, as ROS map_server reads).
 Every writer writes atomically (a temporary file in the target folder, renamed over the
 target), so a failed export never leaves a half-written file. The Gaussian writers take
 the dict of :meth:`NdtOmMap.gaussians` (``index``, ``mean``, ``cov``, ``n``, ``p_occ``,
-``logodds``).
+``logodds``). :func:`export_file` takes a map or a :class:`~ndtom_ti.snapshot.MapSnapshot`
+(the same files: a snapshot answers ``gaussians()`` and ``known_cells()`` as its map does,
+without a map slot or Taichi).
 
 - PLY: binary little endian; one vertex per Gaussian at its mean, properties
   ``x y z`` (float32), ``red green blue`` (uchar: the height ramp below), ``p_occ``
@@ -462,9 +464,9 @@ class Exported:
 
 def export_file(m: Any, path: str | Path, fmt: str | None = None, *, min_probability: float = 0.5,
                 min_points: int | None = None, z_min: float | None = None, z_max: float | None = None) -> Exported:
-    """Export map ``m`` to ``path`` as ``fmt`` (default: from the suffix; see
-    :func:`format_for`). Gaussian formats hold the Gaussians with ``p_occ >
-    min_probability`` (0: every Gaussian, occupied or not); ``bt`` and ``grid`` hold cells
+    """Export map ``m`` (an NdtOmMap or a MapSnapshot) to ``path`` as ``fmt`` (default:
+    from the suffix; see :func:`format_for`). Gaussian formats hold the Gaussians with
+    ``p_occ > min_probability`` (0: every Gaussian, occupied or not); ``bt`` and ``grid`` hold cells
     (module doc); ``grid`` takes the height band ``z_min``, ``z_max`` (metres)."""
     fmt = format_for(path, fmt)
     if not 0.0 <= float(min_probability) < 1.0:

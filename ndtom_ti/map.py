@@ -34,6 +34,7 @@ from .kernels.ndt import (
     total,
 )
 from .runtime import MapMemoryError
+from .snapshot import MapSnapshot
 from .warmup import warm_up
 
 _TOUCHED_START = 1 << 20
@@ -986,6 +987,30 @@ class NdtOmMap:
         from .mapfile import load_map
 
         return load_map(path)
+
+    @_locked
+    def snapshot(self) -> MapSnapshot:
+        """The map's content now as plain numpy arrays (:class:`~ndtom_ti.snapshot.MapSnapshot`):
+        save, export, coarsen and view it without a map slot."""
+        return MapSnapshot.of(self)
+
+    @classmethod
+    def from_snapshot(cls, s: MapSnapshot) -> NdtOmMap:
+        """A new map holding snapshot ``s`` (its settings, cells and counters), to map on.
+        Takes a map slot, as any new map does."""
+        import copy
+
+        m = cls(s.resolution, occupancy=s.occupancy_enabled, config=s.config, layout=s.layout,
+                metadata=copy.deepcopy(s.metadata))  # the map's metadata changes; the snapshot's must not
+        try:
+            with m._lock:
+                m._load_state(s.state())
+                m.scans_inserted = s.scans_inserted
+                m.points_inserted = s.points_inserted
+        except BaseException:
+            m.close()  # the slot back at once: the map was never handed out
+            raise
+        return m
 
     @_locked
     def coarsen(self, factor: int) -> NdtOmMap:

@@ -28,6 +28,7 @@ from .config import MapConfig
 
 if TYPE_CHECKING:
     from .map import NdtOmMap
+    from .snapshot import MapSnapshot
 
 MAGIC = b"NDTOMTI\n"
 VERSION = 1
@@ -41,6 +42,8 @@ _ARRAYS = {
 }
 # Trailing dimensions of each array (the first is its row count).
 _COLUMNS = {"occ_index": (3,), "occ_logodds": (), "g_index": (3,), "g_n": (), "g_mean_rel": (3,), "g_scatter": (6,)}
+# Arrays describing the same cells, by the array of their cell indices.
+_ROWS = {"occ_index": ("occ_index", "occ_logodds"), "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter")}
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
 
@@ -50,9 +53,15 @@ class MapFileError(ValueError):
 
 
 def save_map(m: NdtOmMap, path: str | Path) -> Path:
+    """Write map ``m`` to ``path`` (its snapshot, taken under the map's lock)."""
     path = check_target(path)  # before the work: a FIFO, device or folder is refused
-    with m._lock:  # one consistent snapshot; the file is written after the lock is released
-        hbytes, blobs = _snapshot(m)
+    return save_snapshot(m.snapshot(), path)
+
+
+def save_snapshot(s: MapSnapshot, path: str | Path) -> Path:
+    """Write snapshot ``s`` to ``path``, atomically."""
+    path = check_target(path)
+    hbytes, blobs = _encode(s)
 
     def write(fh) -> None:
         fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
@@ -64,13 +73,12 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
     return path
 
 
-def _snapshot(m: NdtOmMap) -> tuple[bytes, list]:
+def _encode(s: MapSnapshot) -> tuple[bytes, list]:
     """The header bytes and the arrays of a map file."""
-    st = m.state()
     table, offset = [], 0
     blobs = []
     for name, (dtype, _) in _ARRAYS.items():
-        a = np.ascontiguousarray(st[name], dtype=dtype)
+        a = np.ascontiguousarray(getattr(s, name), dtype=dtype)
         table.append({"name": name, "dtype": dtype, "shape": list(a.shape), "offset": offset, "nbytes": a.nbytes})
         blobs.append(a)
         offset += a.nbytes
@@ -80,13 +88,13 @@ def _snapshot(m: NdtOmMap) -> tuple[bytes, list]:
     header = {
         "format": "ndtom_ti map",
         "version": VERSION,
-        "resolution": m.resolution,
-        "occupancy": m.occupancy_enabled,
-        "config": m.config.to_dict(),
-        "layout": {"l1": list(m.layout.l1), "l2": m.layout.l2, "leaf": m.layout.leaf},
-        "scans_inserted": m.scans_inserted,
-        "points_inserted": m.points_inserted,
-        "metadata": m.metadata,
+        "resolution": s.resolution,
+        "occupancy": s.occupancy_enabled,
+        "config": s.config.to_dict(),
+        "layout": {"l1": list(s.layout.l1), "l2": s.layout.l2, "leaf": s.layout.leaf},
+        "scans_inserted": s.scans_inserted,
+        "points_inserted": s.points_inserted,
+        "metadata": s.metadata,
         "arrays": table,
         "payload_bytes": offset,
         "payload_sha256": sha.hexdigest(),
@@ -172,9 +180,11 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
     return header, arrays
 
 
-def load_map(path: str | Path) -> NdtOmMap:
+def read_snapshot(path: str | Path) -> MapSnapshot:
+    """The map file at ``path`` as a :class:`MapSnapshot` (no Taichi, no map slot); every
+    fault of the file is a MapFileError."""
     from .kernels.layout import Layout
-    from .map import NdtOmMap
+    from .snapshot import MapSnapshot
 
     path = Path(path)
     header, arrays = _read(path)
@@ -183,23 +193,29 @@ def load_map(path: str | Path) -> NdtOmMap:
         lay = header["layout"]
         layout = Layout(l1=tuple(lay["l1"]), l2=int(lay["l2"]), leaf=int(lay["leaf"]))
         layout.validate()
-        _check_values(path, arrays, layout, config, header["resolution"])
-        m = NdtOmMap(
-            float(header["resolution"]),
-            occupancy=bool(header["occupancy"]),
-            config=config,
-            layout=layout,
-            metadata=header.get("metadata") or {},
-        )
+        # files need not list cells sorted; snapshots do
+        for first, order in _check_values(path, arrays, layout, config, header["resolution"]).items():
+            for name in _ROWS[first]:
+                arrays[name] = arrays[name][order]
+        settings = {"resolution": float(header["resolution"]), "occupancy_enabled": bool(header["occupancy"]),
+                        "config": config, "layout": layout, "metadata": header.get("metadata") or {},
+                        "scans_inserted": header["scans_inserted"],
+                        "points_inserted": header["points_inserted"]}  # fmt: skip
+        return MapSnapshot._trusted(settings, arrays)
     except MapFileError:
         raise
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"{path} has invalid settings: {exc}") from None
-    with m._lock:
-        m._load_state(arrays)
-        m.scans_inserted = header["scans_inserted"]
-        m.points_inserted = header["points_inserted"]
-    return m
+
+
+def load_map(path: str | Path) -> NdtOmMap:
+    from .map import NdtOmMap
+
+    s = read_snapshot(path)
+    try:
+        return NdtOmMap.from_snapshot(s)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MapFileError(f"{path} has invalid settings: {exc}") from None
 
 
 def _open_regular(path: Path):
@@ -289,11 +305,12 @@ def _check_header(path: Path, header: dict) -> None:
                 bad(f"array {name!r} has {rows[name]} rows but {first!r} has {rows[first]}")
 
 
-def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolution: float) -> None:
+def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolution: float) -> dict:
     """Cell values a map can hold, before any kernel sees them: cells inside the grid and
     each listed once, log-odds finite and inside the clamps, Gaussians of at least one
     point whose mean lies in its cell and whose scatter is finite and positive
-    semi-definite. Any fault: MapFileError."""
+    semi-definite. Any fault: MapFileError. Returns, for "occ_index" and "g_index" when
+    their cells are not listed in order (i, j, k), the permutation that sorts them."""
 
     def bad(what: str) -> NoReturn:
         raise MapFileError(f"{path} is corrupt: {what}")
@@ -301,6 +318,7 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
     if not math.isfinite(resolution * 2.0 * max(layout.cells)):
         bad(f"resolution {resolution} m makes the grid's extent overflow")
     lo, hi = np.array(layout.lo, np.int64), np.array(layout.hi, np.int64)
+    unsorted = {}
     for name in ("occ_index", "g_index"):
         idx = arrays[name].astype(np.int64)
         if len(idx) == 0:
@@ -309,15 +327,17 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
             bad(f"{name} holds cells outside the grid of {layout.cells} cells")
         n = (hi - lo).tolist()
         key = ((idx[:, 0] - lo[0]) * n[1] + (idx[:, 1] - lo[1])) * n[2] + (idx[:, 2] - lo[2])
-        if not (np.diff(key) > 0).all() and len(np.unique(key)) != len(key):  # written sorted: cheap check first
-            bad(f"{name} lists a cell twice")
+        if not (np.diff(key) > 0).all():  # written sorted: cheap check first
+            if len(np.unique(key)) != len(key):
+                bad(f"{name} lists a cell twice")
+            unsorted[name] = np.argsort(key)
     lod = arrays["occ_logodds"]
     if len(lod) and not (np.isfinite(lod).all() and (lod >= np.float32(config.logodds_min)).all()
                          and (lod <= np.float32(config.logodds_max)).all()):  # fmt: skip
         bad(f"occ_logodds holds values that are not finite or outside [{config.logodds_min}, {config.logodds_max}]")
     gn, mean, s = arrays["g_n"], arrays["g_mean_rel"], arrays["g_scatter"]
     if len(gn) == 0:
-        return
+        return unsorted
     if (gn < 1).any():
         bad("g_n holds Gaussians of fewer than one point")
     half = 0.5 * resolution * (1.0 + 1e-6)
@@ -336,3 +356,4 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
         ok &= det >= -1e-6 * scale**3
     if not ok.all():
         bad("g_scatter holds a scatter matrix that is not positive semi-definite or exceeds its cell")
+    return unsorted

@@ -469,19 +469,25 @@ def test_live_mapping_in_a_fresh_process():
     assert "RESULT 3 None" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
 
 
-def test_no_free_map_slot_is_said_on_screen(maps, make_viewer):
-    m, _ = maps
-    v = make_viewer(m)
+def test_coarser_levels_need_no_map_slot(maps, make_viewer):
+    """Levels are snapshots coarsened in numpy: with every map slot taken they are still
+    made, and equal the map's own coarsen()."""
+    m, r = maps
+    v = make_viewer(m, compare=r)
     hog = []
     with pytest.raises(NoFreeSlotError, match="maps are open already"):
         while True:
             hog.append(NdtOmMap(RES))
     v.controls.resolution.value = v.controls.resolution.options[1]
-    assert v.level == 1 and v.drawn["gaussians"] == len(m)
-    assert "could not be made" in v.controls.stats.content
-    hog.clear()
-    v.refresh()  # slots free again: the level is made
-    assert v.level == 2
+    assert v.level == 2 and "could not be made" not in v.controls.stats.content
+    v.controls.layers["conflicts"].value = True
+    v.refresh()
+    assert "could not be made" not in v.controls.stats.content
+    hog.pop().close()  # a slot for the reference
+    with m.coarsen(2) as c2:
+        assert v.drawn["gaussians"] == len(c2.gaussians(min_probability=float(v.controls.threshold.value))["n"])
+    for h in hog:
+        h.close()
 
 
 # ---------------------------------------------------------------------------- what a static map offers

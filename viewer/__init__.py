@@ -5,8 +5,8 @@ Importing this package does not need viser; making a viewer does::
     import ndtom_ti
     from ndtom_ti.viewer import show
 
-    m = ndtom_ti.NdtOmMap.load("site.ndtom")
-    viewer = show(m)            # prints the URL (loopback, a free port); viewer.server is viser's
+    s = ndtom_ti.MapSnapshot.load("site.ndtom")   # a map file: no map slot (or show(m) of a map)
+    viewer = show(s)            # prints the URL (loopback, a free port); viewer.server is viser's
     viewer.wait()               # until Ctrl-C (in a notebook: leave it running)
 
 Live mapping (a worker thread inserts scans; the viewer redraws, throttled)::

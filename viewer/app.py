@@ -5,9 +5,13 @@ mesh) or as Gaussian splats; occupied cells and, on demand, free cells (square p
 capped); the "conflicting cells" of a comparison map built without occupancy updates
 (Recursive NDT, paper Fig. 4b); the sensor trajectory and the latest scan (live mapping).
 
+A map may be an :class:`~ndtom_ti.NdtOmMap` (live mapping) or a
+:class:`~ndtom_ti.snapshot.MapSnapshot` (a map file: ``ndtom view``). Coarser levels are
+snapshots coarsened in numpy, so the viewer takes no map slot of its own.
+
 Threads: viser runs GUI callbacks in its own thread pool, live mapping inserts scans in
 a worker thread. ``map_lock`` guards every read and write of the maps (Taichi calls are
-serialised by it; coarsened maps are made and dropped under it). Layers are rebuilt
+serialised by it; coarsened levels are made and dropped under it). Layers are rebuilt
 from numpy snapshots outside that lock, one rebuild at a time, and swapped in one
 ``server.atomic()`` step.
 
@@ -33,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ndtom_ti.runtime import NoFreeSlotError
+from ndtom_ti.snapshot import MapSnapshot
 
 from . import geometry as geo
 from ._deps import require_viser
@@ -93,14 +97,15 @@ def check_listen(host: str, port: int) -> bool:
     return port == 0 or all(try_bind(fam, addr, port) is None for fam, addr in usable)
 
 
-def warm_up(m: NdtOmMap | None) -> None:
+def warm_up(m: NdtOmMap | MapSnapshot | None) -> None:
     """Launch one (tiny) kernel of ``m`` on the calling thread.
 
     Taichi builds its default field tree at the first kernel launch of a process, and
     only the thread that initialised Taichi may do that ("Assertion failure:
     std::this_thread::get_id() == main_thread_id_"). Viewer callbacks and live mapping
-    run kernels in other threads, so the viewer launches one here first."""
-    if m is not None:
+    run kernels in other threads, so the viewer launches one here first. A snapshot runs
+    no kernel."""
+    if m is not None and not isinstance(m, MapSnapshot):
         m.occupancy(np.zeros((1, 3)))
 
 
@@ -139,7 +144,7 @@ class Controls:
 
 
 class MapViewer:
-    """Show an :class:`~ndtom_ti.NdtOmMap` in the browser.
+    """Show an :class:`~ndtom_ti.NdtOmMap` (or a :class:`~ndtom_ti.snapshot.MapSnapshot`) in the browser.
 
     ``compare``: a map of the same scans built with ``occupancy=False`` (Recursive NDT);
     enables the "Conflicting cells" layer. ``host`` defaults to loopback; ``port=0``
@@ -154,7 +159,7 @@ class MapViewer:
 
     Level of detail: "auto" draws up to ``max_ellipsoids`` Gaussians as ellipsoids, up to
     ``max_splats`` as splats; past the cap of the geometry in use the viewer draws the
-    first coarser level (2x .. 8x, made with ``coarsen``) that fits, and what still
+    first coarser level (2x .. 8x, coarsened from a snapshot of the map) that fits, and what still
     exceeds it is subsampled evenly. Free and occupied cells are capped at
     ``max_free_cells`` / ``max_occupied_cells``. Every cap that applies is stated at the
     top of the panel. The defaults keep the page responsive with software WebGL (a
@@ -172,9 +177,9 @@ class MapViewer:
 
     def __init__(
         self,
-        m: NdtOmMap | None = None,
+        m: NdtOmMap | MapSnapshot | None = None,
         *,
-        compare: NdtOmMap | None = None,
+        compare: NdtOmMap | MapSnapshot | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
         label: str = "NDT-OM map",
@@ -221,7 +226,7 @@ class MapViewer:
         self._pending_lock = threading.Lock()
         self._refreshing = False
         self._pending = False
-        self._maps: dict[str, NdtOmMap | None] = {"ndtom": m, "rndt": compare}
+        self._maps: dict[str, NdtOmMap | MapSnapshot | None] = {"ndtom": m, "rndt": compare}
         self._cache: OrderedDict = OrderedDict()  # (kind, factor) -> (version, map)
         self._handles: dict[str, Any] = {}
         self._trajectory = np.zeros((0, 3), np.float64)
@@ -299,17 +304,17 @@ class MapViewer:
     # ------------------------------------------------------------------ public API
 
     @property
-    def map(self) -> NdtOmMap | None:
+    def map(self) -> NdtOmMap | MapSnapshot | None:
         return self._maps["ndtom"]
 
     @property
-    def compare(self) -> NdtOmMap | None:
+    def compare(self) -> NdtOmMap | MapSnapshot | None:
         return self._maps["rndt"]
 
     def get_port(self) -> int:
         return self.port
 
-    def set_maps(self, m: NdtOmMap | None, compare: NdtOmMap | None = None) -> None:
+    def set_maps(self, m: NdtOmMap | MapSnapshot | None, compare: NdtOmMap | MapSnapshot | None = None) -> None:
         """Show other maps (the coarsened levels are dropped)."""
         with self.map_lock:
             warm_up(m)
@@ -594,10 +599,10 @@ class MapViewer:
 
     # ------------------------------------------------------------------ data (under map_lock)
 
-    def _version(self, m: NdtOmMap) -> tuple[int, int]:
+    def _version(self, m: NdtOmMap | MapSnapshot) -> tuple[int, int]:
         return (m.scans_inserted, m.points_inserted)
 
-    def _map_at(self, kind: str, factor: int) -> NdtOmMap:
+    def _map_at(self, kind: str, factor: int) -> NdtOmMap | MapSnapshot:
         """The map ``kind`` at ``factor`` x its resolution (cached; call under map_lock)."""
         base = self._maps[kind]
         if base is None:
@@ -612,11 +617,7 @@ class MapViewer:
         del entry  # a stale level is dropped before its replacement is made
         while self._cache and len(self._cache) >= max(self.cache_size, 1):
             self._cache.popitem(last=False)
-        try:
-            cm = base.coarsen(factor)
-        except NoFreeSlotError:  # all map slots taken: drop every cached level, try once more
-            self._cache.clear()
-            cm = base.coarsen(factor)
+        cm = _coarser(base, factor)
         if self.cache_size:
             self._cache[key] = (self._version(base), cm)
         return cm
@@ -634,7 +635,7 @@ class MapViewer:
                 return out
             try:
                 m = self._map_at("ndtom", sel)
-            except (NoFreeSlotError, MemoryError) as exc:  # no free map slot, or past the memory budget
+            except MemoryError as exc:
                 out["notes"].append(f"the {sel}x level could not be made ({exc}); showing the native level")
                 m, sel = base, 1
             g = m.gaussians(min_probability=thr)
@@ -653,7 +654,7 @@ class MapViewer:
                         break
                 choice = choice or _LOD_FACTORS[-1]
                 try:
-                    cm = self._map_at("ndtom", sel * choice) if sel * choice in FACTORS else base.coarsen(sel * choice)
+                    cm = self._map_at("ndtom", sel * choice) if sel * choice in FACTORS else _coarser(base, sel * choice)
                     m, factor = cm, sel * choice
                     del cm
                     g = m.gaussians(min_probability=thr)
@@ -661,7 +662,7 @@ class MapViewer:
                         f"{_fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {_fmt(cap)}: "
                         f"showing the {choice}x coarser level ({m.resolution:g} m)"
                     )
-                except (NoFreeSlotError, MemoryError) as exc:
+                except MemoryError as exc:
                     out["notes"].append(f"a coarser level could not be made ({exc})")
             out.update(factor=factor, resolution=m.resolution, g=g, native_resolution=base.resolution)
             out["stats"] = {
@@ -692,8 +693,8 @@ class MapViewer:
                 out["compare_stats"] = {"gaussians": None}
                 if want["conflicts"]:
                     try:
-                        cm = self._map_at("rndt", factor) if factor in FACTORS else cmp_base.coarsen(factor)
-                    except (NoFreeSlotError, MemoryError) as exc:
+                        cm = self._map_at("rndt", factor) if factor in FACTORS else _coarser(cmp_base, factor)
+                    except MemoryError as exc:
                         cm = None
                         out["notes"].append(f"conflicting cells: the comparison map's level could not be made ({exc})")
                     if cm is not None:
@@ -1009,10 +1010,15 @@ class MapViewer:
         return "  \n".join(lines)
 
 
+def _coarser(m: NdtOmMap | MapSnapshot, factor: int) -> MapSnapshot:
+    """``m`` at ``factor`` x its resolution, coarsened in numpy (no map slot)."""
+    return (m if isinstance(m, MapSnapshot) else m.snapshot()).coarsen(factor)
+
+
 def show(
-    m: NdtOmMap,
+    m: NdtOmMap | MapSnapshot,
     *,
-    compare: NdtOmMap | None = None,
+    compare: NdtOmMap | MapSnapshot | None = None,
     host: str = "127.0.0.1",
     port: int = 0,
     block: bool = False,

@@ -41,8 +41,10 @@ def _block(viewer: Any) -> None:
 
 
 def _load(path: Path, what: str = "map") -> Any:
-    """The map at ``path``, or None after printing why it cannot be read."""
-    from ndtom_ti import MapFileError, NdtOmMap
+    """The map at ``path`` as a snapshot (numpy: no map slot), or None after printing why
+    it cannot be read."""
+    from ndtom_ti import MapFileError
+    from ndtom_ti.snapshot import MapSnapshot
 
     path = Path(path)
     if not path.exists():
@@ -52,7 +54,7 @@ def _load(path: Path, what: str = "map") -> Any:
         _error(f"{what} file {path} is a folder, not a map file", "give a map file written by `ndtom map`")
         return None
     try:
-        return NdtOmMap.load(path)
+        return MapSnapshot.load(path)
     except MapFileError as exc:
         _error(f"cannot read {what} file {path}: {exc}", "give a map file written by `ndtom map` or `ndtom demo`")
     except OSError as exc:

@@ -76,12 +76,14 @@ class LiveMapper:
         sleep: Callable[[float], bool] | None = None,
     ):
         from ndtom_ti import NdtOmMap
+        from ndtom_ti.snapshot import MapSnapshot
 
         if speed is not None and not (speed > 0):
             raise ValueError(f"speed must be positive (1: the recording's own rate), got {speed}")
 
-        if m is None:
-            raise ValueError("live mapping needs a map: pass m=NdtOmMap(resolution)")
+        if m is None or isinstance(m, MapSnapshot):
+            raise ValueError("live mapping needs a map to insert into: pass m=NdtOmMap(resolution) (a snapshot "
+                             "of a map file is read-only: NdtOmMap.from_snapshot(s) makes a map of it)")
         if compare is True:
             with viewer.map_lock:
                 compare = NdtOmMap(m.resolution, occupancy=False, config=m.config, layout=m.layout,

@@ -1,0 +1,306 @@
+"""MapSnapshot: a map's whole content as plain numpy arrays, without Taichi.
+
+A map (:class:`~ndtom_ti.NdtOmMap`) lives in a slot of the process's Taichi storage, and
+a process has few slots. A snapshot holds the same content in numpy, so reading a map
+file, saving, exporting, coarsening and drawing it take no slot and start no Taichi:
+
+    s = MapSnapshot.load("site.ndtom")      # or m.snapshot() of a map in memory
+    s.export("site.ply")                    # every format of ndtom_ti.export
+    s.coarsen(2).save("site_2x.ndtom")      # the same cells as m.coarsen(2)
+    m = NdtOmMap.from_snapshot(s)           # a map again (takes a slot), to map on
+
+A snapshot never changes: its arrays are read-only, and one taken of a map does not
+follow the map's later updates.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import numbers
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .cellkeys import pack
+from .config import MapConfig
+from .kernels.layout import Layout
+
+if TYPE_CHECKING:
+    from .export import Exported
+    from .map import NdtOmMap
+
+__all__ = ["ARRAYS", "MapSnapshot"]
+
+# name -> (dtype, trailing shape): the cell arrays of a snapshot, as the map file stores them
+ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "occ_index": ("<i4", (3,)),
+    "occ_logodds": ("<f4", ()),
+    "g_index": ("<i4", (3,)),
+    "g_n": ("<i4", ()),
+    "g_mean_rel": ("<f8", (3,)),
+    "g_scatter": ("<f8", (6,)),
+}
+_COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _copy(metadata: dict) -> dict:
+    """A copy the map's later changes do not reach (one level deep for values that
+    cannot be copied deeply: saving refuses those anyway)."""
+    try:
+        return copy.deepcopy(metadata)
+    except (TypeError, copy.Error):
+        return dict(metadata)
+
+
+@dataclass(frozen=True, eq=False)
+class MapSnapshot:
+    """A map's content: settings, counters, known cells and Gaussians.
+
+    Settings: ``resolution`` (cell size, metres; cell ``(i, j, k)`` spans
+    ``[i r, (i + 1) r)`` per axis), ``occupancy_enabled`` (NDT-OM with ray tracing, or
+    Recursive NDT), ``config`` (:class:`MapConfig`), ``layout`` (the grid the cells lie
+    in), ``metadata`` (the dict saved with the map), ``scans_inserted`` and
+    ``points_inserted``.
+
+    Cell arrays (read-only, rows sorted by cell index ``(i, j, k)`` lexicographically):
+
+    - ``occ_index`` (K, 3) int32: every known cell (log-odds not zero);
+    - ``occ_logodds`` (K,) float32: its log-odds, within the config's clamps (> 0
+      occupied, < 0 free);
+    - ``g_index`` (G, 3) int32: every cell holding a Gaussian (at least one point); its
+      log-odds is its row in ``occ_index``, or 0 when it has none;
+    - ``g_n`` (G,) int32: the Gaussian's number of points N;
+    - ``g_mean_rel`` (G, 3) float64: its mean minus the cell's centre (metres);
+    - ``g_scatter`` (G, 6) float64: its scatter matrix, the sum of
+      ``(x - mean)(x - mean)^T`` over its points, as ``xx xy xz yy yz zz`` (m^2); the
+      sample covariance is ``scatter / (N - 1)``.
+
+    :meth:`gaussians`, :meth:`known_cells` and ``len()`` answer as the map's do. Arrays
+    given to the constructor are copied, checked for shape and sorted (unless already
+    read-only: then they are taken as they are); a cell listed twice is a ValueError.
+    """
+
+    resolution: float
+    occupancy_enabled: bool
+    config: MapConfig
+    layout: Layout
+    metadata: dict
+    scans_inserted: int
+    points_inserted: int
+    occ_index: np.ndarray
+    occ_logodds: np.ndarray
+    g_index: np.ndarray
+    g_n: np.ndarray
+    g_mean_rel: np.ndarray
+    g_scatter: np.ndarray
+
+    def __post_init__(self) -> None:
+        r = self.resolution
+        if isinstance(r, bool) or not isinstance(r, numbers.Real) or not (math.isfinite(r) and r > 0):
+            raise ValueError(f"resolution must be a positive number of metres, got {r!r}")
+        object.__setattr__(self, "resolution", float(r))
+        object.__setattr__(self, "occupancy_enabled", bool(self.occupancy_enabled))
+        if not isinstance(self.config, MapConfig):
+            raise TypeError(f"config must be a MapConfig, got {type(self.config).__name__}")
+        if not isinstance(self.layout, Layout):
+            raise TypeError(f"layout must be a Layout, got {type(self.layout).__name__}")
+        if not isinstance(self.metadata, dict):
+            raise TypeError(f"metadata must be a dict, got {type(self.metadata).__name__}")
+        for key in ("scans_inserted", "points_inserted"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
+                raise ValueError(f"{key} must be an integer >= 0, got {v!r}")
+            object.__setattr__(self, key, int(v))
+        copied = set()
+        for name, (dtype, cols) in ARRAYS.items():
+            a = getattr(self, name)
+            if not (isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
+                    and not a.flags.writeable):  # fmt: skip
+                a = np.array(a, dtype=dtype, order="C")  # a copy: the caller's array stays theirs
+                a.flags.writeable = False
+                copied.add(name)
+            if a.ndim != 1 + len(cols) or a.shape[1:] != cols:
+                want = "(rows" + "".join(f", {c}" for c in cols) + ")"
+                raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+            object.__setattr__(self, name, a)
+        for first, others in (("occ_index", ("occ_logodds",)), ("g_index", ("g_n", "g_mean_rel", "g_scatter"))):
+            for name in others:
+                if len(getattr(self, name)) != len(getattr(self, first)):
+                    raise ValueError(f"{name} has {len(getattr(self, name))} rows but {first} has "
+                                     f"{len(getattr(self, first))}")  # fmt: skip
+            if first in copied:  # arrays from outside: sorted here (read-only ones are the caller's word)
+                self._sort_rows(first, (first, *others))
+
+    def _sort_rows(self, first: str, names: tuple[str, ...]) -> None:
+        keys = pack(getattr(self, first))[0]
+        if len(keys) < 2 or (np.diff(keys) > 0).all():
+            return
+        order = np.argsort(keys, kind="stable")
+        if (np.diff(keys[order]) == 0).any():
+            raise ValueError(f"{first} lists a cell twice")
+        for name in names:
+            a = getattr(self, name)[order]
+            a.flags.writeable = False
+            object.__setattr__(self, name, a)
+
+    # ------------------------------------------------------------------ making one
+
+    @classmethod
+    def of(cls, m: NdtOmMap) -> MapSnapshot:
+        """The content of map ``m`` now (taken under the map's lock; ``m`` stays usable)."""
+        with m._lock:
+            st = m.state()  # raises ValueError for a closed map
+            settings = {"resolution": m.resolution, "occupancy_enabled": m.occupancy_enabled, "config": m.config,
+                            "layout": m.layout, "metadata": _copy(m.metadata), "scans_inserted": m.scans_inserted,
+                            "points_inserted": m.points_inserted}  # fmt: skip
+        return cls._trusted(settings, st)
+
+    @classmethod
+    def _trusted(cls, settings: dict, arrays: dict) -> MapSnapshot:
+        """A snapshot of arrays nobody else holds (made read-only in place, not copied)."""
+        own = {}
+        for name, (dtype, _) in ARRAYS.items():
+            a = np.ascontiguousarray(arrays[name], dtype=dtype)
+            a.flags.writeable = False
+            own[name] = a
+        return cls(**settings, **own)
+
+    @classmethod
+    def load(cls, path: str | Path) -> MapSnapshot:
+        """Read a map file (written by ``NdtOmMap.save`` or :meth:`save`), checked as
+        ``NdtOmMap.load`` checks it: broken or foreign files raise MapFileError."""
+        from .mapfile import read_snapshot
+
+        return read_snapshot(path)
+
+    # ------------------------------------------------------------------ writing
+
+    def save(self, path: str | Path) -> Path:
+        """Write a map file, atomically, byte for byte as ``NdtOmMap.save`` of the same
+        map writes it (``NdtOmMap.load`` and :meth:`load` read it)."""
+        from .mapfile import save_snapshot
+
+        return save_snapshot(self, path)
+
+    def export(self, path: str | Path, fmt: str | None = None, **options: Any) -> Exported:
+        """Export as ``ndtom_ti.export.export_file`` does (ply, pcd, npz, csv, bt, grid)."""
+        from .export import export_file
+
+        return export_file(self, path, fmt, **options)
+
+    # ------------------------------------------------------------------ queries
+
+    def state(self) -> dict:
+        """The six cell arrays by name (read-only; what the map file stores)."""
+        return {name: getattr(self, name) for name in ARRAYS}
+
+    def cell_center(self, index: Any) -> np.ndarray:
+        """World centres of cells (N, 3) from integer indices."""
+        return (np.asarray(index, np.float64) + 0.5) * self.resolution
+
+    def logodds_at(self, index: Any) -> np.ndarray:
+        """Log-odds (float64) of cells given by integer index (K, 3); unknown cells read 0."""
+        idx = np.asarray(index)
+        if idx.ndim != 2 or idx.shape[1] != 3 or not np.issubdtype(idx.dtype, np.integer):
+            raise ValueError(f"index must be an integer (K, 3) array of cell indices, got {idx.dtype} {idx.shape}")
+        return self._lookup(idx).astype(np.float64)
+
+    def _lookup(self, idx: np.ndarray) -> np.ndarray:
+        """float32 log-odds of cells ``idx`` (K, 3): binary search in the sorted known cells."""
+        occ = self.occ_index
+        out = np.zeros(len(idx), np.float32)
+        if len(idx) == 0 or len(occ) == 0:
+            return out
+        keys, _, _ = pack(np.concatenate([occ.astype(np.int64), idx.astype(np.int64)]))
+        known, want = keys[: len(occ)], keys[len(occ) :]
+        pos = np.minimum(np.searchsorted(known, want), len(known) - 1)
+        hit = known[pos] == want
+        out[hit] = self.occ_logodds[pos[hit]]
+        return out
+
+    @cached_property
+    def _g_logodds(self) -> np.ndarray:
+        return self._lookup(self.g_index)
+
+    def gaussians(self, min_points: int | None = None, min_probability: float = 0.5) -> dict:
+        """The Gaussians, as ``NdtOmMap.gaussians`` gives them (the same dict and arrays):
+        ``index`` (K, 3) int64, ``mean`` (K, 3) float64 world frame, ``cov`` (K, 3, 3)
+        float64 (scatter / (N - 1); 0 for N < 2), ``n`` (K,) int64, ``p_occ`` and
+        ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's)
+        and ``p_occ > min_probability`` (0: occupied or not)."""
+        if min_points is None:
+            min_points = self.config.min_points
+        if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
+            raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
+        if isinstance(min_probability, bool) or not isinstance(min_probability, numbers.Real) or not (
+            0.0 <= min_probability <= 1.0
+        ):
+            raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
+        keep = self.g_n >= max(int(min_points), 1)
+        lo = self._g_logodds.astype(np.float64)
+        with np.errstate(over="ignore"):
+            p = 1.0 - 1.0 / (1.0 + np.exp(lo))
+        if min_probability > 0.0:
+            keep &= p > min_probability
+        idx = self.g_index[keep].astype(np.int64)
+        n = self.g_n[keep].astype(np.int64)
+        s = self.g_scatter[keep]
+        cov = np.empty((len(n), 3, 3))
+        for col, (a, b) in enumerate(_COV_IJ):
+            cov[:, a, b] = s[:, col]
+            cov[:, b, a] = s[:, col]
+        cov /= np.maximum(n - 1, 1).astype(np.float64)[:, None, None]
+        cov[n < 2] = 0.0
+        return {"index": idx, "mean": self.cell_center(idx) + self.g_mean_rel[keep], "cov": cov, "n": n,
+                "p_occ": p[keep], "logodds": lo[keep]}  # fmt: skip
+
+    def known_cells(self) -> dict:
+        """Every known cell (occupied and free), as ``NdtOmMap.known_cells`` gives them:
+        ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
+        lo = self.occ_logodds.astype(np.float64)
+        with np.errstate(over="ignore"):
+            p = 1.0 - 1.0 / (1.0 + np.exp(lo))
+        return {"index": self.occ_index.astype(np.int64), "logodds": lo, "p_occ": p}
+
+    def __len__(self) -> int:
+        """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
+        return int(np.count_nonzero((self.g_n >= max(self.config.min_points, 1)) & (self._g_logodds > 0.0)))
+
+    def data_extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """World-frame (min corner, max corner) of the box of known cells; None when empty."""
+        idx = self.occ_index
+        if len(idx) == 0:
+            return None
+        lo = np.array([idx[:, a].min() for a in range(3)], np.float64)
+        hi = np.array([idx[:, a].max() for a in range(3)], np.float64) + 1.0
+        return lo * self.resolution, hi * self.resolution
+
+    def memory_bytes(self) -> int:
+        """Bytes of the snapshot's arrays."""
+        return sum(getattr(self, name).nbytes for name in ARRAYS)
+
+    def __repr__(self) -> str:
+        return (f"MapSnapshot(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
+                f"scans={self.scans_inserted}, gaussians={len(self)}, known_cells={len(self.occ_index)})")
+
+    # ------------------------------------------------------------------ coarser levels
+
+    def coarsen(self, factor: int) -> MapSnapshot:
+        """The snapshot at ``factor * resolution``, the cells ``NdtOmMap.coarsen`` gives:
+        each Gaussian merged with the RCU into its parent ``floor(index / factor)`` (N
+        capped at the config's ``n_max``), each parent's log-odds the maximum of its known
+        children's (method.md sec. 4). Runs in numpy: no map slot."""
+        if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or int(factor) != factor or factor < 2:
+            raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
+        from .multires import coarsen_state
+
+        f = int(factor)
+        settings = {"resolution": self.resolution * f, "occupancy_enabled": self.occupancy_enabled,
+                        "config": self.config, "layout": self.layout,
+                        "metadata": {**_copy(self.metadata), "coarsened_from": self.resolution, "factor": f},
+                        "scans_inserted": self.scans_inserted, "points_inserted": self.points_inserted}  # fmt: skip
+        return MapSnapshot._trusted(settings, coarsen_state(self.state(), self.resolution, f, self.config.n_max))
