@@ -236,8 +236,10 @@ class MapSnapshot:
             min_points = self.config.min_points
         if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
             raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
-        if isinstance(min_probability, bool) or not isinstance(min_probability, numbers.Real) or not (
-            0.0 <= min_probability <= 1.0
+        if (
+            isinstance(min_probability, bool)
+            or not isinstance(min_probability, numbers.Real)
+            or not (0.0 <= min_probability <= 1.0)
         ):
             raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
         keep = self.g_n >= max(int(min_points), 1)
@@ -284,8 +286,10 @@ class MapSnapshot:
         return sum(getattr(self, name).nbytes for name in ARRAYS)
 
     def __repr__(self) -> str:
-        return (f"MapSnapshot(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
-                f"scans={self.scans_inserted}, gaussians={len(self)}, known_cells={len(self.occ_index)})")
+        return (
+            f"MapSnapshot(resolution={self.resolution:g}, occupancy={self.occupancy_enabled}, "
+            f"scans={self.scans_inserted}, gaussians={len(self)}, known_cells={len(self.occ_index)})"
+        )
 
     # ------------------------------------------------------------------ coarser levels
 

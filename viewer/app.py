@@ -654,7 +654,9 @@ class MapViewer:
                         break
                 choice = choice or _LOD_FACTORS[-1]
                 try:
-                    cm = self._map_at("ndtom", sel * choice) if sel * choice in FACTORS else _coarser(base, sel * choice)
+                    cm = (
+                        self._map_at("ndtom", sel * choice) if sel * choice in FACTORS else _coarser(base, sel * choice)
+                    )
                     m, factor = cm, sel * choice
                     del cm
                     g = m.gaussians(min_probability=thr)

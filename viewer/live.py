@@ -30,6 +30,7 @@ from .geometry import cap_rows
 
 if TYPE_CHECKING:
     from ndtom_ti import NdtOmMap
+    from ndtom_ti.snapshot import MapSnapshot
 
     from .app import MapViewer
 
@@ -62,7 +63,7 @@ class LiveMapper:
         self,
         viewer: MapViewer,
         scans: Any,
-        m: NdtOmMap | None,
+        m: NdtOmMap | MapSnapshot | None,
         *,
         compare: NdtOmMap | bool | None = False,
         total: int | None = None,
@@ -82,8 +83,10 @@ class LiveMapper:
             raise ValueError(f"speed must be positive (1: the recording's own rate), got {speed}")
 
         if m is None or isinstance(m, MapSnapshot):
-            raise ValueError("live mapping needs a map to insert into: pass m=NdtOmMap(resolution) (a snapshot "
-                             "of a map file is read-only: NdtOmMap.from_snapshot(s) makes a map of it)")
+            raise ValueError(
+                "live mapping needs a map to insert into: pass m=NdtOmMap(resolution) (a snapshot "
+                "of a map file is read-only: NdtOmMap.from_snapshot(s) makes a map of it)"
+            )
         if compare is True:
             with viewer.map_lock:
                 compare = NdtOmMap(m.resolution, occupancy=False, config=m.config, layout=m.layout,
