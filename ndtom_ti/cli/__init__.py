@@ -19,8 +19,8 @@ progress and tables, and turn errors into one red line and a hint. Exit codes:
 """
 
 from . import evaluation, inspect, mapping, view
-from .root import app, main
 from .mapping import default_output
+from .root import app, main
 
 # `ndtom --help` lists the commands in this order.
 _ORDER = ("info", "map", "demo", "sweep", "experiments", "view", "export")

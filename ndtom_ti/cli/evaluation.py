@@ -12,7 +12,6 @@ import typer
 from rich.text import Text
 
 from ..exitcodes import EXIT_USAGE
-from .root import app
 from .common import (
     Arch,
     check_writable,
@@ -29,6 +28,7 @@ from .common import (
     user_errors,
     without_extra,
 )
+from .root import app
 
 
 # ---------------------------------------------------------------------------- sweep

@@ -13,7 +13,6 @@ from rich.markup import escape
 from rich.text import Text
 from rich.tree import Tree
 
-from .root import app
 from .common import (
     Arch,
     check_writable,
@@ -27,6 +26,7 @@ from .common import (
     make_table,
     user_errors,
 )
+from .root import app
 
 _MAGIC = b"NDTOMTI\n"  # the first bytes of a map file
 

@@ -24,7 +24,6 @@ from rich.table import Table
 from rich.text import Text
 
 from ..exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from .root import app
 from .common import (
     MAP_SUFFIX,
     Arch,
@@ -42,6 +41,7 @@ from .common import (
     resolution_option,
     user_errors,
 )
+from .root import app
 
 
 # ---------------------------------------------------------------------------- map

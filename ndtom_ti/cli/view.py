@@ -8,8 +8,8 @@ from typing import Annotated
 
 import typer
 
-from .root import app
 from .common import Arch, init_taichi, need_extra
+from .root import app
 
 
 # ---------------------------------------------------------------------------- view
