@@ -4,7 +4,6 @@ OctoMap on the same world-frame points and origins (the paper's Fig. 5)."""
 from __future__ import annotations
 
 import csv
-import gc
 import math
 import platform
 import time
@@ -112,31 +111,25 @@ def run_sweep(
     rows: list[SweepRow] = []
     for res in [check_resolution(r) for r in resolutions]:
         say(f"{res:g} m: warm-up")
-        w = NdtOmMap(res)
-        for pts, T in scans[:warmup]:
-            w.insert_scan(pts, T)
-            w.traverse_only(pts, T)
-        del w
-        gc.collect()
+        with NdtOmMap(res) as w:  # each map gives its slot back at once
+            for pts, T in scans[:warmup]:
+                w.insert_scan(pts, T)
+                w.traverse_only(pts, T)
 
         say(f"{res:g} m: NDT-OM")
-        m = NdtOmMap(res)
-        times, reps = _time_scans(m.insert_scan, scans)
-        visits = sum(r.ray_cell_visits for r in reps)
-        full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
+        with NdtOmMap(res) as m:
+            times, reps = _time_scans(m.insert_scan, scans)
+            visits = sum(r.ray_cell_visits for r in reps)
+            full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
         rows.append(full)
-        del m
-        gc.collect()
         if floor:
             say(f"{res:g} m: floor")
-            f = NdtOmMap(res)
-            times, reps = _time_scans(f.traverse_only, scans)
-            r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None,
-                     f.memory_bytes())
+            with NdtOmMap(res) as f:
+                times, reps = _time_scans(f.traverse_only, scans)
+                r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None,
+                         f.memory_bytes())
             r.ratio_to_ndtom = r.ms_median / full.ms_median
             rows.append(r)
-            del f
-            gc.collect()
         if baseline == "octomap":
             say(f"{res:g} m: OctoMap")
             rows.append(_octomap_row(scans, res, full, max_range))
