@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, SIMWORLD
-
 from typer.testing import CliRunner
 
 from ndtom_ti import evaluation as ex
