@@ -45,7 +45,7 @@ from .root import app
 
 
 # ---------------------------------------------------------------------------- map
-def memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
+def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
     """The error and hint of a scan the memory budget refused, in `ndtom map`'s options."""
     from .. import hostpool, runtime
 
@@ -189,7 +189,7 @@ def _finish_mapping(m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: l
     if summary.stopped == "memory":
         saved = (f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)." if wrote
                  else "Nothing was mapped; no map written.")
-        error, hint = memory_refusal(summary, saved)
+        error, hint = _memory_refusal(summary, saved)
         err.print(Text.assemble(("Error: ", "bold red"), (error, "red")))
         err.print(Text.assemble(("Hint: ", "bold"), hint))
         return EXIT_FAILURE
