@@ -11,6 +11,7 @@ without the internals it uses) goes through Taichi's ordinary call, unchanged.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 from taichi.lang import impl, kernel_impl
@@ -47,7 +48,7 @@ class Launcher:
 
     def __init__(self, kernel):
         self.kernel = kernel
-        self._k = getattr(kernel, "_primal", None)
+        self._k: Any = getattr(kernel, "_primal", None)
         self._plans: dict = {}
         self._kinds = self._argument_kinds()
 
@@ -88,7 +89,7 @@ class Launcher:
             # compile); the compiled kernel then serves the next calls.
             self.kernel(*args)
             t_kernel = self._k.compiled_kernels[self._k.ensure_compiled(*args)]
-            prog = impl.get_runtime().prog
+            prog: Any = impl.get_runtime().prog
             if not all(hasattr(o, a) for o, a in ((t_kernel, "make_launch_context"), (prog, "compile_kernel"),
                                                    (prog, "launch_kernel"))):  # fmt: skip
                 self._kinds = None  # not the Taichi this was written for: its call from now on
@@ -105,6 +106,6 @@ class Launcher:
                 ctx.set_arg_int((i,), int(a))
             else:
                 ctx.set_arg_uint((i,), int(a))
-        prog = impl.get_runtime().prog
+        prog: Any = impl.get_runtime().prog
         prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)
         return None

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import taichi as ti
@@ -159,7 +160,7 @@ class Storage:
         self.node_high_water = np.zeros(4, np.int64)
         self._counts: dict = {}  # slot -> (its leaf counts, its node counts)
         self.free_slots = list(range(slots - 1, -1, -1))
-        self.kernels = None  # built lazily by kernels.ndt.make_kernels
+        self.kernels: Any = None  # built lazily by kernels.ndt.make_kernels
         # Scan scratch shared by the maps: the dense ray-count block and its row flags, all
         # zero between updates, which hold ``lock`` while they use it.
         self.block_buf = np.zeros(0, np.int32)

@@ -35,7 +35,7 @@ def pool_threads(threads: int) -> list[int]:
     import taichi as ti
 
     @ti.kernel
-    def probe(out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+    def probe(out: ti.types.ndarray(dtype=ti.f64, ndim=1)):  # pyright: ignore[reportInvalidTypeForm] (Taichi)
         for i in range(out.shape[0]):
             x = ti.cast(i, ti.f64)
             for _ in range(64):

@@ -5,8 +5,9 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Callable
+from typing import IO
 
 
 def _umask() -> int:
@@ -36,7 +37,7 @@ def check_target(path: str | Path) -> Path:
     return path
 
 
-def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path:
     """Write ``path`` through ``write(fh)`` into a temporary file in the same folder,
     fsync it, then rename it over ``path``: readers see the old file or the new one.
     Symbolic links and targets that are not regular files: see ``check_target``."""
@@ -57,5 +58,3 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
             pass
         raise
     return path
-
-

@@ -8,6 +8,7 @@ rows took tens of seconds (numpy 2.4: even its 1-D unique is ~100x slower than a
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 
 def pack(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -29,7 +30,7 @@ def pack(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return keys, lo, span
 
 
-def unpack(keys: np.ndarray, lo: np.ndarray, span: np.ndarray, dtype=np.int64) -> np.ndarray:
+def unpack(keys: np.ndarray, lo: np.ndarray, span: np.ndarray, dtype: DTypeLike = np.int64) -> np.ndarray:
     """The (K, 3) rows of ``keys`` made by :func:`pack`."""
     out = np.empty((len(keys), 3), dtype)
     ij, out[:, 2] = np.divmod(keys, span[2])

@@ -6,7 +6,6 @@ import math
 import numbers
 from dataclasses import asdict, dataclass, fields
 
-
 MISS_MODELS = ("ndt", "paper")
 
 

@@ -46,7 +46,7 @@ class Box:
 
     def contains(self, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
         lo, hi = np.asarray(self.lo) - margin, np.asarray(self.hi) + margin
-        return ((points >= lo) & (points <= hi)).all(axis=1)
+        return np.asarray(((points >= lo) & (points <= hi)).all(axis=1))
 
 
 @dataclass(frozen=True)
@@ -132,8 +132,15 @@ def ray_directions(rings: int = 32, per_ring: int = 600, lo_deg: float = -30.0, 
     return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
 
 
-def make_scans(n_scans: int = 20, *, scene: Scene | None = None, noise: float = 0.005, seed: int = 0,
-               rings: int = 32, per_ring: int = 600) -> list[Scan]:
+def make_scans(
+    n_scans: int = 20,
+    *,
+    scene: Scene | None = None,
+    noise: float = 0.005,
+    seed: int = 0,
+    rings: int = 32,
+    per_ring: int = 600,
+) -> list[Scan]:
     """The demo's scans (about 16k points each with the defaults), deterministic."""
     scene = scene or Scene()
     dirs_s = ray_directions(rings, per_ring)
@@ -167,7 +174,7 @@ def ground_truth_check(gaussians: dict, resolution: float, scene: Scene | None =
         inside = b.contains(mean, margin=resolution) & (mean[:, 2] > 2 * resolution)
         left += int(inside.sum())
     return {
-        "gaussians": int(len(mean)),
+        "gaussians": len(mean),
         "on_surface": float((d < resolution / 4).mean()) if len(d) else float("nan"),
         "median_distance": float(np.median(d)) if len(d) else float("nan"),
         "left_in_vanished": left,

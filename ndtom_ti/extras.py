@@ -58,5 +58,6 @@ def require(module: str, purpose: str) -> None:
     """Raise :class:`ExtraMissingError` (naming the extra and how to install it) when
     ``module`` is not installed."""
     if not available(module):
-        raise ExtraMissingError(f"{missing_message(module, purpose)}; install it with: "
-                                f"{install_hint(extra_of(module))}")
+        raise ExtraMissingError(
+            f"{missing_message(module, purpose)}; install it with: {install_hint(extra_of(module))}"
+        )

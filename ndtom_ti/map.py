@@ -16,8 +16,7 @@ import numpy as np
 from . import runtime
 from .cellkeys import count_distinct, lex_order, pack
 from .config import MapConfig, check_resolution
-from .kernels.layout import Layout
-from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
+from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES, Layout
 from .kernels.ndt import (
     C_BLOCK_CELLS,
     C_ERASED,
@@ -383,7 +382,7 @@ class NdtOmMap:
         if math.prod(shape) <= _SEEN_MAX:
             cells, seen, dedup = hit_cells, np.zeros(shape, np.int32), 1
         else:  # a sparse, wide scan: one cell per distinct leaf
-            key = np.ravel_multi_index((hit_cells // L.leaf - lo).T, shape)
+            key = np.asarray(np.ravel_multi_index((hit_cells // L.leaf - lo).T, shape))
             order = np.argsort(key)  # np.unique is ~100x slower than a sort (numpy 2.4)
             sk = key[order]
             first = order[np.concatenate(([True], sk[1:] != sk[:-1]))]
@@ -485,7 +484,7 @@ class NdtOmMap:
                 self._refuse(need)  # nothing of this scan is kept
         return None
 
-    def _block_for(self, box, ocell: np.ndarray, dtype=np.int32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _block_for(self, box, ocell: np.ndarray, dtype: type = np.int32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The dense ray-count block (of ``dtype``) of a scan: the leaf-aligned box of its
         cells and the sensor, trimmed on its far sides to ``block_cells`` cells (empty
         with no ``box``)."""
@@ -530,7 +529,7 @@ class NdtOmMap:
     def __enter__(self) -> NdtOmMap:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _check_open(self) -> None:
@@ -856,7 +855,7 @@ class NdtOmMap:
         return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
 
     @_locked
-    def occupancy(self, points: Any, *, return_known: bool = False):
+    def occupancy(self, points: Any, *, return_known: bool = False) -> Any:
         """Occupancy probability of the cells holding world ``points`` (N, 3), or of one
         point (3,) (then a float, and a bool with ``return_known``).
 

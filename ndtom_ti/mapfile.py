@@ -19,7 +19,7 @@ import os
 import stat
 import struct
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn, TypeGuard
 
 import numpy as np
 
@@ -95,7 +95,7 @@ def _snapshot(m: NdtOmMap) -> tuple[bytes, list]:
 
 
 def _bytes(a: np.ndarray) -> memoryview:
-    return memoryview(a.reshape(-1).view(np.uint8))
+    return a.reshape(-1).view(np.uint8).data
 
 
 def _json_default(o):
@@ -217,7 +217,7 @@ def _open_regular(path: Path):
         raise
 
 
-def _is_int(v) -> bool:
+def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
@@ -227,7 +227,7 @@ def _check_header(path: Path, header: dict) -> None:
     of columns and the bytes its shape needs, inside the payload, not overlapping, and
     arrays that describe the same cells of one length. Any fault: MapFileError."""
 
-    def bad(what: str):
+    def bad(what: str) -> NoReturn:
         raise MapFileError(f"{path} is corrupt: {what}")
 
     pb = header.get("payload_bytes")
@@ -296,7 +296,7 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
     point whose mean lies in its cell and whose scatter is finite and positive
     semi-definite. Any fault: MapFileError."""
 
-    def bad(what: str):
+    def bad(what: str) -> NoReturn:
         raise MapFileError(f"{path} is corrupt: {what}")
 
     if not math.isfinite(resolution * 2.0 * max(layout.cells)):

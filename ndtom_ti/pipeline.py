@@ -32,13 +32,13 @@ from __future__ import annotations
 import math
 import os
 import signal
+import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -183,7 +183,7 @@ def load_config_file(path: str | Path) -> dict:
         kind = "JSON" if isinstance(exc, json.JSONDecodeError) else "TOML"
         raise ValueError(f"config file {p} is not valid {kind}: {exc}") from None
     if not isinstance(data, dict):
-        raise ValueError(f"config file {p} must hold a table of MapConfig options, got {type(data).__name__}")
+        raise ValueError(f"config file {p} must hold a table of MapConfig options, got {type(data).__name__}")  # noqa: TRY004 - a bad file
     if set(data) == {"map"} and isinstance(data["map"], dict):
         data = data["map"]
     try:
@@ -354,7 +354,7 @@ def _run(
     from .io import RecordingError
 
     t0 = time.perf_counter()
-    end = object()
+    end: Any = object()
     ran_out = False  # every scan was inserted: a signal after that stops nothing
     with _loop_signals() as sig:
         it = iter(scans)

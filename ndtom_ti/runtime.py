@@ -135,10 +135,12 @@ def init(
                 pool_gb = max(0.5, round(CUDA_DEFAULT_SHARE * total / 2**30 * 4) / 4) if total else 4.0
             try:
                 _quiet(ti.init, arch=ti.cuda, device_memory_GB=pool_gb, **kwargs)
-            except Exception as exc:  # noqa: BLE001 - Taichi raises various types here
+            except Exception as exc:  # Taichi raises various types here
                 if arch == "cuda":
                     raise RuntimeError(f"CUDA was requested but could not be initialised: {exc}") from exc
-            if ti.lang.impl.current_cfg().arch == ti.cuda:
+            from taichi.lang import impl
+
+            if impl.current_cfg().arch == ti.cuda:
                 _state.arch = "cuda"
             elif arch == "cuda":
                 raise RuntimeError("CUDA was requested but no CUDA device is available; use arch='cpu'.")

@@ -68,3 +68,25 @@ def room_scans():
     from ndtom_ti.demo import make_scans
 
     return make_scans(12, rings=16, per_ring=360)
+
+
+def cuda_device_present() -> bool:
+    """Whether the CUDA driver reports a device (read through the driver, no Taichi init)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        cuda = ctypes.CDLL(ctypes.util.find_library("cuda") or "libcuda.so.1")
+        count = ctypes.c_int(0)
+        return cuda.cuInit(0) == 0 and cuda.cuDeviceGetCount(ctypes.byref(count)) == 0 and count.value > 0
+    except (OSError, AttributeError):
+        return False
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``gpu`` need a CUDA device: without one they are skipped, saying so."""
+    gpu = [item for item in items if item.get_closest_marker("gpu") is not None]
+    if gpu and not cuda_device_present():
+        skip = pytest.mark.skip(reason="needs a CUDA GPU (none found by the CUDA driver)")
+        for item in gpu:
+            item.add_marker(skip)

@@ -9,7 +9,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -350,14 +349,11 @@ def test_taichi_arch_cannot_change_in_a_process(bags, tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------- demo
 def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
     out = tmp_path / "demo_out"
-    t0 = time.perf_counter()
     r = run("demo", "--out", out)
-    took = time.perf_counter() - t0
     assert r.exit_code == 0, r.output
     for text in ("Demo scene", "Mapping summary", "20 of 20 clouds read", "Against the ground truth",
                  "left where the box was taken away", "Map written to", "Next: ndtom export"):
         assert text in r.output, text
-    assert took < 30
     m = NdtOmMap.load(out / "demo.ndtom")
     check = m.metadata["ground_truth_check"]
     assert check["left_in_vanished"] == 0 and check["on_surface"] > 0.98

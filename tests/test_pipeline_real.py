@@ -93,7 +93,7 @@ def test_norlab_long_ranges_fit_the_memory_budget(tmp_path: Path) -> None:
     CPU pool budget. At 0.1 m under a budget within Taichi's own 1 GiB chunk
     (--memory-limit 0.875) the first scan does not fit: `ndtom map` stops with exit 1 and
     says why in its own options (the default budget, half the machine's memory, maps all
-    14: README "Memory"). A separate process: a process has one pool and one budget."""
+    14: docs/large-maps.md). A separate process: a process has one pool and one budget."""
     import os
     import subprocess
     import sys

@@ -5,7 +5,6 @@ from __future__ import annotations
 from types import ModuleType
 
 
-
 class ViewerNotInstalledError(ImportError):
     """The viewer needs viser, which is not installed."""
 

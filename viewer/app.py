@@ -449,7 +449,7 @@ class MapViewer:
 
     stop = close
 
-    def __enter__(self) -> MapViewer:  # noqa: PYI034
+    def __enter__(self) -> MapViewer:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -597,10 +597,12 @@ class MapViewer:
     def _version(self, m: NdtOmMap) -> tuple[int, int]:
         return (m.scans_inserted, m.points_inserted)
 
-    def _map_at(self, kind: str, factor: int) -> NdtOmMap | None:
+    def _map_at(self, kind: str, factor: int) -> NdtOmMap:
         """The map ``kind`` at ``factor`` x its resolution (cached; call under map_lock)."""
         base = self._maps[kind]
-        if base is None or factor == 1:
+        if base is None:
+            raise LookupError(f"the viewer holds no {kind} map")  # callers check first
+        if factor == 1:
             return base
         key = (kind, factor)
         entry = self._cache.pop(key, None)
@@ -796,7 +798,8 @@ class MapViewer:
         drawn["clip"] = clip
 
         def inside(z: np.ndarray) -> np.ndarray:
-            return (z >= clip[0]) & (z <= clip[1])
+            lo, hi = clip if clip is not None else (-np.inf, np.inf)
+            return (z >= lo) & (z <= hi)
 
         if g is not None and clip is not None:
             g = {k: v[inside(g["mean"][:, 2])] for k, v in g.items()}
@@ -805,7 +808,7 @@ class MapViewer:
         if geometry == "auto":
             use = "ellipsoids" if n_all <= self.max_ellipsoids else "splats"
         cap = self.max_ellipsoids if use == "ellipsoids" else self.max_splats
-        if n_all > cap:
+        if g is not None and n_all > cap:
             rows = geo.cap_rows(n_all, cap)
             g = {k: v[rows] for k, v in g.items()}
             drawn["notes"].append(f"{_fmt(n_all)} Gaussians to draw as {use}: showing an even {_fmt(len(rows))} "
@@ -817,7 +820,7 @@ class MapViewer:
 
         with self.server.atomic():
             # Gaussians
-            if n_g:
+            if g is not None and n_g:
                 cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange)
                 if self._handles.get("gaussians") is not None and drawn["geometry"] != self.drawn.get("geometry"):
                     self._handles.pop("gaussians").remove()  # splats <-> ellipsoids: other node type

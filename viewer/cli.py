@@ -205,7 +205,7 @@ class _StopSignals:
         elif self.count == 1:
             print(f"{name}: stopping after the scan in hand, then saving ...", file=sys.stderr, flush=True)
 
-    def __enter__(self) -> _StopSignals:  # noqa: PYI034
+    def __enter__(self) -> _StopSignals:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(ValueError, OSError):
@@ -306,7 +306,8 @@ def live_command(
 
     def on_scan(rep: Any, item: Any) -> None:
         summary.add(rep)
-        summary.wall_seconds = lm.work_seconds
+        if lm is not None:
+            summary.wall_seconds = lm.work_seconds
         if progress is not None:
             progress(summary, rep)
 

@@ -54,7 +54,7 @@ class LiveMapper:
         scans: Any,
         m: NdtOmMap | None,
         *,
-        compare: NdtOmMap | bool = False,
+        compare: NdtOmMap | bool | None = False,
         total: int | None = None,
         refresh_interval: float = 0.5,
         max_scan_points: int = 50_000,
@@ -79,7 +79,7 @@ class LiveMapper:
         elif compare is False:
             compare = None
         self.viewer = viewer
-        self.map = m
+        self.map: NdtOmMap | None = m
         self.compare = compare
         if total is None:
             try:

@@ -65,7 +65,7 @@ def is_loopback_host(host: str) -> bool:
         infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError):
         return False
-    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+    return bool(infos) and all(ipaddress.ip_address(str(i[4][0]).split("%")[0]).is_loopback for i in infos)
 
 
 def _split_host_header(value: str) -> tuple[str, str | None]:
@@ -75,7 +75,7 @@ def _split_host_header(value: str) -> tuple[str, str | None]:
         end = value.find("]")
         if end < 0:
             return value, None
-        host, rest = value[1 : end], value[end + 1 :]
+        host, rest = value[1:end], value[end + 1 :]
         return host.lower(), rest[1:] if rest.startswith(":") else None
     if value.count(":") == 1:
         host, port = value.split(":")
@@ -90,7 +90,7 @@ def machine_addresses() -> set[str]:
     for name in names:
         with contextlib.suppress(OSError, UnicodeError):
             for info in socket.getaddrinfo(name, None, type=socket.SOCK_STREAM):
-                out.add(info[4][0].split("%")[0].lower())
+                out.add(str(info[4][0]).split("%")[0].lower())
     out.add(primary_address())
     return {_strip(a) for a in out if a}
 
@@ -124,6 +124,7 @@ class AccessGuard:
         self.allowed = allowed
         self.token = token if token is not None else (None if self.loopback else secrets.token_urlsafe(18))
         self.refused = 0  # requests refused so far (for the log and tests)
+        self.installed = False  # guarded_server: viser's server took the checks
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ rules

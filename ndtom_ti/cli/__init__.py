@@ -24,6 +24,6 @@ from .root import app, main
 
 # `ndtom --help` lists the commands in this order.
 _ORDER = ("info", "map", "demo", "sweep", "experiments", "view", "export")
-app.registered_commands.sort(key=lambda c: _ORDER.index(c.name or c.callback.__name__))
+app.registered_commands.sort(key=lambda c: _ORDER.index(c.name or getattr(c.callback, "__name__", "")))
 
 __all__ = ["app", "default_output", "evaluation", "inspect", "main", "mapping", "view"]

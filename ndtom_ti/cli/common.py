@@ -71,13 +71,21 @@ def without_extra(module: str, skipped: str) -> bool:
 
     if available(module):
         return False
-    console_err().print(Text(f"note: {module} is not installed (extra [{extra_of(module)}]): {skipped}; to get it: "
-                      f"{install_hint(extra_of(module))}", style="yellow"), soft_wrap=True)
+    console_err().print(
+        Text(
+            f"note: {module} is not installed (extra [{extra_of(module)}]): {skipped}; to get it: "
+            f"{install_hint(extra_of(module))}",
+            style="yellow",
+        ),
+        soft_wrap=True,
+    )
     return True
 
 
-MEMORY_HINT = ("use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
-                "or a CUDA device (--arch cuda)")
+MEMORY_HINT = (
+    "use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
+    "or a CUDA device (--arch cuda)"
+)
 
 
 @contextlib.contextmanager
@@ -104,13 +112,16 @@ def user_errors(*, recording: str | None = None, map_file: str | None = None) ->
 
         signum = getattr(exc, "signum", signal.SIGINT)
         fail(f"interrupted ({signal_name(signum)}); nothing was written", None, signal_exit_code(signum))
-    except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback for users
+    except Exception as exc:  # the last line of defence: no traceback for users
         if os.environ.get("NDTOM_DEBUG"):
             raise
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         text = lines[0] if len(lines) == 1 else (f"{lines[0]} ... {lines[-1]}" if lines else "")
-        fail(f"internal error: {type(exc).__name__}: {text}",
-              "set NDTOM_DEBUG=1 to see the traceback, and please report it", EXIT_FAILURE)
+        fail(
+            f"internal error: {type(exc).__name__}: {text}",
+            "set NDTOM_DEBUG=1 to see the traceback, and please report it",
+            EXIT_FAILURE,
+        )
 
 
 def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
@@ -129,8 +140,10 @@ def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
         except ValueError as exc:
             if memory_limit is None:
                 raise
-            fail(str(exc).replace("memory_limit_GB=", "--memory-limit ").replace("memory_limit_GB", "--memory-limit"),
-                  "give --memory-limit in GiB, below the machine's memory")
+            fail(
+                str(exc).replace("memory_limit_GB=", "--memory-limit ").replace("memory_limit_GB", "--memory-limit"),
+                "give --memory-limit in GiB, below the machine's memory",
+            )
     for w in caught:
         if issubclass(w.category, RuntimeWarning) and w.message is not None:
             console_err().print(Text(f"note: {w.message}", style="dim"))
@@ -144,8 +157,10 @@ def check_writable(path: Path, what: str = "output") -> Path:
         fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():
-        fail(f"cannot write the {what} {path}: folder {folder} does not exist", "create the folder first or choose "
-              "another path with -o")
+        fail(
+            f"cannot write the {what} {path}: folder {folder} does not exist",
+            "create the folder first or choose another path with -o",
+        )
     if not folder.is_dir():
         fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
     try:
@@ -179,8 +194,12 @@ def fmt_secs(ns: int | None, start_ns: int | None = None) -> str:
 def make_table(title: str, *columns: str, header: bool = True) -> Table:
     t = Table(title=title, show_header=header, title_justify="left")
     for i, col in enumerate(columns):
-        t.add_column(col, overflow="fold", style="bold" if (not header and i == 0) else None,
-                     justify="right" if col in ("messages", "poses") else "left")
+        t.add_column(
+            col,
+            overflow="fold",
+            style="bold" if (not header and i == 0) else None,
+            justify="right" if col in ("messages", "poses") else "left",
+        )
     return t
 
 

@@ -40,7 +40,6 @@ class Format(str, Enum):
     grid = "grid"
 
 
-
 # ---------------------------------------------------------------------------- info
 def _info_map(path: Path) -> None:
     from ..mapfile import read_header
@@ -63,8 +62,14 @@ def _info_map(path: Path) -> None:
         if key in md:
             t.add_row(key.replace("_", " "), escape(str(md[key])))
     # max_range is stored as null when there is no limit
-    t.add_row("config", escape(", ".join(f"{k}={'inf' if k == 'max_range' and v is None else v}"
-                                         for k, v in (h.get("config") or {}).items())))
+    t.add_row(
+        "config",
+        escape(
+            ", ".join(
+                f"{k}={'inf' if k == 'max_range' and v is None else v}" for k, v in (h.get("config") or {}).items()
+            )
+        ),
+    )
     out.print(t)
 
 
@@ -78,8 +83,10 @@ def _info_recording(path: Path) -> None:
     head.add_row("format", f"{info.format.upper()} ({info.storage})")
     head.add_row("messages", fmt_count(info.message_count))
     head.add_row("duration", f"{info.duration_s:.3f} s")
-    head.add_row("start / end", f"{info.start_ns / 1e9:.3f} / {info.end_ns / 1e9:.3f} s (record time; times "
-                 "below are seconds from the start)")
+    head.add_row(
+        "start / end",
+        f"{info.start_ns / 1e9:.3f} / {info.end_ns / 1e9:.3f} s (record time; times below are seconds from the start)",
+    )
     out.print(head)
 
     pose_topics = {s.name for s in info.pose_sources if s.kind == "topic"}
@@ -117,8 +124,10 @@ def _info_recording(path: Path) -> None:
                 elif e.static:
                     label = f"{child}  [static]"
                 else:
-                    label = (f"{child}  [{e.count} transforms, {fmt_secs(e.first_ns, info.start_ns)} .. "
-                             f"{fmt_secs(e.last_ns, info.start_ns)} s]")
+                    label = (
+                        f"{child}  [{e.count} transforms, {fmt_secs(e.first_ns, info.start_ns)} .. "
+                        f"{fmt_secs(e.last_ns, info.start_ns)} s]"
+                    )
                 add(node.add(escape(label)), child)
 
         for root in roots:
@@ -129,11 +138,20 @@ def _info_recording(path: Path) -> None:
 
     ps = make_table("Pose sources", "kind", "source", "parent -> child", "poses", "time span (s)", "note")
     for s in info.pose_sources:
-        span = ("static" if s.first_ns is None else
-                f"{fmt_secs(s.first_ns, info.start_ns)} .. {fmt_secs(s.last_ns, info.start_ns)}")
+        span = (
+            "static"
+            if s.first_ns is None
+            else f"{fmt_secs(s.first_ns, info.start_ns)} .. {fmt_secs(s.last_ns, info.start_ns)}"
+        )
         note = "constant (not a trajectory)" if s.constant and s.count > 1 else ""
-        ps.add_row(s.kind, escape(s.name), escape(f"{s.parent_frame} -> {s.child_frame or '?'}"),
-                   fmt_count(s.count), span, note)
+        ps.add_row(
+            s.kind,
+            escape(s.name),
+            escape(f"{s.parent_frame} -> {s.child_frame or '?'}"),
+            fmt_count(s.count),
+            span,
+            note,
+        )
     if not info.pose_sources:
         ps.add_row("-", "(none)", "", "", "", "")
     out.print(ps)
@@ -146,8 +164,10 @@ def _info_recording(path: Path) -> None:
         m.add_row("poses", escape(info.pose_source))
     out.print(m)
     if info.pose_error:
-        out.print(Text.assemble(("Cannot map with the defaults: ", "bold yellow"), (info.pose_error, "yellow")),
-                  soft_wrap=True)
+        out.print(
+            Text.assemble(("Cannot map with the defaults: ", "bold yellow"), (info.pose_error, "yellow")),
+            soft_wrap=True,
+        )
     elif info.default_cloud_topic:
         out.print(Text(f"Ready: ndtom map {path} -r 0.2", style="green"), soft_wrap=True)
     for note in info.notes:
@@ -156,8 +176,12 @@ def _info_recording(path: Path) -> None:
 
 @app.command(short_help="What a recording (topics, TF tree, poses) or a map file holds.")
 def info(
-    path: Annotated[Path, typer.Argument(metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.",
-                                         show_default=False)],
+    path: Annotated[
+        Path,
+        typer.Argument(
+            metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.", show_default=False
+        ),
+    ],
 ) -> None:
     """Show what is in a recording: topics, types, counts, duration, the TF tree, which
     topics can be mapped and which pose sources exist. Given a map file, show its header."""
@@ -174,25 +198,47 @@ def info(
 # ---------------------------------------------------------------------------- export
 @app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or 2-D grid.")
 def export(
-    map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
-                                             show_default=False)],
-    fmt: Annotated[Format | None, typer.Option(
-        "-f", "--format", help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
-        "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
-        "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
-        "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml; another suffix is "
-        "refused), else ply.",
-        show_default=False)] = None,
-    output: Annotated[Path | None, typer.Option(
-        "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False)] = None,
-    min_probability: Annotated[float, typer.Option(
-        help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
-        "Gaussians above it (0: all Gaussians).")] = 0.5,
-    z_min: Annotated[float | None, typer.Option(
-        help="grid: bottom of the height band (m, map frame), with --z-max. Default: the band from 0.3 m (at "
-        "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.", show_default=False)] = None,
-    z_max: Annotated[float | None, typer.Option(
-        help="grid: top of the height band (m, map frame), with --z-min.", show_default=False)] = None,
+    map_file: Annotated[
+        Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.", show_default=False)
+    ],
+    fmt: Annotated[
+        Format | None,
+        typer.Option(
+            "-f",
+            "--format",
+            help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
+            "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
+            "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
+            "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml; another suffix is "
+            "refused), else ply.",
+            show_default=False,
+        ),
+    ] = None,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False
+        ),
+    ] = None,
+    min_probability: Annotated[
+        float,
+        typer.Option(
+            help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
+            "Gaussians above it (0: all Gaussians)."
+        ),
+    ] = 0.5,
+    z_min: Annotated[
+        float | None,
+        typer.Option(
+            help="grid: bottom of the height band (m, map frame), with --z-max. Default: the band from 0.3 m (at "
+            "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.",
+            show_default=False,
+        ),
+    ] = None,
+    z_max: Annotated[
+        float | None,
+        typer.Option(help="grid: top of the height band (m, map frame), with --z-min.", show_default=False),
+    ] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
     """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
@@ -219,8 +265,9 @@ def export(
             fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
         if map_file.is_dir():
             fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = check_writable(output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]),
-                                   f"{fmt_name} file")
+        out_path = check_writable(
+            output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]), f"{fmt_name} file"
+        )
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
             if t.resolve() == map_file.resolve():
                 fail(f"the output {t} is the map file itself", "choose another path with -o")

@@ -31,11 +31,17 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
-                                          help="Show the version and exit.")] = False,
-    pin_threads: Annotated[bool, typer.Option(
-        "--pin-threads/--no-pin-threads", help="Fix each of Taichi's CPU worker threads to a CPU of its own "
-        "(faster short loops; off leaves them to the scheduler, e.g. on CPUs shared with busy drivers).")] = True,
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show the version and exit.")
+    ] = False,
+    pin_threads: Annotated[
+        bool,
+        typer.Option(
+            "--pin-threads/--no-pin-threads",
+            help="Fix each of Taichi's CPU worker threads to a CPU of its own "
+            "(faster short loops; off leaves them to the scheduler, e.g. on CPUs shared with busy drivers).",
+        ),
+    ] = True,
 ) -> None:
     """Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).
 

@@ -15,17 +15,27 @@ from .root import app
 # ---------------------------------------------------------------------------- view
 @app.command(short_help="Look at a map in the browser, or write an HTML page.")
 def view(
-    map_file: Annotated[Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.",
-                                             show_default=False)],
-    host: Annotated[str, typer.Option(
-        help="Address to serve on (default: this machine only; any other address prints a warning and a URL "
-        "with an access token).")] = "127.0.0.1",
+    map_file: Annotated[
+        Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.", show_default=False)
+    ],
+    host: Annotated[
+        str,
+        typer.Option(
+            help="Address to serve on (default: this machine only; any other address prints a warning and a URL "
+            "with an access token)."
+        ),
+    ] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="Port (the next free one if taken; the URL says which).")] = 8080,
-    html: Annotated[Path | None, typer.Option(
-        help="Write a standalone HTML snapshot of the scene and exit.", show_default=False)] = None,
-    compare: Annotated[Path | None, typer.Option(
-        help="A Recursive NDT map (ndtom map --no-occupancy) of the same data: highlights conflicting cells.",
-        show_default=False)] = None,
+    html: Annotated[
+        Path | None, typer.Option(help="Write a standalone HTML snapshot of the scene and exit.", show_default=False)
+    ] = None,
+    compare: Annotated[
+        Path | None,
+        typer.Option(
+            help="A Recursive NDT map (ndtom map --no-occupancy) of the same data: highlights conflicting cells.",
+            show_default=False,
+        ),
+    ] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
 ) -> None:
     """Look at a map in the browser: Gaussians as ellipsoids or splats, occupied and free

@@ -345,8 +345,16 @@ def _coarsened(run: _Run, factor: int) -> tuple[dict, dict]:
     }, cg
 
 
-def _summary(data: ScanSet, run: _Run, *, ndtom_vs_batch: dict, fig2: list[dict], conflicting: dict, fig4d: dict,
-             er_eps_min: float) -> dict:
+def _summary(
+    data: ScanSet,
+    run: _Run,
+    *,
+    ndtom_vs_batch: dict,
+    fig2: list[dict],
+    conflicting: dict,
+    fig4d: dict,
+    er_eps_min: float,
+) -> dict:
     from .. import runtime
 
     fig1, worlds = run.fig1, run.worlds
@@ -384,8 +392,9 @@ def _summary(data: ScanSet, run: _Run, *, ndtom_vs_batch: dict, fig2: list[dict]
     }  # fmt: skip
 
 
-def _fig5(data: ScanSet, resolutions: Sequence[float], out: Path, plots: bool, points_per_scan: float,
-          say: Progress) -> tuple[dict, list[Path]]:
+def _fig5(
+    data: ScanSet, resolutions: Sequence[float], out: Path, plots: bool, points_per_scan: float, say: Progress
+) -> tuple[dict, list[Path]]:
     """Fig. 5: time per scan against resolution on the same scans (OctoMap beside NDT-OM
     when pyoctomap is importable); returns the summary's ``fig5`` and the files written."""
     from .. import runtime
@@ -473,8 +482,16 @@ def run_experiments(
     runtime.ensure_init()
 
     say("reading scans")
-    data = sources.load_scans(source, every=every, max_scans=max_scans, sensor_frame_only=sensor_frame_only,
-                              sim_scans=sim_scans, sim_stride=sim_stride, sim_seed=sim_seed, tools_dir=tools_dir)
+    data = sources.load_scans(
+        source,
+        every=every,
+        max_scans=max_scans,
+        sensor_frame_only=sensor_frame_only,
+        sim_scans=sim_scans,
+        sim_stride=sim_stride,
+        sim_seed=sim_seed,
+        tools_dir=tools_dir,
+    )
     if not data.scans:
         raise ValueError(f"no scans to map in {data.description}")
 

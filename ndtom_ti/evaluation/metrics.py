@@ -29,11 +29,11 @@ import numpy as np
 from ..config import check_resolution
 
 __all__ = [
-    "cell_index",
     "batch_ndt",
-    "regularize_cov",
+    "cell_index",
     "l2_similarity",
     "mean_l2_score",
+    "regularize_cov",
 ]
 
 #: Isotropic variance floor (m^2) used by :func:`regularize_cov` for a covariance whose

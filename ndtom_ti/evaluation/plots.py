@@ -61,7 +61,12 @@ def plot_figures(out: Path, fig1, fig2, fig3, fig4b, gauss, conflict_idx, cg, re
     ax.plot(x, [100 * r["fraction"] for r in fig4b], "o-", ms=3, label="% of NDT-OM Gaussians")
     ax.plot(x, [100 * r["fraction_of_rcu"] for r in fig4b], "s--", ms=3, label="% of RCU Gaussians")
     ax.plot(x, [100 * r["fraction_ndt"] for r in fig4b], "d-", ms=3, label="NDT miss model: % of its Gaussians")
-    _finish(ax, "clouds inserted", "conflicting cells (%)", f"Fig. 4b: Gaussian in RCU, none in NDT-OM (final {fig4b[-1]['conflicting']} cells)")
+    _finish(
+        ax,
+        "clouds inserted",
+        "conflicting cells (%)",
+        f"Fig. 4b: Gaussian in RCU, none in NDT-OM (final {fig4b[-1]['conflicting']} cells)",
+    )
     save(fig, "fig4b_conflicting.png")
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))

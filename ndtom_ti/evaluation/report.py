@@ -53,7 +53,7 @@ def write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) ->
     return path
 
 
-def json_float(x: float) -> float | None:
+def json_float(x: float | np.floating) -> float | None:
     """JSON-safe float (NaN -> None)."""
     x = float(x)
     return None if not math.isfinite(x) else x

@@ -57,8 +57,16 @@ def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[
     return times, reports
 
 
-def _row(mapper: str, res: float, scans: Sequence[_Pair], times: list[float], visits: int, known: int | None,
-         gauss: int | None, mem: int) -> SweepRow:
+def _row(
+    mapper: str,
+    res: float,
+    scans: Sequence[_Pair],
+    times: list[float],
+    visits: int,
+    known: int | None,
+    gauss: int | None,
+    mem: int,
+) -> SweepRow:
     t = np.asarray(times)
     pts = sum(len(p) for p, _ in scans)
     return SweepRow(
@@ -126,8 +134,9 @@ def run_sweep(
             say(f"{res:g} m: floor")
             with NdtOmMap(res) as f:
                 times, reps = _time_scans(f.traverse_only, scans)
-                r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None,
-                         f.memory_bytes())
+                r = _row(
+                    "ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None, f.memory_bytes()
+                )
             r.ratio_to_ndtom = r.ms_median / full.ms_median
             rows.append(r)
         if baseline == "octomap":
@@ -139,11 +148,13 @@ def run_sweep(
 def _octomap_row(scans: Sequence[_Pair], res: float, full: SweepRow, max_range: float) -> SweepRow:
     import pyoctomap
 
-    tree = pyoctomap.OcTree(res)
+    tree = pyoctomap.OcTree(res)  # pyright: ignore[reportAttributeAccessIssue] (a compiled module)
     world = []
     for pts, T in scans:
         ok = np.isfinite(pts).all(axis=1)
-        world.append((np.ascontiguousarray(pts[ok].astype(np.float64) @ T[:3, :3].T + T[:3, 3]), np.ascontiguousarray(T[:3, 3])))
+        world.append(
+            (np.ascontiguousarray(pts[ok].astype(np.float64) @ T[:3, :3].T + T[:3, 3]), np.ascontiguousarray(T[:3, 3]))
+        )
     times = []
     for w, o in world:
         t0 = time.perf_counter()

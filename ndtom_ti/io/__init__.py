@@ -3,6 +3,7 @@
 No mapping here; :func:`open_recording` and :meth:`Recording.scans` are the entry
 points, the rest are the building blocks they use.
 """
+
 from __future__ import annotations
 
 from .errors import RecordingError, TransformTimeError

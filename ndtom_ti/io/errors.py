@@ -1,4 +1,5 @@
 """Exceptions of the recording-reading layer."""
+
 from __future__ import annotations
 
 

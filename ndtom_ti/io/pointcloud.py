@@ -1,4 +1,5 @@
 """Decoding of sensor_msgs/PointCloud2 and depth images into (N, 3) float32 xyz."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -24,10 +25,15 @@ def _as_bytes(data: Any) -> np.ndarray:
 
 
 def _describe_fields(fields: Any) -> str:
-    return ', '.join(
-        f"{f.name} ({_PF_NAME.get(f.datatype, f'datatype {f.datatype}')} at offset {f.offset}"
-        + (f', count {f.count}' if f.count not in (0, 1) else '') + ')'
-        for f in fields) or '(no fields)'
+    return (
+        ', '.join(
+            f"{f.name} ({_PF_NAME.get(f.datatype, f'datatype {f.datatype}')} at offset {f.offset}"
+            + (f', count {f.count}' if f.count not in (0, 1) else '')
+            + ')'
+            for f in fields
+        )
+        or '(no fields)'
+    )
 
 
 def decode_pointcloud2(msg: Any) -> np.ndarray:
@@ -45,7 +51,8 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
     if missing:
         raise RecordingError(
             f"PointCloud2 (frame {msg.header.frame_id!r}) has no {'/'.join(missing)} field; fields present: "
-            f"{_describe_fields(msg.fields)}. Only clouds with x, y, z fields can be mapped.")
+            f"{_describe_fields(msg.fields)}. Only clouds with x, y, z fields can be mapped."
+        )
     step = int(msg.point_step)
     order = '>' if msg.is_bigendian else '<'
     formats, offsets = [], []
@@ -54,12 +61,14 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
         if f.datatype not in (7, 8):
             raise RecordingError(
                 f"PointCloud2 field {n!r} has datatype {_PF_NAME.get(f.datatype, f.datatype)}; x, y, z must be "
-                f"FLOAT32 or FLOAT64. Fields present: {_describe_fields(msg.fields)}")
+                f"FLOAT32 or FLOAT64. Fields present: {_describe_fields(msg.fields)}"
+            )
         size = 4 if f.datatype == 7 else 8
         if f.offset < 0 or f.offset + size > step:
             raise RecordingError(
                 f'PointCloud2 field {n!r} at offset {f.offset} does not fit in point_step {step}; '
-                f'fields present: {_describe_fields(msg.fields)}')
+                f'fields present: {_describe_fields(msg.fields)}'
+            )
         formats.append(order + _PF_CODE[f.datatype])
         offsets.append(int(f.offset))
     h, w = int(msg.height), int(msg.width)
@@ -73,7 +82,8 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
     if data.size < need:
         raise RecordingError(
             f'PointCloud2 data is {data.size} bytes but height {h}, width {w}, point_step {step}, '
-            f'row_step {row_step} need {need}: the message is truncated')
+            f'row_step {row_step} need {need}: the message is truncated'
+        )
     dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': formats, 'offsets': offsets, 'itemsize': step})
     # strided view over the raw bytes: no copy, row padding skipped by the row stride
     pts = np.ndarray(shape=(h, w), dtype=dtype, buffer=data, strides=(row_step, step))
@@ -95,7 +105,8 @@ def camera_intrinsics(camera_info: Any) -> tuple[float, float, float, float]:
     if not (fx > 0 and fy > 0):
         raise RecordingError(
             f'CameraInfo K has fx={fx}, fy={fy}: the camera is not calibrated, so depth pixels cannot be '
-            'turned into points. Record a calibrated camera_info or use the PointCloud2 topic.')
+            'turned into points. Record a calibrated camera_info or use the PointCloud2 topic.'
+        )
     return fx, fy, cx, cy
 
 
@@ -113,7 +124,8 @@ def depth_image_to_points(msg: Any, camera_info: Any, stride: int = 1) -> np.nda
     if enc.upper() not in DEPTH_ENCODINGS:
         raise RecordingError(
             f"depth image encoding {enc!r} is not supported; expected 32FC1 (metres) or 16UC1 (millimetres). "
-            'Colour or other images cannot be mapped; use a depth or point cloud topic.')
+            'Colour or other images cannot be mapped; use a depth or point cloud topic.'
+        )
     if stride < 1:
         raise ValueError(f'stride must be >= 1, got {stride}')
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
@@ -121,7 +133,8 @@ def depth_image_to_points(msg: Any, camera_info: Any, stride: int = 1) -> np.nda
     if ci_w and ci_h and (ci_w, ci_h) != (w, h):
         raise RecordingError(
             f'CameraInfo is for {ci_w}x{ci_h} images but the depth image is {w}x{h}: the intrinsics do not '
-            'apply. Use the camera_info topic that belongs to this image.')
+            'apply. Use the camera_info topic that belongs to this image.'
+        )
     fx, fy, cx, cy = camera_intrinsics(camera_info)
     is_float = enc.upper() == '32FC1'
     item = 4 if is_float else 2

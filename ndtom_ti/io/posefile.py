@@ -1,4 +1,5 @@
 """Pose files: TUM (`t tx ty tz qx qy qz qw`) and KITTI (12 numbers: row-major 3x4 [R|t])."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -78,7 +79,8 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
     if ncols not in (_TUM_COLS, _KITTI_COLS):
         raise RecordingError(
             f'{p}:{rows[0][0]}: {ncols} columns; expected 8 (TUM: t tx ty tz qx qy qz qw) or '
-            '12 (KITTI: row-major 3x4 matrix r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz)')
+            '12 (KITTI: row-major 3x4 matrix r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz)'
+        )
     fmt = 'TUM' if ncols == _TUM_COLS else 'KITTI'
     values = np.empty((len(rows), ncols), dtype=np.float64)
     tum_stamps = np.empty(len(rows), dtype=np.int64)
@@ -104,7 +106,8 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
             i = int(bad[0])
             raise RecordingError(
                 f'{p}:{rows[i][0]}: quaternion (qx qy qz qw) = {tuple(q[i])} has norm {norms[i]:.4f}, not 1; '
-                'TUM lines are t tx ty tz qx qy qz qw')
+                'TUM lines are t tx ty tz qx qy qz qw'
+            )
         return PoseTrack.from_tq(tum_stamps, values[:, 1:4], q, source=f'{p.name} (TUM)')
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = values.reshape(-1, 3, 4)
@@ -115,7 +118,8 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
         i = int(bad[0])
         raise RecordingError(
             f'{p}:{rows[i][0]}: the 3x3 part is not a rotation (|R R^T - I| = {err[i]:.3g}, det = '
-            f'{np.linalg.det(R[i]):.3g}); KITTI lines are the row-major 3x4 matrix [R | t]')
+            f'{np.linalg.det(R[i]):.3g}); KITTI lines are the row-major 3x4 matrix [R | t]'
+        )
     # printed with few digits, R is slightly off orthonormal: project back with the SVD
     U, _, Vt = np.linalg.svd(R)
     poses[:, :3, :3] = U @ Vt
@@ -125,4 +129,3 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
     if len(st) != len(rows):
         raise RecordingError(f'{p} has {len(rows)} poses but the stamps have {len(st)} entries; they must match')
     return PoseTrack(st, poses, source=f'{p.name} (KITTI)')
-

@@ -1,4 +1,5 @@
 """TF tree built from tf2_msgs/TFMessage messages (/tf and /tf_static)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,10 +30,11 @@ def _fmt_s(ns: int) -> str:
 @dataclass(frozen=True)
 class TfEdge:
     """One parent->child edge of the tree, as recorded."""
+
     parent: str
     child: str
     static: bool
-    count: int          # transforms recorded for this edge
+    count: int  # transforms recorded for this edge
     first_ns: int | None  # None for static edges (valid for all time)
     last_ns: int | None
 
@@ -49,7 +51,7 @@ class TfBuffer:
 
     def __init__(self) -> None:
         self._parent: dict[str, str] = {}
-        self._static: dict[str, np.ndarray] = {}            # child -> T_parent_child
+        self._static: dict[str, np.ndarray] = {}  # child -> T_parent_child
         self._samples: dict[str, list[tuple[int, tuple[float, ...], tuple[float, ...]]]] = {}
         self._tracks: dict[str, PoseTrack] = {}
         self._static_count: dict[str, int] = {}
@@ -57,8 +59,15 @@ class TfBuffer:
         self._noted: set[tuple[str, str, str]] = set()
 
     # ------------------------------------------------------------------ building
-    def add(self, parent: str, child: str, stamp: int, translation: tuple[float, float, float],
-            rotation: tuple[float, float, float, float], static: bool = False) -> None:
+    def add(
+        self,
+        parent: str,
+        child: str,
+        stamp: int,
+        translation: tuple[float, float, float],
+        rotation: tuple[float, float, float, float],
+        static: bool = False,
+    ) -> None:
         """Add one transform T_parent_child (quaternion x, y, z, w)."""
         parent, child = normalize_frame(parent), normalize_frame(child)
         if not parent or not child or parent == child:
@@ -66,9 +75,11 @@ class TfBuffer:
             return
         known = self._parent.get(child)
         if known is not None and known != parent:
-            self._note(('reparent', child, parent),
-                       f"frame {child!r} has parent {known!r} but a transform also names {parent!r} as its "
-                       f"parent; kept {known!r}")
+            self._note(
+                ('reparent', child, parent),
+                f"frame {child!r} has parent {known!r} but a transform also names {parent!r} as its "
+                f"parent; kept {known!r}",
+            )
             return
         if known is None and self._creates_cycle(parent, child):
             self._note(('cycle', parent, child), f'ignored {parent!r} -> {child!r}: it would close a loop in the tree')
@@ -81,15 +92,23 @@ class TfBuffer:
             self._samples.setdefault(child, []).append((int(stamp), tuple(translation), tuple(rotation)))
             self._tracks.pop(child, None)
         if child in self._static and child in self._samples:
-            self._note(('both', parent, child),
-                       f'{parent} -> {child} is on both /tf_static and /tf; using the static transform')
+            self._note(
+                ('both', parent, child),
+                f'{parent} -> {child} is on both /tf_static and /tf; using the static transform',
+            )
 
     def add_message(self, msg: Any, static: bool) -> None:
         """Add every transform of a tf2_msgs/TFMessage (or ROS1 tf/tfMessage)."""
         for tr in msg.transforms:
             v, q = tr.transform.translation, tr.transform.rotation
-            self.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header.stamp),
-                     (v.x, v.y, v.z), (q.x, q.y, q.z, q.w), static)
+            self.add(
+                tr.header.frame_id,
+                tr.child_frame_id,
+                stamp_ns(tr.header.stamp),
+                (v.x, v.y, v.z),
+                (q.x, q.y, q.z, q.w),
+                static,
+            )
 
     def _creates_cycle(self, parent: str, child: str) -> bool:
         f: str | None = parent
@@ -155,7 +174,8 @@ class TfBuffer:
         if missing and target != source:
             raise RecordingError(
                 f"frame {missing[0]!r} is not in the TF tree; frames that exist: "
-                f"{', '.join(self.frames()) or '(none: the recording has no /tf or /tf_static)'}")
+                f"{', '.join(self.frames()) or '(none: the recording has no /tf or /tf_static)'}"
+            )
         up_s = self._ancestors(source)
         up_t = self._ancestors(target)
         common = next((f for f in up_s if f in set(up_t)), None)
@@ -163,8 +183,9 @@ class TfBuffer:
             raise RecordingError(
                 f"frames {target!r} and {source!r} are not connected by TF: {target!r} is in the tree rooted at "
                 f"{up_t[-1]!r}, {source!r} in the tree rooted at {up_s[-1]!r}; tree (child -> parent): "
-                + ', '.join(f'{c} -> {p}' for c, p in self.tree().items()))
-        return up_s[:up_s.index(common) + 1], up_t[:up_t.index(common) + 1]
+                + ', '.join(f'{c} -> {p}' for c, p in self.tree().items())
+            )
+        return up_s[: up_s.index(common) + 1], up_t[: up_t.index(common) + 1]
 
     def chain_is_static(self, target: str, source: str) -> bool:
         """True when every edge between the two frames is static (a constant transform)."""
@@ -193,8 +214,9 @@ class TfBuffer:
         tr = self._tracks.get(child)
         if tr is None:
             s = self._samples[child]
-            tr = PoseTrack.from_tq([x[0] for x in s], [x[1] for x in s], [x[2] for x in s],
-                                   source=f'{self._parent[child]} -> {child}')
+            tr = PoseTrack.from_tq(
+                [x[0] for x in s], [x[1] for x in s], [x[2] for x in s], source=f'{self._parent[child]} -> {child}'
+            )
             self._tracks[child] = tr
         return tr
 
@@ -211,7 +233,8 @@ class TfBuffer:
             raise TransformTimeError(
                 f'transform {self._parent[child]} -> {child} is not available at {_fmt_s(stamp)}: that is '
                 f'{abs(gap) / 1e9:.3f} s {where} of its {len(tr)} transforms '
-                f'({_fmt_s(tr.first_ns)} .. {_fmt_s(tr.last_ns)}; tolerance {tolerance_ns / 1e9:.3f} s)')
+                f'({_fmt_s(tr.first_ns)} .. {_fmt_s(tr.last_ns)}; tolerance {tolerance_ns / 1e9:.3f} s)'
+            )
         return T
 
     def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 Quaternions are (x, y, z, w) as in ROS messages. Poses are 4x4 float64 matrices.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -28,11 +29,14 @@ def quat_to_rot(q: Sequence[float] | np.ndarray) -> np.ndarray:
     if np.any(n < 1e-12):
         raise RecordingError('zero-length quaternion: the transform has no valid rotation')
     x, y, z, w = np.moveaxis(q / n, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def rot_to_quat(R: np.ndarray) -> np.ndarray:
@@ -45,12 +49,15 @@ def rot_to_quat(R: np.ndarray) -> np.ndarray:
     m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
     m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
     m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    cand = np.stack([
-        np.stack([m21 - m12, m02 - m20, m10 - m01, 1 + m00 + m11 + m22], -1),   # pivot w
-        np.stack([1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12], -1),   # pivot x
-        np.stack([m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20], -1),   # pivot y
-        np.stack([m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01], -1),   # pivot z
-    ], -2)
+    cand = np.stack(
+        [
+            np.stack([m21 - m12, m02 - m20, m10 - m01, 1 + m00 + m11 + m22], -1),  # pivot w
+            np.stack([1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12], -1),  # pivot x
+            np.stack([m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20], -1),  # pivot y
+            np.stack([m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01], -1),  # pivot z
+        ],
+        -2,
+    )
     diag = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
     k = np.argmax(diag, axis=-1)
     q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
@@ -100,18 +107,26 @@ class PoseTrack:
     to the i-th cloud of the topic and is never interpolated.
     """
 
-    stamps_ns: np.ndarray   # (K,) int64, strictly increasing
-    poses: np.ndarray       # (K, 4, 4) float64
+    stamps_ns: np.ndarray  # (K,) int64, strictly increasing
+    poses: np.ndarray  # (K, 4, 4) float64
 
-    def __init__(self, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike, *,
-                 by_index: bool = False, source: str = '') -> None:
+    def __init__(
+        self, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike, *, by_index: bool = False, source: str = ''
+    ) -> None:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-        self._init(np.asarray(stamps_ns, dtype=np.int64).reshape(-1), poses[:, :3, 3],
-                   rot_to_quat(poses[:, :3, :3]), poses, by_index, source)
+        self._init(
+            np.asarray(stamps_ns, dtype=np.int64).reshape(-1),
+            poses[:, :3, 3],
+            rot_to_quat(poses[:, :3, :3]),
+            poses,
+            by_index,
+            source,
+        )
 
     @classmethod
-    def from_tq(cls, stamps_ns: npt.ArrayLike, translations: npt.ArrayLike, quats: npt.ArrayLike, *,
-                source: str = '') -> PoseTrack:
+    def from_tq(
+        cls, stamps_ns: npt.ArrayLike, translations: npt.ArrayLike, quats: npt.ArrayLike, *, source: str = ''
+    ) -> PoseTrack:
         """Track from translations (K,3) and quaternions (K,4) (x, y, z, w), as stored in messages."""
         t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
         q = np.asarray(quats, dtype=np.float64).reshape(-1, 4)
@@ -127,8 +142,9 @@ class PoseTrack:
         self._init(np.asarray(stamps_ns, dtype=np.int64).reshape(-1), t, q, poses, False, source)
         return self
 
-    def _init(self, stamps: np.ndarray, t: np.ndarray, q: np.ndarray, poses: np.ndarray,
-              by_index: bool, source: str) -> None:
+    def _init(
+        self, stamps: np.ndarray, t: np.ndarray, q: np.ndarray, poses: np.ndarray, by_index: bool, source: str
+    ) -> None:
         if not (len(stamps) == len(t) == len(q) == len(poses)):
             raise ValueError(f'{len(stamps)} stamps but {len(poses)} poses')
         order = np.argsort(stamps, kind='stable')
@@ -149,8 +165,7 @@ class PoseTrack:
     def __repr__(self) -> str:
         if not len(self):
             return f'PoseTrack(empty, source={self.source!r})'
-        return (f'PoseTrack({len(self)} poses, {self.stamps_ns[0]}..{self.stamps_ns[-1]} ns, '
-                f'source={self.source!r})')
+        return f'PoseTrack({len(self)} poses, {self.stamps_ns[0]}..{self.stamps_ns[-1]} ns, source={self.source!r})'
 
     @property
     def first_ns(self) -> int:
