@@ -49,7 +49,7 @@ def main() -> None:
     a = ap.parse_args()
 
     import ndtom_ti
-    from ndtom_ti import sweep
+    from ndtom_ti.evaluation import sweep
 
     arch = ndtom_ti.init(a.arch, pin_threads=True)  # as the ndtom command runs
     scans = bag_scans(a.bag, a.scans) if a.bag else hall_scans(a.scans)

@@ -8,8 +8,9 @@ import os as _os
 # Taichi prints a version banner on import; a mapping library should not.
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
-from . import metrics as metrics
 from .config import MapConfig as MapConfig
+from .evaluation import metrics as metrics
+from .evaluation import quality as quality
 from .kernels.layout import Layout as Layout
 from .map import NdtOmMap as NdtOmMap
 from .map import ScanReport as ScanReport
@@ -33,4 +34,5 @@ __all__ = [
     "current_arch",
     "init",
     "metrics",
+    "quality",
 ]

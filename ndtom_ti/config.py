@@ -112,3 +112,16 @@ class MapConfig:
         if d.get("max_range", 0.0) is None:
             d["max_range"] = math.inf
         return cls(**d)
+
+
+def check_resolution(resolution: object, name: str = "resolution") -> float:
+    """``resolution`` as a float of metres: a TypeError for anything but a real number
+    (bools included), a ValueError for one that is not finite and positive. ``name`` is
+    how the caller's user knows the value (e.g. ``-r/--resolution``). The one check of
+    every resolution the package takes."""
+    if isinstance(resolution, bool) or not isinstance(resolution, numbers.Real):
+        raise TypeError(f"{name} must be a number of metres, got {type(resolution).__name__}")
+    value = float(resolution)
+    if not (math.isfinite(value) and value > 0.0):
+        raise ValueError(f"{name} must be a positive number of metres, got {value}")
+    return value

@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Box", "DemoScan", "Scene", "ground_truth_check", "make_scans"]
+from .scan import Scan
+
+__all__ = ["Box", "Scene", "ground_truth_check", "make_scans"]
 
 
 @dataclass(frozen=True)
@@ -108,14 +110,6 @@ class Scene:
         return d
 
 
-@dataclass
-class DemoScan:
-    points: np.ndarray  # (N, 3) float32, sensor frame
-    T_world_sensor: np.ndarray  # (4, 4)
-    stamp_ns: int
-    index: int
-
-
 def _rot_z(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -146,7 +140,7 @@ def make_scans(
     seed: int = 0,
     rings: int = 32,
     per_ring: int = 600,
-) -> list[DemoScan]:
+) -> list[Scan]:
     """The demo's scans (about 16k points each with the defaults), deterministic."""
     scene = scene or Scene()
     dirs_s = ray_directions(rings, per_ring)
@@ -159,7 +153,7 @@ def make_scans(
         ok = np.isfinite(r)
         r = r[ok] + rng.normal(0.0, noise, ok.sum())
         pts = (dirs_s[ok] * r[:, None]).astype(np.float32)
-        out.append(DemoScan(pts, T, 1_700_000_000 * 10**9 + i * 10**8, i))
+        out.append(Scan(pts, T, stamp_ns=1_700_000_000 * 10**9 + i * 10**8, index=i))
     return out
 
 

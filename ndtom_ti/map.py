@@ -15,7 +15,7 @@ import numpy as np
 
 from . import runtime
 from .cellkeys import count_distinct, lex_order, pack
-from .config import MapConfig
+from .config import MapConfig, check_resolution
 from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES, Layout
 from .kernels.ndt import (
     C_BLOCK_CELLS,
@@ -220,11 +220,7 @@ class NdtOmMap:
                  "logodds_max": logodds_max, "min_points": min_points, "min_range": min_range,
                  "max_range": max_range, "max_range_mode": max_range_mode, "n_max": n_max}
         options = {**{k: v for k, v in given.items() if v is not None}, **options}
-        if isinstance(resolution, bool) or not isinstance(resolution, (int, float, np.floating, np.integer)):
-            raise TypeError(f"resolution must be a number of metres, got {type(resolution).__name__}")
-        resolution = float(resolution)
-        if not (math.isfinite(resolution) and resolution > 0.0):
-            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        resolution = check_resolution(resolution)
         if config is not None and options:
             raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
         if options:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, NoReturn, TypeGuard
 import numpy as np
 
 from .atomic import atomic_write, check_target
-from .config import MapConfig
+from .config import MapConfig, check_resolution
 
 if TYPE_CHECKING:
     from .map import NdtOmMap
@@ -255,9 +255,10 @@ def _check_header(path: Path, header: dict) -> None:
     for key in ("scans_inserted", "points_inserted"):
         if not _is_int(header.get(key)) or header[key] < 0:
             bad(f"{key} must be a non-negative integer, got {header.get(key)!r}")
-    res = header.get("resolution")
-    if isinstance(res, bool) or not isinstance(res, (int, float)) or not (math.isfinite(res) and res > 0):
-        bad(f"resolution must be a positive number of metres, got {res!r}")
+    try:
+        check_resolution(header.get("resolution"))
+    except (TypeError, ValueError) as exc:
+        bad(str(exc))
     if not isinstance(header.get("occupancy"), bool):
         bad(f"occupancy must be true or false, got {header.get('occupancy')!r}")
     if not isinstance(header.get("config"), dict):

@@ -44,9 +44,11 @@ from typing import Any
 
 import numpy as np
 
-from .config import MapConfig
+from .config import MapConfig, check_resolution
+from .exitcodes import signal_exit_code
 from .map import NdtOmMap, ScanReport
 from .runtime import MapMemoryError
+from .scan import scan_parts
 
 __all__ = ["Interrupted", "MappingSummary", "StopSignals", "config_with_ranges", "load_config_file", "map_recording",
            "map_scans", "stop_signals", "version"]
@@ -252,7 +254,7 @@ class StopSignals:
     @property
     def exit_code(self) -> int:
         """128 + the first signal's number (130 for Ctrl-C, 143 for SIGTERM)."""
-        return 128 + int(self.signum or signal.SIGINT)
+        return signal_exit_code(self.signum or signal.SIGINT)
 
     def say(self, text: str) -> None:
         if self._say is not None:
@@ -373,7 +375,7 @@ def _run(
                     break
                 if sig.count:
                     break
-                points, T = (scan.points, scan.T_world_sensor) if hasattr(scan, "points") else scan
+                points, T = scan_parts(scan)
                 try:
                     rep = m.insert_scan(points, T)
                 except MapMemoryError as exc:
@@ -527,10 +529,7 @@ def map_recording(
     """
     from .io import open_recording
 
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, float)) or not (
-        math.isfinite(resolution) and resolution > 0
-    ):
-        raise ValueError(f"resolution must be a positive number of metres, got {resolution!r}")
+    resolution = check_resolution(resolution)
     if every_distance is not None and every > 1:
         raise ValueError("give either every (keep every N-th cloud) or every_distance, not both")
     cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)

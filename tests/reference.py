@@ -57,7 +57,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from ndtom_ti.metrics import batch_ndt
+from ndtom_ti.evaluation.metrics import batch_ndt
 
 __all__ = [
     "ray_cells",
@@ -207,7 +207,7 @@ def endpoint_counts(
 def batch_stats(points: np.ndarray, r: float) -> dict:
     """Per-cell ``n``, ``mean``, ``cov`` of all points (every occupied cell, ``n >= 1``).
 
-    Thin wrapper over :func:`ndtom_ti.metrics.batch_ndt` with ``min_points=1``: dict with
+    Thin wrapper over :func:`ndtom_ti.evaluation.metrics.batch_ndt` with ``min_points=1``: dict with
     ``index`` (K, 3) int64 (lexicographic), ``n`` (K,), ``mean`` (K, 3), ``cov`` (K, 3, 3)
     (zero for ``n == 1``).
     """

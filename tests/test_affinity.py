@@ -86,8 +86,9 @@ def test_the_command_pins_unless_told_not_to(option, expect):
     if len(_cpus()) < 2:
         pytest.skip("one CPU: nothing to pin")
     code = (
-        "import sys; from ndtom_ti import cli, runtime; cli._main(pin_threads=sys.argv[1] == '--pin-threads'); "
-        "cli._init(cli.Arch.cpu); print(len(runtime.pinned_threads()))"
+        "import sys; from ndtom_ti import runtime; from ndtom_ti.cli import common, root; "
+        "root._main(pin_threads=sys.argv[1] == '--pin-threads'); "
+        "common.init_taichi(common.Arch.cpu); print(len(runtime.pinned_threads()))"
     )
     environ = {k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"}
     out = subprocess.run([sys.executable, "-c", code, option], env=environ, capture_output=True, text=True, check=True)

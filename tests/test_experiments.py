@@ -1,5 +1,5 @@
-"""The paper's evaluation (ndtom_ti.experiments) on small inputs, and the error-refinement
-baseline (ndtom_ti.er_baseline).
+"""The paper's evaluation (ndtom_ti.evaluation) on small inputs, and the error-refinement
+baseline (ndtom_ti.evaluation.er_baseline).
 
 Synthetic data: simworld halls of 5 scans 1 s apart (stride 10) at 0.5 m, static and
 dynamic (same poses, same ray pattern and noise: the static hall is the control).
@@ -17,10 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, SIMWORLD
+from typer.testing import CliRunner
 
-from ndtom_ti import experiments as ex
-from ndtom_ti.er_baseline import UPDATE_RULE, ErrorRefinementMap
-from ndtom_ti.metrics import batch_ndt, mean_l2_score
+from ndtom_ti import evaluation as ex
+from ndtom_ti.cli import app
+from ndtom_ti.evaluation.er_baseline import UPDATE_RULE, ErrorRefinementMap
+from ndtom_ti.evaluation.metrics import batch_ndt, mean_l2_score
+from ndtom_ti.evaluation.sources import make_simworld
 
 RES = 0.5
 N_SCANS = 5
@@ -53,7 +56,7 @@ def static_run(tmp_path_factory):
 @pytest.fixture(scope="module")
 def dynamic_npz(tmp_path_factory):
     need_simworld()
-    return ex.make_simworld(tmp_path_factory.mktemp("sim_dyn"), n_scans=N_SCANS, stride=10, tools_dir=SIMWORLD.parent)
+    return make_simworld(tmp_path_factory.mktemp("sim_dyn"), n_scans=N_SCANS, stride=10, tools_dir=SIMWORLD.parent)
 
 
 @pytest.fixture(scope="module")
@@ -267,26 +270,11 @@ def test_tum_rcu_equals_batch(tmp_path):
     assert s["ndtom_vs_batch"]["min_similarity_shared_same_n"] >= 0.999
 
 
-def test_main_prints_summary(dynamic_npz, tmp_path, capsys):
-    rc = ex.main(
-        [
-            str(dynamic_npz),
-            "-r",
-            "1.0",
-            "--out",
-            str(tmp_path),
-            "--max-scans",
-            "2",
-            "--every",
-            "2",
-            "--no-plots",
-            "-q",
-            "--coarsen",
-            "2",
-        ]
-    )
-    assert rc == 0
-    text = capsys.readouterr().out
+def test_command_prints_summary(dynamic_npz, tmp_path):
+    res = CliRunner().invoke(app, ["experiments", str(dynamic_npz), "-r", "1.0", "--out", str(tmp_path), "--max-scans",
+                                   "2", "--every", "2", "--no-plots", "--coarsen", "2"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    text = res.output
     assert "Fig. 1 score vs batch" in text and "Fig. 4b" in text and "Fig. 4d: 1 m -> 2 m" in text
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["scans"] == 2 and s["fig4d"]["factor"] == 2 and s["fig5"] is None

@@ -77,8 +77,12 @@ def test_no_pose_hint_names_options_not_parameters(bags, tmp_path: Path) -> None
 
 def test_experiments_names_its_simworld_option(tmp_path: Path) -> None:
     r = run("experiments", "sim:static", "-r", "0.4", "--simworld", tmp_path / "none", "--out", tmp_path / "ex")
-    assert r.exit_code == 2 and "--simworld PATH" in r.output and "NDTOM_SHARED" in r.output, r.output
+    assert r.exit_code == 2 and "--simworld PATH" in r.output and str(tmp_path / "none") in r.output, r.output
     assert "tools_dir" not in r.output and not (tmp_path / "ex").exists()
+    # The generator is not part of the package, which looks for it nowhere (not in ../shared either).
+    r = run("experiments", "sim:static", "-r", "0.4", "--out", tmp_path / "ex")
+    assert r.exit_code == 2 and "--simworld PATH" in r.output and "not part of ndtom_ti" in r.output, r.output
+    assert "shared" not in r.output and not (tmp_path / "ex").exists()
 
 
 def test_no_taichi_start_line(tmp_path: Path) -> None:

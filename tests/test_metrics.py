@@ -1,4 +1,4 @@
-"""Tests of ndtom_ti.metrics (batch NDT, L2 similarity, mean L2 score) and of the ray /
+"""Tests of ndtom_ti.evaluation.metrics (batch NDT, L2 similarity, mean L2 score) and of the ray /
 occupancy references in tests/reference.py. numpy only, no Taichi."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from tests.reference import (  # noqa: E402
     ray_pass_counts,
 )
 
-from ndtom_ti.metrics import (  # noqa: E402
+from ndtom_ti.evaluation.metrics import (  # noqa: E402
     ZERO_COV_FLOOR,
     batch_ndt,
     cell_index,

@@ -125,12 +125,12 @@ def test_install_hint_outside_a_repository(monkeypatch) -> None:
 
 
 def test_run_experiments_checks_matplotlib_before_reading(monkeypatch, tmp_path: Path) -> None:
-    from ndtom_ti import experiments
+    from ndtom_ti.evaluation import run_experiments, sources
 
     monkeypatch.setattr(extras, "available", lambda name: name != "matplotlib")
     read = []
-    monkeypatch.setattr(experiments, "load_scans", lambda *a, **k: read.append(1))
+    monkeypatch.setattr(sources, "load_scans", lambda *a, **k: read.append(1))
     scans = [(np.zeros((10, 3)), np.eye(4))]
     with pytest.raises(extras.ExtraMissingError, match=r"plots=False skips them.*extra \[bench\].*pip install"):
-        experiments.run_experiments(scans, 0.5, tmp_path / "ex")
+        run_experiments(scans, 0.5, tmp_path / "ex")
     assert not read

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ndtom_ti import sweep
+from ndtom_ti.evaluation import sweep
 from ndtom_ti.cli import app
 
 

@@ -1,9 +1,9 @@
 """What ``ndtom view`` (and a live-mapping command) call; the Typer CLI stays in ndtom_ti.cli.
 
-Exit codes follow the CLI's: 0 done (Ctrl-C is the normal way to close the viewer);
-1 failed (viser missing, the map could not be drawn, a snapshot that could not be
-written); 2 bad input (missing or corrupt map file, host that cannot be listened on,
-snapshot folder missing); 130 live mapping interrupted (what was mapped is saved).
+Exit codes are the command's (:mod:`ndtom_ti.exitcodes`): 0 done (Ctrl-C is the normal
+way to close the viewer); 1 failed (viser missing, the map could not be drawn, a snapshot
+that could not be written); 2 bad input (missing or corrupt map file, host that cannot be
+listened on, snapshot folder missing); 130 live mapping interrupted (what was mapped is saved).
 """
 
 from __future__ import annotations
@@ -19,14 +19,11 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+
 from ._deps import ViewerNotInstalledError, require_viser
 
 __all__ = ["live_command", "live_demo_command", "live_recording_command", "view_command"]
-
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
 
 
 def _error(message: str, hint: str | None = None) -> None:

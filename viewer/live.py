@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ndtom_ti.scan import scan_parts
+
 from .geometry import cap_rows
 
 if TYPE_CHECKING:
@@ -35,18 +37,6 @@ if TYPE_CHECKING:
     from .app import MapViewer
 
 __all__ = ["LiveMapper", "scan_parts"]
-
-
-def scan_parts(item: Any) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N, 3), T_world_sensor (4, 4)) of a scan object or a (points, T) pair."""
-    if hasattr(item, "points") and hasattr(item, "T_world_sensor"):
-        return np.asarray(item.points), np.asarray(item.T_world_sensor, np.float64)
-    if isinstance(item, (tuple, list)) and len(item) == 2:
-        return np.asarray(item[0]), np.asarray(item[1], np.float64)
-    raise TypeError(
-        "each scan must have .points (N, 3) and .T_world_sensor (4, 4), or be a (points, T_world_sensor) "
-        f"pair; got {type(item).__name__}"
-    )
 
 
 class LiveMapper:

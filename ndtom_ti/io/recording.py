@@ -15,6 +15,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
+from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
 from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points
 from .posefile import load_pose_file
@@ -94,15 +95,6 @@ class RecordingInfo:
     pose_source: str | None             # what scans() uses without pose options
     pose_error: str | None              # why scans() without options would fail
     notes: list[str] = field(default_factory=list)
-
-
-@dataclass
-class Scan:
-    points: np.ndarray        # (N, 3) float32 in the sensor frame, NaNs kept
-    T_world_sensor: np.ndarray  # (4, 4) float64
-    stamp_ns: int             # header stamp of the cloud
-    frame_id: str
-    index: int                # index of the cloud in its topic (0-based, all clouds counted)
 
 
 # ---------------------------------------------------------------------------- pose providers

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config import check_resolution
+
 __all__ = [
     "batch_ndt",
     "cell_index",
@@ -94,9 +96,7 @@ def batch_ndt(points: np.ndarray, resolution: float, min_points: int = 3) -> dic
         ``cov``   (K, 3, 3) float64, symmetric sample covariances;
         ``n``     (K,) int64, point counts.
     """
-    r = np.float64(resolution)
-    if not (np.isfinite(r) and r > 0):
-        raise ValueError(f"resolution must be a positive finite number, got {resolution!r}")
+    r = np.float64(check_resolution(resolution))
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if pts.shape[0] == 0:

@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cellkeys import group, isin_rows, pack, unpack
-from .config import MapConfig
-from .map import NdtOmMap
+from ..cellkeys import group, isin_rows, pack, unpack
+from ..config import MapConfig
+from ..map import NdtOmMap
 from .metrics import batch_ndt
 
 MIN_DYNAMIC_POINTS = 3

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from ..config import check_resolution
+
 __all__ = ["UPDATE_RULE", "ErrorRefinementMap"]
 
 UPDATE_RULE = (
@@ -72,9 +74,7 @@ class ErrorRefinementMap:
     """Online error-refinement NDT map (see the module docstring for the exact rule)."""
 
     def __init__(self, resolution: float, *, eps_min: float = 0.05, min_points: int = 3):
-        resolution = float(resolution)
-        if not (np.isfinite(resolution) and resolution > 0):
-            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        resolution = check_resolution(resolution)
         if not 0.0 < eps_min <= 1.0:
             raise ValueError(f"eps_min must be in (0, 1], got {eps_min}")
         self.resolution = resolution

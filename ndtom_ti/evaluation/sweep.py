@@ -4,20 +4,23 @@ OctoMap on the same world-frame points and origins (the paper's Fig. 5)."""
 from __future__ import annotations
 
 import csv
-import gc
 import math
 import platform
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from . import runtime
-from .map import NdtOmMap, as_pose
+from .. import runtime
+from ..config import check_resolution
+from ..map import NdtOmMap, as_pose
+from ..scan import scan_parts
 
-Scan = tuple[np.ndarray, np.ndarray]  # (points (N,3) sensor frame, T_world_sensor (4,4))
+# A scan inside a sweep: (points (N, 3) float32 sensor frame, T_world_sensor (4, 4) float64).
+_Pair = tuple[np.ndarray, np.ndarray]
 
 
 @dataclass
@@ -42,7 +45,7 @@ def _sync() -> None:
     ti.sync()
 
 
-def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[Scan]) -> tuple[list[float], list]:
+def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[_Pair]) -> tuple[list[float], list]:
     times, reports = [], []
     for pts, T in scans:
         _sync()
@@ -54,8 +57,16 @@ def _time_scans(fn: Callable[[np.ndarray, np.ndarray], object], scans: Sequence[
     return times, reports
 
 
-def _row(mapper: str, res: float, scans: Sequence[Scan], times: list[float], visits: int, known: int | None,
-         gauss: int | None, mem: int) -> SweepRow:
+def _row(
+    mapper: str,
+    res: float,
+    scans: Sequence[_Pair],
+    times: list[float],
+    visits: int,
+    known: int | None,
+    gauss: int | None,
+    mem: int,
+) -> SweepRow:
     t = np.asarray(times)
     pts = sum(len(p) for p, _ in scans)
     return SweepRow(
@@ -82,7 +93,7 @@ def octomap_available() -> bool:
 
 
 def run_sweep(
-    scans: Sequence[Scan],
+    scans: Sequence[Any],
     resolutions: Sequence[float],
     *,
     floor: bool = True,
@@ -91,7 +102,8 @@ def run_sweep(
     max_range: float = -1.0,
     progress: Callable[[str], None] | None = None,
 ) -> list[SweepRow]:
-    """Time every resolution on the same scans. Before timing, ``warmup`` scans go into
+    """Time every resolution on the same scans (:class:`~ndtom_ti.scan.Scan` objects or
+    (points, T_world_sensor) pairs). Before timing, ``warmup`` scans go into
     a throwaway map so that kernels are compiled. Returns one row per mapper and
     resolution; ``ratio_to_ndtom`` compares medians within this run."""
     if not scans:
@@ -99,53 +111,50 @@ def run_sweep(
     if baseline not in (None, "octomap"):
         raise ValueError(f"unknown baseline {baseline!r}; the supported baseline is 'octomap'")
     if baseline == "octomap" and not octomap_available():
-        from .extras import require
+        from ..extras import require
 
         require("pyoctomap", "the OctoMap baseline")
-    scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in scans]
+    scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in map(scan_parts, scans)]
     say = progress or (lambda s: None)
     rows: list[SweepRow] = []
-    for res in resolutions:
+    for res in [check_resolution(r) for r in resolutions]:
         say(f"{res:g} m: warm-up")
-        w = NdtOmMap(res)
-        for pts, T in scans[:warmup]:
-            w.insert_scan(pts, T)
-            w.traverse_only(pts, T)
-        del w
-        gc.collect()
+        with NdtOmMap(res) as w:  # each map gives its slot back at once
+            for pts, T in scans[:warmup]:
+                w.insert_scan(pts, T)
+                w.traverse_only(pts, T)
 
         say(f"{res:g} m: NDT-OM")
-        m = NdtOmMap(res)
-        times, reps = _time_scans(m.insert_scan, scans)
-        visits = sum(r.ray_cell_visits for r in reps)
-        full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
+        with NdtOmMap(res) as m:
+            times, reps = _time_scans(m.insert_scan, scans)
+            visits = sum(r.ray_cell_visits for r in reps)
+            full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
         rows.append(full)
-        del m
-        gc.collect()
         if floor:
             say(f"{res:g} m: floor")
-            f = NdtOmMap(res)
-            times, reps = _time_scans(f.traverse_only, scans)
-            r = _row("ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None,
-                     f.memory_bytes())
+            with NdtOmMap(res) as f:
+                times, reps = _time_scans(f.traverse_only, scans)
+                r = _row(
+                    "ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None, f.memory_bytes()
+                )
             r.ratio_to_ndtom = r.ms_median / full.ms_median
             rows.append(r)
-            del f
-            gc.collect()
         if baseline == "octomap":
             say(f"{res:g} m: OctoMap")
             rows.append(_octomap_row(scans, res, full, max_range))
     return rows
 
 
-def _octomap_row(scans: Sequence[Scan], res: float, full: SweepRow, max_range: float) -> SweepRow:
+def _octomap_row(scans: Sequence[_Pair], res: float, full: SweepRow, max_range: float) -> SweepRow:
     import pyoctomap
 
     tree = pyoctomap.OcTree(res)  # pyright: ignore[reportAttributeAccessIssue] (a compiled module)
     world = []
     for pts, T in scans:
         ok = np.isfinite(pts).all(axis=1)
-        world.append((np.ascontiguousarray(pts[ok].astype(np.float64) @ T[:3, :3].T + T[:3, 3]), np.ascontiguousarray(T[:3, 3])))
+        world.append(
+            (np.ascontiguousarray(pts[ok].astype(np.float64) @ T[:3, :3].T + T[:3, 3]), np.ascontiguousarray(T[:3, 3]))
+        )
     times = []
     for w, o in world:
         t0 = time.perf_counter()

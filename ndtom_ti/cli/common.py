@@ -1,0 +1,248 @@
+"""What every ``ndtom`` command shares: the console and the one-line errors with a hint
+(exit codes of :mod:`ndtom_ti.exitcodes`), the checks of options and paths, Taichi's
+start, and the small formatters of the tables."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import signal
+import tempfile
+from collections.abc import Iterator
+from enum import Enum
+from pathlib import Path
+from typing import NoReturn
+
+import typer
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from ..config import check_resolution
+from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
+from ..io import RecordingError
+from ..mapfile import MapFileError
+from ..runtime import MapMemoryError
+
+MAP_SUFFIX = ".ndtom"
+
+
+class Arch(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+class MissModel(str, Enum):
+    ndt = "ndt"
+    paper = "paper"
+
+
+# ---------------------------------------------------------------------------- output helpers
+def console_out() -> Console:
+    return Console(highlight=False)
+
+
+def console_err() -> Console:
+    return Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def fail(message: str, hint: str | None = None, code: int = EXIT_USAGE) -> NoReturn:
+    console = console_err()
+    console.print(Text.assemble(("Error: ", "bold red"), (message, "red")))
+    if hint:
+        console.print(Text.assemble(("Hint: ", "bold"), hint))
+    raise typer.Exit(code)
+
+
+def need_extra(module: str, purpose: str, code: int = EXIT_FAILURE) -> None:
+    """Stop before any work when an optional package is missing, naming its extra and
+    how to install it."""
+    from ..extras import available, extra_of, install_hint, missing_message
+
+    if not available(module):
+        fail(missing_message(module, purpose), f"install it with: {install_hint(extra_of(module))}", code)
+
+
+def without_extra(module: str, skipped: str) -> bool:
+    """True (after a note saying what is skipped and how to get it) when ``module`` is missing."""
+    from ..extras import available, extra_of, install_hint
+
+    if available(module):
+        return False
+    console_err().print(
+        Text(
+            f"note: {module} is not installed (extra [{extra_of(module)}]): {skipped}; to get it: "
+            f"{install_hint(extra_of(module))}",
+            style="yellow",
+        ),
+        soft_wrap=True,
+    )
+    return True
+
+
+MEMORY_HINT = (
+    "use a coarser resolution (-r), a smaller --max-range, fewer scans (--every, --max-scans), "
+    "or a CUDA device (--arch cuda)"
+)
+
+
+@contextlib.contextmanager
+def user_errors(*, recording: str | None = None, map_file: str | None = None) -> Iterator[None]:
+    """Turn the errors a user can cause into one red line + hint and an exit code."""
+    try:
+        yield
+    except (typer.Exit, typer.Abort, SystemExit):
+        raise
+    except RecordingError as exc:
+        fail(str(exc), recording or "`ndtom info BAG` shows the topics, TF frames and pose sources of a recording")
+    except MapFileError as exc:
+        fail(str(exc), map_file or "give a map file written by `ndtom map` or `ndtom demo`")
+    except MapMemoryError as exc:
+        fail(str(exc), MEMORY_HINT, EXIT_FAILURE)
+    except FileNotFoundError as exc:
+        fail(str(exc), map_file or "check the path")
+    except OSError as exc:
+        fail(f"{exc}", "check the path and its permissions", EXIT_FAILURE)
+    except (ValueError, TypeError) as exc:
+        fail(str(exc), "`ndtom COMMAND --help` lists the options and their ranges")
+    except KeyboardInterrupt as exc:
+        from ..pipeline import signal_name
+
+        signum = getattr(exc, "signum", signal.SIGINT)
+        fail(f"interrupted ({signal_name(signum)}); nothing was written", None, signal_exit_code(signum))
+    except Exception as exc:  # the last line of defence: no traceback for users
+        if os.environ.get("NDTOM_DEBUG"):
+            raise
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        text = lines[0] if len(lines) == 1 else (f"{lines[0]} ... {lines[-1]}" if lines else "")
+        fail(
+            f"internal error: {type(exc).__name__}: {text}",
+            "set NDTOM_DEBUG=1 to see the traceback, and please report it",
+            EXIT_FAILURE,
+        )
+
+
+def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
+    """Initialise Taichi once (its start-up line is not shown); a wrong arch is a usage
+    error. Why the CPU memory budget is below the one asked for is shown as a note."""
+    import warnings
+
+    import ndtom_ti
+
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        try:
+            used = ndtom_ti.init(arch.value, memory_limit_GB=memory_limit, pin_threads=pin_threads())
+        except RuntimeError as exc:
+            fail(str(exc), "use --arch cpu (or auto)")
+        except ValueError as exc:
+            if memory_limit is None:
+                raise
+            fail(
+                str(exc).replace("memory_limit_GB=", "--memory-limit ").replace("memory_limit_GB", "--memory-limit"),
+                "give --memory-limit in GiB, below the machine's memory",
+            )
+    for w in caught:
+        if issubclass(w.category, RuntimeWarning) and w.message is not None:
+            console_err().print(Text(f"note: {w.message}", style="dim"))
+    return used
+
+
+def check_writable(path: Path, what: str = "output") -> Path:
+    """Fail now (before any mapping) when ``path`` cannot be written."""
+    path = path.expanduser()
+    if path.is_dir():
+        fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        fail(
+            f"cannot write the {what} {path}: folder {folder} does not exist",
+            "create the folder first or choose another path with -o",
+        )
+    if not folder.is_dir():
+        fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=folder)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o")
+    if path.exists() and not path.is_file():
+        fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
+    return path
+
+
+def fmt_mib(b: float) -> str:
+    return f"{b / 2**20:.1f} MiB"
+
+
+def fmt_count(n: int) -> str:
+    return f"{n:,}"
+
+
+def fmt_secs(ns: int | None, start_ns: int | None = None) -> str:
+    """Seconds; relative to the bag start (record time) when ``start_ns`` is given and near."""
+    if ns is None:
+        return "-"
+    if start_ns is not None and abs(ns - start_ns) < 86_400 * 10**9:
+        return f"{(ns - start_ns) / 1e9:.3f}"
+    return f"{ns / 1e9:.3f} (absolute)"
+
+
+def make_table(title: str, *columns: str, header: bool = True) -> Table:
+    t = Table(title=title, show_header=header, title_justify="left")
+    for i, col in enumerate(columns):
+        t.add_column(
+            col,
+            overflow="fold",
+            style="bold" if (not header and i == 0) else None,
+            justify="right" if col in ("messages", "poses") else "left",
+        )
+    return t
+
+
+# ---------------------------------------------------------------------------- process-wide settings
+# Set by the root command (--pin-threads/--no-pin-threads) and by main() (the command runs in
+# a process of its own, not in a test runner: signal handlers may stay until it exits).
+_SETTINGS = {"pin_threads": True, "own_process": False}
+
+
+def set_pin_threads(on: bool) -> None:
+    _SETTINGS["pin_threads"] = on
+
+
+def pin_threads() -> bool:
+    """The command pins Taichi's CPU workers (affinity.py) unless --no-pin-threads or
+    NDTOM_PIN_THREADS=0 says not to."""
+    return _SETTINGS["pin_threads"] and os.environ.get("NDTOM_PIN_THREADS", "1") not in ("0", "")
+
+
+def set_own_process() -> None:
+    _SETTINGS["own_process"] = True
+
+
+def own_process() -> bool:
+    return _SETTINGS["own_process"]
+
+
+# ---------------------------------------------------------------------------- options
+def resolution_option(value: float) -> float:
+    """``-r/--resolution``, checked as every resolution is (:func:`ndtom_ti.config.check_resolution`)."""
+    return check_resolution(value, "-r/--resolution")
+
+
+def resolution_list(text: str, option: str) -> list[float]:
+    """Comma-separated resolutions of ``option`` (e.g. ``--resolutions 0.1,0.2``); a
+    ValueError naming the option for anything but positive numbers of metres."""
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"{option} must be numbers separated by commas, got {text!r}") from None
+    try:
+        if not values:
+            raise ValueError("no resolution given")
+        return [check_resolution(v, option) for v in values]
+    except ValueError:
+        raise ValueError(f"{option} must be positive numbers of metres, got {text!r}") from None

@@ -1,0 +1,285 @@
+"""``ndtom info`` (what a recording or a map file holds) and ``ndtom export`` (a map file
+-> PLY, PCD, npz, CSV, OctoMap .bt or a 2-D occupancy grid, by :mod:`ndtom_ti.export`)."""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+from rich.text import Text
+from rich.tree import Tree
+
+from .common import (
+    Arch,
+    check_writable,
+    console_err,
+    console_out,
+    fail,
+    fmt_count,
+    fmt_mib,
+    fmt_secs,
+    make_table,
+    user_errors,
+)
+from .root import app
+
+_MAGIC = b"NDTOMTI\n"  # the first bytes of a map file
+
+
+class Format(str, Enum):
+    ply = "ply"
+    pcd = "pcd"
+    npz = "npz"
+    csv = "csv"
+    bt = "bt"
+    grid = "grid"
+
+
+# ---------------------------------------------------------------------------- info
+def _info_map(path: Path) -> None:
+    from ..mapfile import read_header
+
+    h = read_header(path)
+    out = console_out()
+    t = make_table(f"Map file {path}", "", "", header=False)
+    md = h.get("metadata") or {}
+    t.add_row("format version", str(h.get("version")))
+    t.add_row("resolution", f"{h.get('resolution')} m")
+    t.add_row("occupancy", str(h.get("occupancy")))
+    t.add_row("scans inserted", fmt_count(int(h.get("scans_inserted", 0))))
+    t.add_row("points inserted", fmt_count(int(h.get("points_inserted", 0))))
+    arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
+    if "g_index" in arrays:
+        t.add_row("Gaussian records", fmt_count(arrays["g_index"][0]))
+    if "occ_index" in arrays:
+        t.add_row("known cells", fmt_count(arrays["occ_index"][0]))
+    for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
+        if key in md:
+            t.add_row(key.replace("_", " "), escape(str(md[key])))
+    # max_range is stored as null when there is no limit
+    t.add_row(
+        "config",
+        escape(
+            ", ".join(
+                f"{k}={'inf' if k == 'max_range' and v is None else v}" for k, v in (h.get("config") or {}).items()
+            )
+        ),
+    )
+    out.print(t)
+
+
+def _info_recording(path: Path) -> None:
+    from ..io import open_recording
+
+    with open_recording(path) as rec:
+        info = rec.info()
+    out = console_out()
+    head = make_table(f"Recording {info.path}", "", "", header=False)
+    head.add_row("format", f"{info.format.upper()} ({info.storage})")
+    head.add_row("messages", fmt_count(info.message_count))
+    head.add_row("duration", f"{info.duration_s:.3f} s")
+    head.add_row(
+        "start / end",
+        f"{info.start_ns / 1e9:.3f} / {info.end_ns / 1e9:.3f} s (record time; times below are seconds from the start)",
+    )
+    out.print(head)
+
+    pose_topics = {s.name for s in info.pose_sources if s.kind == "topic"}
+    topics = make_table("Topics", "topic", "type", "messages", "rate", "use")
+    for ts in info.topics:
+        if ts.name in info.cloud_frames:
+            use = f"mappable (frame {info.cloud_frames[ts.name]})"
+        elif ts.name in info.mappable_topics:
+            use = "mappable"
+        elif ts.msgtype in ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"):
+            use = "TF"
+        elif ts.name in pose_topics:
+            use = "poses"
+        else:
+            use = ""
+        rate = f"{(ts.count - 1) / info.duration_s:.1f} Hz" if ts.count > 1 and info.duration_s > 0 else "-"
+        topics.add_row(escape(ts.name), ts.msgtype, fmt_count(ts.count), rate, escape(use))
+    if not info.topics:
+        topics.add_row("(none: the recording is empty)", "", "", "", "")
+    out.print(topics)
+
+    if info.tf_frames:
+        edges = {e.child: e for e in info.tf_edges}
+        children: dict[str, list[str]] = {}
+        for child, parent in info.tf_tree.items():
+            children.setdefault(parent, []).append(child)
+        roots = [f for f in info.tf_frames if f not in info.tf_tree]
+        tree = Tree(f"TF frames ({len(info.tf_frames)})")
+
+        def add(node: Tree, frame: str) -> None:
+            for child in sorted(children.get(frame, [])):
+                e = edges.get(child)
+                if e is None:
+                    label = child
+                elif e.static:
+                    label = f"{child}  [static]"
+                else:
+                    label = (
+                        f"{child}  [{e.count} transforms, {fmt_secs(e.first_ns, info.start_ns)} .. "
+                        f"{fmt_secs(e.last_ns, info.start_ns)} s]"
+                    )
+                add(node.add(escape(label)), child)
+
+        for root in roots:
+            add(tree.add(escape(root)), root)
+        out.print(tree)
+    else:
+        out.print("TF frames: none (no /tf or /tf_static)")
+
+    ps = make_table("Pose sources", "kind", "source", "parent -> child", "poses", "time span (s)", "note")
+    for s in info.pose_sources:
+        span = (
+            "static"
+            if s.first_ns is None
+            else f"{fmt_secs(s.first_ns, info.start_ns)} .. {fmt_secs(s.last_ns, info.start_ns)}"
+        )
+        note = "constant (not a trajectory)" if s.constant and s.count > 1 else ""
+        ps.add_row(
+            s.kind,
+            escape(s.name),
+            escape(f"{s.parent_frame} -> {s.child_frame or '?'}"),
+            fmt_count(s.count),
+            span,
+            note,
+        )
+    if not info.pose_sources:
+        ps.add_row("-", "(none)", "", "", "", "")
+    out.print(ps)
+
+    m = make_table("Mapping", "", "", header=False)
+    m.add_row("mappable topics", escape(", ".join(info.mappable_topics) or "(none)"))
+    if info.default_cloud_topic:
+        m.add_row("cloud topic", escape(info.default_cloud_topic))
+    if info.pose_source:
+        m.add_row("poses", escape(info.pose_source))
+    out.print(m)
+    if info.pose_error:
+        out.print(
+            Text.assemble(("Cannot map with the defaults: ", "bold yellow"), (info.pose_error, "yellow")),
+            soft_wrap=True,
+        )
+    elif info.default_cloud_topic:
+        out.print(Text(f"Ready: ndtom map {path} -r 0.2", style="green"), soft_wrap=True)
+    for note in info.notes:
+        out.print(Text(f"note: {note}", style="dim"), soft_wrap=True)
+
+
+@app.command(short_help="What a recording (topics, TF tree, poses) or a map file holds.")
+def info(
+    path: Annotated[
+        Path,
+        typer.Argument(
+            metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.", show_default=False
+        ),
+    ],
+) -> None:
+    """Show what is in a recording: topics, types, counts, duration, the TF tree, which
+    topics can be mapped and which pose sources exist. Given a map file, show its header."""
+    with user_errors():
+        if path.is_file():
+            with path.open("rb") as fh:
+                is_map = fh.read(len(_MAGIC)) == _MAGIC
+            if is_map:
+                _info_map(path)
+                return
+        _info_recording(path)
+
+
+# ---------------------------------------------------------------------------- export
+@app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or 2-D grid.")
+def export(
+    map_file: Annotated[
+        Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.", show_default=False)
+    ],
+    fmt: Annotated[
+        Format | None,
+        typer.Option(
+            "-f",
+            "--format",
+            help="ply (Gaussian means coloured by height, with covariances), pcd (means with n and "
+            "occupancy, for PCL tools), npz (all arrays), csv (one row per Gaussian), bt (OctoMap tree of occupied and "
+            "free cells, for octovis and octomap_server), grid (2-D occupancy grid of a height band: PGM + YAML for "
+            "ROS map_server). Default: from the -o suffix (.ply .pcd .npz .csv .bt .pgm .yaml; another suffix is "
+            "refused), else ply.",
+            show_default=False,
+        ),
+    ] = None,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "-o", "--output", help="File to write. Default: MAP with the format's suffix.", show_default=False
+        ),
+    ] = None,
+    min_probability: Annotated[
+        float,
+        typer.Option(
+            help="Occupied means occupancy probability above this (and above 0.5). ply, pcd, npz, csv: export the "
+            "Gaussians above it (0: all Gaussians)."
+        ),
+    ] = 0.5,
+    z_min: Annotated[
+        float | None,
+        typer.Option(
+            help="grid: bottom of the height band (m, map frame), with --z-max. Default: the band from 0.3 m (at "
+            "least a cell) to 2 m above a floor plane fitted to the map's lowest Gaussians.",
+            show_default=False,
+        ),
+    ] = None,
+    z_max: Annotated[
+        float | None,
+        typer.Option(help="grid: top of the height band (m, map frame), with --z-min.", show_default=False),
+    ] = None,
+    arch: Annotated[
+        Arch, typer.Option(help="Unused: export runs without Taichi (kept for older scripts).", hidden=True)
+    ] = Arch.auto,
+) -> None:
+    """Export a map: its Gaussians (ply, pcd, npz, csv), its cells as an OctoMap tree (bt),
+    or a 2-D occupancy grid of a height band (grid: PGM + YAML as ROS map_server reads)."""
+    from ..export import DEFAULT_SUFFIX, export_file, format_for, grid_paths
+
+    with user_errors(map_file="give a map file written by `ndtom map` or `ndtom demo`"):
+        try:
+            fmt_name = format_for(output, fmt.value if fmt is not None else None)
+        except ValueError as exc:
+            fail(str(exc), "name the format with --format, or use its suffix: e.g. -o map.bt, -o map.pgm")
+        if not (0.0 <= min_probability < 1.0):
+            raise ValueError(f"--min-probability must be in [0, 1), got {min_probability}")
+        for name, z in (("--z-min", z_min), ("--z-max", z_max)):
+            if z is not None and not math.isfinite(z):
+                raise ValueError(f"{name} must be a finite height in metres, got {z}")
+        if (z_min is not None or z_max is not None) and fmt_name != "grid":
+            raise ValueError("--z-min/--z-max choose the height band of --format grid only")
+        if (z_min is None) != (z_max is None):
+            raise ValueError("give --z-min and --z-max together (or neither: 0.3 to 2 m above the floor)")
+        if z_min is not None and z_max is not None and not z_min < z_max:
+            raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
+        if not map_file.exists():
+            fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
+        if map_file.is_dir():
+            fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
+        out_path = check_writable(
+            output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]), f"{fmt_name} file"
+        )
+        for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
+            if t.resolve() == map_file.resolve():
+                fail(f"the output {t} is the map file itself", "choose another path with -o")
+        from ..snapshot import MapSnapshot
+
+        # a snapshot: numpy only, no map slot and no Taichi (--arch has nothing to choose)
+        done = export_file(
+            MapSnapshot.load(map_file), out_path, fmt_name, min_probability=min_probability, z_min=z_min, z_max=z_max
+        )
+        size = sum(p.stat().st_size for p in done.paths)
+        size_text = fmt_mib(size) if size >= 2**20 else f"{size / 1024:.1f} KiB"
+        console_out().print(Text(f"Exported {done.summary} ({fmt_name}, {size_text})", style="green"), soft_wrap=True)
+        for note in done.notes:
+            console_err().print(Text(f"note: {note}", style="dim"), soft_wrap=True)

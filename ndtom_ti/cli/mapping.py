@@ -1,0 +1,529 @@
+"""``ndtom map`` (a recording -> a map file) and ``ndtom demo`` (the built-in room -> a
+map file, checked against its ground truth): options, the progress bar, the summary
+table, and the save after a complete or stopped run. The loop is
+:mod:`ndtom_ti.pipeline`'s."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+)
+from rich.table import Table
+from rich.text import Text
+
+from ..exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from .common import (
+    MAP_SUFFIX,
+    Arch,
+    MissModel,
+    check_writable,
+    console_err,
+    console_out,
+    fail,
+    fmt_count,
+    fmt_mib,
+    init_taichi,
+    make_table,
+    need_extra,
+    own_process,
+    resolution_option,
+    user_errors,
+)
+from .root import app
+
+
+# ---------------------------------------------------------------------------- map
+def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
+    """The error and hint of a scan the memory budget refused, in `ndtom map`'s options."""
+    from .. import hostpool, runtime
+
+    budget = runtime.pool_limit() / 2**30
+    scan = summary.scans_used + 1
+    error = (
+        f"scan {scan} was refused: it could take Taichi's memory pool past its {budget:.2f} GiB budget "
+        f"(--memory-limit); nothing of it was mapped"
+    )
+    ways = []
+    note = runtime.pool_note()
+    if runtime.current_arch() == "cpu" and note is None:
+        most = 0.8 * hostpool.physical_memory() / 2**30
+        if most > budget * 1.1:
+            ways.append(
+                f"a larger --memory-limit (this machine has {hostpool.physical_memory() / 2**30:.0f} GiB; "
+                f"e.g. --memory-limit {most:.0f})"
+            )
+    elif note is not None:
+        ways.append(f"(--memory-limit cannot go past ~0.94 GiB here: {note})")
+    ways += [
+        f"a coarser resolution (-r {2 * summary.resolution:g})",
+        "a smaller --max-range (long rays at a fine resolution touch the most cells)",
+    ]
+    if runtime.current_arch() == "cpu":
+        ways.append("a CUDA device (--arch cuda)")
+    more = " Or map a part: --max-scans N or --end T stops before it." if summary.scans_used else ""
+    return error, f"{saved} To map scan {scan}, use " + ", ".join(ways[:-1]) + f", or {ways[-1]}." + more
+
+
+def default_output(bag: Path) -> Path:
+    """The map path used without -o: the recording's name with .ndtom, in the current folder."""
+    name = bag.expanduser().resolve().name if bag.name in ("", ".", "..") else bag.name
+    stem = name.removesuffix(".bag")
+    return Path.cwd() / (stem + MAP_SUFFIX)
+
+
+class _Bar:
+    """Progress callback for the pipeline: a rich progress bar on stderr (scans, points/s)."""
+
+    def __init__(self, arch: Arch, show: bool, memory_limit: float | None = None) -> None:
+        self.arch = arch
+        self.memory_limit = memory_limit
+        self.show = show
+        self.progress: Progress | None = None
+        self.task: Any = None
+        self.arch_used = ""
+
+    def __call__(self, summary: Any, report: Any) -> None:
+        if report is None:  # the recording is fine: start Taichi and the bar
+            self.arch_used = init_taichi(self.arch, self.memory_limit)
+            err = console_err()
+            err.print(
+                Text(
+                    f"Mapping {summary.cloud_topic or summary.source} at {summary.resolution:g} m on "
+                    f"{self.arch_used}; poses: {summary.pose_source or '-'}",
+                    style="cyan",
+                )
+            )
+            if self.show:
+                self.progress = Progress(
+                    TextColumn("[progress.description]{task.description}"),
+                    BarColumn(),
+                    MofNCompleteColumn(),
+                    TextColumn("scans"),
+                    TextColumn("{task.fields[rate]}"),
+                    TimeElapsedColumn(),
+                    console=Console(stderr=True),
+                    transient=False,
+                )
+                self.task = self.progress.add_task("mapping", total=summary.scans_expected, rate="")
+                self.progress.start()
+            return
+        if self.progress is not None:
+            rate = f"{summary.points_per_second / 1e6:.2f} M points/s"
+            total = summary.scans_expected
+            if total is not None and summary.scans_used > total:
+                total = summary.scans_used
+            self.progress.update(self.task, completed=summary.scans_used, total=total, rate=rate)
+
+    def stop(self, summary: Any | None = None) -> None:
+        if self.progress is not None:
+            if summary is not None:
+                self.progress.update(
+                    self.task,
+                    completed=summary.scans_used,
+                    total=summary.scans_used if summary.complete else self.progress.tasks[0].total,
+                )
+            self.progress.stop()
+            self.progress = None
+
+
+# Why clouds were not mapped, in words (the pipeline's reasons are short keys).
+_SKIP_WORDS = {"every": "left out by --every", "every_distance": "left out by --every-distance (sensor moved less)"}
+
+
+def _skip_reason(reason: str) -> str:
+    return _SKIP_WORDS.get(reason, reason)
+
+
+def _summary_table(summary: Any, output: Path | None) -> Table:
+    t = make_table("Mapping summary", "", "", header=False)
+    t.add_row("source", escape(summary.source))
+    if summary.cloud_topic:
+        t.add_row("cloud topic", escape(f"{summary.cloud_topic} (frame {summary.frame_id})"))
+    if summary.pose_source:
+        t.add_row("poses", escape(summary.pose_source))
+        t.add_row("map frame", escape(str(summary.fixed_frame)))
+    t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
+    t.add_row("scans used", f"{fmt_count(summary.scans_used)} of {fmt_count(summary.clouds_seen)} clouds read")
+    skipped = ", ".join(f"{fmt_count(n)} {_skip_reason(reason)}" for reason, n in summary.skipped.items()) or "none"
+    t.add_row("scans skipped", escape(skipped))
+    t.add_row(
+        "points",
+        f"{fmt_count(summary.points_in)} in, {fmt_count(summary.points_used)} inserted"
+        + (f", {fmt_count(summary.free_rays)} free rays" if summary.free_rays else ""),
+    )
+    d = summary.dropped
+    t.add_row(
+        "points dropped",
+        f"{fmt_count(d['nonfinite'])} not finite, {fmt_count(d['range'])} out of range, "
+        f"{fmt_count(d['outside_grid'])} outside the grid",
+    )
+    t.add_row("Gaussians", fmt_count(summary.gaussians))
+    t.add_row("known cells", fmt_count(summary.known_cells))
+    t.add_row(
+        "memory",
+        f"{fmt_mib(summary.memory_bytes)} map; Taichi pool {fmt_mib(summary.pool_bytes)} of "
+        f"{fmt_mib(summary.pool_budget_bytes)}",
+    )
+    if summary.scan_seconds:
+        t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms"
+                  f" (first scan {summary.ms_first_scan:.0f} ms, kernels compiled)")  # fmt: skip
+    t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s)")
+    if output is not None:
+        t.add_row("map file", escape(str(output)))
+    return t
+
+
+def _finish_mapping(
+    m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: list | None = None, signals: Any = None
+) -> int:
+    """Print the summary, write the map (also after Ctrl-C, SIGTERM, a memory stop or a bad
+    scan), return the exit code. ``signals``: the command's StopSignals; from here on a
+    signal only waits for the map to be on disk."""
+    if signals is not None:
+        signals.phase = "saving"
+    bar.stop(summary)
+    out, err = console_out(), console_err()
+    wrote: Path | None = None
+    if summary.scans_used:
+        m.metadata.setdefault("options", {})["arch"] = bar.arch_used
+        try:
+            wrote = m.save(output)
+        except OSError as exc:
+            out.print(_summary_table(summary, None))
+            fail(f"cannot write the map to {output}: {exc}", "choose another path with -o", EXIT_FAILURE)
+    out.print(_summary_table(summary, wrote))
+    for row in extra_rows or []:
+        out.print(row)
+    for note in summary.skip_notes:
+        err.print(Text(f"note: {note}", style="dim"))
+    if summary.stopped == "interrupted":
+        name = signals.name if signals is not None and signals.count else "Ctrl-C"
+        n = summary.scans_used
+        msg = (
+            f"Interrupted: saved the {n} scan{'s' if n != 1 else ''} mapped so far to {wrote} ({name}; the map is "
+            "marked incomplete)"
+            if wrote
+            else f"Interrupted ({name}) before any scan was mapped; no map written"
+        )
+        err.print(Text(msg, style="bold yellow"))
+        return signals.exit_code if signals is not None and signals.count else EXIT_INTERRUPTED
+    if summary.stopped == "memory":
+        saved = (
+            f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)."
+            if wrote
+            else "Nothing was mapped; no map written."
+        )
+        error, hint = _memory_refusal(summary, saved)
+        err.print(Text.assemble(("Error: ", "bold red"), (error, "red")))
+        err.print(Text.assemble(("Hint: ", "bold"), hint))
+        return EXIT_FAILURE
+    if summary.stopped == "error":
+        err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "a scan could not be mapped", "red")))
+        saved = (
+            f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)."
+            if wrote
+            else "Nothing was mapped; no map written."
+        )
+        fix = "Check that scan's pose and cloud (`ndtom info BAG`), or end the run before it with --end or --max-scans."
+        err.print(Text.assemble(("Hint: ", "bold"), f"{saved} {fix}"))
+        return EXIT_FAILURE
+    if not summary.scans_used:
+        why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
+        fail(
+            f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
+            "check --start/--end/--every and the pose source (`ndtom info BAG`)",
+        )
+    assert wrote is not None  # scans were mapped, so the map was written (or fail above)
+    out.print(Text(f"Map written to {wrote} ({fmt_mib(wrote.stat().st_size)})", style="green"), soft_wrap=True)
+    return EXIT_OK
+
+
+@app.command("map", short_help="Map a recording (ROS1 bag or ROS2 folder) into a map file.")
+def map_(
+    bag: Annotated[
+        Path,
+        typer.Argument(
+            metavar="BAG", help="A ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap).", show_default=False
+        ),
+    ],
+    resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.", show_default=False)],
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "-o",
+            "--output",
+            help="Map file to write (atomically). Default: the recording's name with .ndtom, "
+            "in the current folder (site.bag -> ./site.ndtom).",
+            show_default=False,
+        ),
+    ] = None,
+    cloud_topic: Annotated[
+        str | None, typer.Option(help="PointCloud2 (or depth image) topic; needed only when the recording has several.")
+    ] = None,
+    fixed_frame: Annotated[
+        str | None, typer.Option(help="Frame of the map; default: the root of the cloud frame's TF tree.")
+    ] = None,
+    poses: Annotated[
+        Path | None,
+        typer.Option(help="Pose file (TUM: t tx ty tz qx qy qz qw, or KITTI 3x4 rows) giving T_world_sensor."),
+    ] = None,
+    pose_topic: Annotated[
+        str | None, typer.Option(help="Pose topic (Odometry, PoseStamped, ...) to use instead of TF.")
+    ] = None,
+    sensor_frame: Annotated[
+        bool, typer.Option("--sensor-frame", help="No poses: map every scan in the sensor frame (identity poses).")
+    ] = False,
+    every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
+    every_distance: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Keep a cloud once the sensor moved this far (m) from the last kept one."),
+    ] = None,
+    start: Annotated[float | None, typer.Option(help="Skip clouds before this time (s from the bag start).")] = None,
+    end: Annotated[float | None, typer.Option(help="Skip clouds after this time (s from the bag start).")] = None,
+    max_scans: Annotated[int | None, typer.Option(min=1, help="Stop after this many scans.")] = None,
+    max_range: Annotated[float | None, typer.Option(help="Drop points farther than this (m).")] = None,
+    min_range: Annotated[float | None, typer.Option(help="Drop points closer than this (m).")] = None,
+    occupancy: Annotated[
+        bool,
+        typer.Option(
+            "--occupancy/--no-occupancy", help="Ray-trace free space (NDT-OM); --no-occupancy: Gaussians only."
+        ),
+    ] = True,
+    miss_model: Annotated[
+        MissModel | None,
+        typer.Option(
+            "--miss-model",
+            help="How rays lower cells holding a Gaussian: ndt (by how squarely they pass it, "
+            "IJRR 2013) or paper (a constant per ray, eq. 12). Default: the config's.",
+        ),
+    ] = None,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    memory_limit: Annotated[
+        float | None,
+        typer.Option(
+            "--memory-limit",
+            metavar="GIB",
+            help="Memory budget of the map's sparse cells (GiB of Taichi's pool). "
+            "Default: half of the machine's memory on the CPU, 90% of the device pool on CUDA.",
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            help="JSON or TOML file of MapConfig options (p_occupied, p_empty, logodds_min, logodds_max, "
+            "min_points, min_range, max_range, max_range_mode, n_max, miss_model, sigma_s, eta); -r, --min-range, "
+            "--max-range, --miss-model win."
+        ),
+    ] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+    view: Annotated[
+        bool,
+        typer.Option(
+            "--view",
+            help="Map live in the browser viewer, at the recording's own rate, starting when a browser "
+            "connects; the map is saved at the end and on Ctrl-C or SIGTERM.",
+        ),
+    ] = False,
+    host: Annotated[str, typer.Option(help="Viewer host (with --view).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
+    rate: Annotated[
+        str,
+        typer.Option(
+            help="With --view: playback speed, times the recording's rate (1: as recorded, 2: twice as fast, "
+            "max: as fast as mapping goes)."
+        ),
+    ] = "1",
+    no_wait: Annotated[
+        bool, typer.Option("--no-wait", help="With --view: start mapping at once, not when the first browser connects.")
+    ] = False,
+) -> None:
+    """Map a recording into an NDT Occupancy Map file.
+
+    Prints a progress bar, then a summary (scans used and skipped and why, points,
+    Gaussians, memory, time per scan). Ctrl-C (or SIGTERM) stops after the current scan
+    and saves what was mapped (exit 130, or 143).
+    """
+    from ..pipeline import load_config_file, map_recording, stop_signals
+
+    code = EXIT_OK
+    with user_errors():
+        resolution = resolution_option(resolution)
+        given = [
+            n for n, v in (("--poses", poses), ("--pose-topic", pose_topic), ("--sensor-frame", sensor_frame)) if v
+        ]
+        if len(given) > 1:
+            raise ValueError(f"give one pose source, not {' and '.join(given)}")
+        if every > 1 and every_distance is not None:
+            raise ValueError("give --every or --every-distance, not both")
+        if start is not None and end is not None and end < start:
+            raise ValueError(f"--end ({end}) is before --start ({start})")
+        if memory_limit is not None:
+            from ..hostpool import physical_memory
+
+            if not (math.isfinite(memory_limit) and memory_limit > 0):
+                raise ValueError(f"--memory-limit must be a positive number of GiB, got {memory_limit}")
+            if memory_limit * 2**30 > physical_memory():
+                raise ValueError(
+                    f"--memory-limit {memory_limit:g} GiB is more than this machine's "
+                    f"{physical_memory() / 2**30:.1f} GiB of memory"
+                )
+        cfg = load_config_file(config) if config is not None else None
+        from ..pipeline import config_with_ranges
+
+        mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range,
+                                    miss_model=miss_model.value if miss_model else None)  # fmt: skip
+        out_path = check_writable(output if output is not None else default_output(bag), "map file")
+        if view:
+            need_extra("viser", "the live viewer (--view)")
+            from ..viewer.cli import live_recording_command, parse_rate
+
+            speed = parse_rate(rate)
+            init_taichi(arch, memory_limit)
+            bar = _Bar(arch, progress, memory_limit)
+            try:
+                code = live_recording_command(
+                    bag, resolution, scan_options={
+                        "cloud_topic": cloud_topic, "fixed_frame": fixed_frame, "pose_topic": pose_topic,
+                        "poses_file": poses, "sensor_frame_only": sensor_frame, "every": every,
+                        "every_distance": every_distance, "t_start": start, "t_end": end, "max_scans": max_scans},
+                    occupancy=occupancy, config=mapcfg, host=host, port=port, speed=speed, wait_for_browser=not no_wait,
+                    metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
+                    progress=bar, finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                )  # fmt: skip
+            finally:
+                bar.stop()
+            raise typer.Exit(code)
+
+        bar = _Bar(arch, progress, memory_limit)
+        # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit
+        with stop_signals(restore=not own_process()) as sig:
+            try:
+                m, summary = map_recording(
+                    bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
+                    poses_file=poses, sensor_frame_only=sensor_frame, every=every, every_distance=every_distance,
+                    t_start=start, t_end=end, max_scans=max_scans, occupancy=occupancy, config=mapcfg,
+                    metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
+                    progress=bar,
+                )  # fmt: skip
+            except BaseException:
+                bar.stop()
+                raise
+            code = _finish_mapping(m, summary, out_path, bar, signals=sig)
+            del m
+    raise typer.Exit(code)
+
+
+# ---------------------------------------------------------------------------- demo
+@app.command(short_help="Map a built-in synthetic room; check it against the truth.")
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Folder for the map (created if missing).")] = Path("ndtom_demo"),
+    resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.")] = 0.2,
+    scans: Annotated[int, typer.Option(min=2, max=1000, help="Number of scans.")] = 20,
+    arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+    view: Annotated[
+        bool,
+        typer.Option(
+            "--view",
+            help="Map the room live in the browser viewer (starting when a browser connects); writes the map too.",
+        ),
+    ] = False,
+    port: Annotated[int, typer.Option(help="Viewer port (with --view).")] = 8080,
+    rate: Annotated[
+        str,
+        typer.Option(
+            help="With --view: playback speed, times the scans' rate (1: 10 scans/s as recorded, max: as fast as "
+            "mapping goes)."
+        ),
+    ] = "1",
+    no_wait: Annotated[
+        bool, typer.Option("--no-wait", help="With --view: start mapping at once, not when the first browser connects.")
+    ] = False,
+) -> None:
+    """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
+    halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
+    from .. import demo as demo_scene
+    from ..pipeline import map_scans, stop_signals
+
+    code = EXIT_OK
+    with user_errors():
+        resolution = resolution_option(resolution)
+        if view:
+            need_extra("viser", "the live viewer (--view)")
+        out = out.expanduser()
+        if out.exists() and not out.is_dir():
+            fail(f"--out {out} is a file, not a folder", "give a folder for the demo's output")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            fail(f"cannot create the folder {out}: {exc.strerror or exc}", "choose another folder with --out")
+        out_path = check_writable(out / ("demo" + MAP_SUFFIX), "map file")
+        scene = demo_scene.Scene()
+        t0 = time.perf_counter()
+        data = demo_scene.make_scans(scans, scene=scene)
+        console_err().print(
+            Text(
+                f"Demo scene: a 12 x 8 m room, {len(scene.boxes)} boxes (one taken away after scan "
+                f"{scene.vanishing[0].present_until}), {len(data)} lidar scans of about "
+                f"{sum(len(s.points) for s in data) // len(data):,} points, made in "
+                f"{time.perf_counter() - t0:.1f} s",
+                style="cyan",
+            )
+        )
+        if view:
+            from ..viewer.cli import live_demo_command, parse_rate
+
+            speed = parse_rate(rate)
+            init_taichi(arch)
+            bar = _Bar(arch, progress)
+            try:
+                code = live_demo_command(
+                    "127.0.0.1", port, resolution=resolution, n_scans=scans, scans=data, speed=speed,
+                    wait_for_browser=not no_wait, progress=bar,
+                    metadata={"command": "ndtom demo --view", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                    finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                )  # fmt: skip
+            finally:
+                bar.stop()
+            raise typer.Exit(code)
+        bar = _Bar(arch, progress)
+        with stop_signals(restore=not own_process()) as sig:  # as in `ndtom map`
+            try:
+                m, summary = map_scans(
+                    data,
+                    resolution,
+                    source="ndtom demo (synthetic room)",
+                    scans_expected=len(data),
+                    pose_source="exact (synthetic)",
+                    fixed_frame="world",
+                    metadata={"command": "ndtom demo", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                    progress=bar,
+                )
+            except BaseException:
+                bar.stop()
+                raise
+            check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
+            m.metadata["ground_truth_check"] = check
+            gt = make_table("Against the ground truth", "", "", header=False)
+            gt.add_row(
+                "Gaussians on a true surface", f"{check['on_surface'] * 100:.1f}% (mean within {resolution / 4:g} m)"
+            )
+            gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
+            gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
+            code = _finish_mapping(m, summary, out_path, bar, [gt], signals=sig)
+            del m
+        if code == EXIT_OK:
+            console_out().print(f"Next: ndtom export {out_path} --format ply", soft_wrap=True, markup=False)
+    raise typer.Exit(code)
