@@ -572,7 +572,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
             rec_icov: f64_2d,  # [C, 9] out (ndt != 0): ndt_icov of the changed records
             prm: f64_1d,  # [7] NDT miss model parameters (see ndt_miss)
-            ndt: ti.i32,  # the NDT miss model's min_points (0: the paper's model)
+            ndt: ti.i32,  # points a cell needs for the NDT miss model (the map passes 1; 0: the paper's model)
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             # Records are not reserved for the worst case (every hit cell new): a cell that
