@@ -399,6 +399,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         k = 1.0 / ti.max(ti.cast(rec_n[r], ti.f64) - 1.0, 1.0)
         s0, s1, s2 = rec_scat[r, 0] * k, rec_scat[r, 1] * k, rec_scat[r, 2] * k
         s3, s4, s5 = rec_scat[r, 3] * k, rec_scat[r, 4] * k, rec_scat[r, 5] * k
+        if ti.cast(rec_n[r], ti.f64) < prm[5]:
+            # Fewer than min_points points: their mean, and a prior of prm[6] on every axis
+            # (a point stands for a small patch; rays must pass near it to clear it).
+            s0 += prm[6]
+            s3 += prm[6]
+            s5 += prm[6]
         eps = ndt_floor(s0, s1, s2, s3, s4, s5, prm)
         a00, a11, a22 = s0 + eps, s3 + eps, s5 + eps
         c00 = a11 * a22 - s4 * s4
@@ -424,7 +430,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
         # ray's point of highest likelihood x_ML, p = 0.5 - eta p(x_ML|N) (1 - p(x_ML|z)),
         # and the log-odds change logit(p), in fixed point. Coordinates relative to the
         # cell centre keep f64 exact enough far from the origin. u, length: the ray's unit
-        # direction and length. prm: [eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor)].
+        # direction and length. prm: [eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor),
+        # min_points, prior variance of a cell with fewer points (ndt_icov)].
         centre = (c.cast(ti.f64) + 0.5) * res
         oc = o - centre
         i0, i1, i2, i3, i4, i5 = rec_icov[r, 0], rec_icov[r, 1], rec_icov[r, 2], rec_icov[r, 3], rec_icov[r, 4], rec_icov[r, 5]
@@ -564,8 +571,8 @@ def make_kernels(f: Storage) -> SimpleNamespace:
             left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
             rec_miss: i64_1d,  # [C] NDT miss sums of this scan: a hit cell takes the hit update only
             rec_icov: f64_2d,  # [C, 9] out (ndt != 0): ndt_icov of the changed records
-            prm: f64_1d,  # [5] NDT miss model parameters (see ndt_miss)
-            ndt: ti.i32,  # the NDT miss model's min_points (0: the paper's model)
+            prm: f64_1d,  # [7] NDT miss model parameters (see ndt_miss)
+            ndt: ti.i32,  # points a cell needs for the NDT miss model (the map passes 1; 0: the paper's model)
         ):
             # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
             # Records are not reserved for the worst case (every hit cell new): a cell that
@@ -641,8 +648,12 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 rec_n[r] = tot_i
                 if ndt != 0:  # (the paper's model passes no NDT arrays)
                     rec_miss[r] = ti.i64(0)
-                    if tot_i >= ndt:  # what rays read of a Gaussian of enough points
+                    if tot_i >= ndt:  # what rays read of the cell's points
                         ndt_icov(r, rec_n, rec_scat, rec_mean, prm, rec_icov)
+                    # A cell's first points: the misses it took while it held none tested no
+                    # surface, so its log-odds restarts from 0 if they had lowered it.
+                    if m_i == 0 and lo[at(slot, c)] < 0.0:
+                        lo[at(slot, c)] = 0.0
                 hit_update(slot, c, cnt, l_hit, l_min, l_max, regions, leaves, block, b0, bsize, ctr, dense_hits)
 
         def make_rays(mode: str, flags: bool = True, ndt: bool = False):
@@ -680,7 +691,7 @@ def make_kernels(f: Storage) -> SimpleNamespace:
                 rec_n: i32_1d,  # [C] Gaussian records (ndt): points
                 rec_icov: f64_2d,  # [C, 9] inverse regularised covariance and mean (see ndt_icov)
                 rec_miss: i64_1d,  # [C] out: summed log-odds changes, fixed point (MISS_SCALE)
-                prm: f64_1d,  # [5] eta, 1 / (2 sigma_s^2), covariance floors (see ndt_floor)
+                prm: f64_1d,  # [7] eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor), min_points, prior (ndt_icov)
                 ndt_minp: ti.i32,  # points a Gaussian needs for the NDT miss model
             ):
                 o = ti.Vector([origin[0], origin[1], origin[2]])

@@ -35,14 +35,15 @@ class MapConfig:
     # 22-24); "paper": by p_empty per ray, as every other cell (ICRA 2013, eq. 12).
     miss_model: str = "paper"
     # NDT miss model: a ray's point of highest likelihood x_ML within sigma_s of its own
-    # endpoint is no evidence of emptiness. ohm uses its range noise, 0.05 m; we take 2 m:
-    # rays that graze a floor pass just above its Gaussians in the last metre or two before
-    # they end on it, and erased sparse floor cells at 0.05 (docs/quality.md).
-    sigma_s: float = 2.0
+    # endpoint is no evidence of emptiness. ohm uses its range noise, 0.05 m; we take 3 m:
+    # rays that graze a floor or a shelf pass just above its Gaussians in the last metres
+    # before they end on it, and erased sparse floor cells at 0.05 (docs/quality.md).
+    sigma_s: float = 3.0
     # NDT miss model: the strongest evidence of one ray, p = 0.5 - eta for a ray through a
-    # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.3 clears objects that left in fewer
-    # passes while one stray ray still cannot erase a saturated cell (docs/quality.md).
-    eta: float = 0.3
+    # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.35 clears objects that left, most
+    # seen by a few rays only, while one stray ray still cannot erase a saturated cell
+    # (-1.7 against +2; docs/quality.md).
+    eta: float = 0.35
 
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:

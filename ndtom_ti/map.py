@@ -49,10 +49,15 @@ _SEEN_MAX = 1 << 24  # leaf flags for counting a scan's new leaves exactly
 # across the cell, at the ranges where a lidar's rings are a cell or more apart) gets up to
 # NDT_LINE_FLOOR * l3 more, so that it stands for the surface the line samples. Without it,
 # rays of the other rings never pass within the line's millimetre thickness and the
-# Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md).
+# Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md). A line
+# spanning the cell (l3 ~ r^2 / 12) then stands for a surface spread evenly over the cell.
 NDT_COV_FLOOR = 1e-3
-NDT_LINE = 0.2
-NDT_LINE_FLOOR = 0.25
+NDT_LINE = 0.5
+NDT_LINE_FLOOR = 1.0
+# NDT miss model, cells holding fewer than min_points points: their points' mean with this
+# standard deviation (metres) added on every axis, so that sparse floor cells are not erased
+# by rays grazing far above their points, while a ray passing close to them still clears them.
+NDT_SPARSE_SIGMA = 0.05
 
 
 @dataclass
@@ -269,9 +274,11 @@ class NdtOmMap:
         self._alloc_records(1024)
         self._warm = False  # warmup.warm_up done for this map (at its first scan)
         c = self.config
-        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR])
-        # Points a Gaussian needs for the NDT miss model; 0: the paper's model (kernel switch).
-        self._ndt_minp = int(c.min_points) if c.ndt_misses else 0
+        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
+                                  NDT_SPARSE_SIGMA**2])  # fmt: skip
+        # Points a cell needs for the NDT miss model (1: every cell with points, those with
+        # fewer than min_points under the prior above); 0: the paper's model (kernel switch).
+        self._ndt_minp = 1 if c.ndt_misses else 0
 
     # ------------------------------------------------------------------ properties
 

@@ -302,6 +302,7 @@ def ndt_om_logodds(
     min_points: int = 3,
     eta: float = 0.2,
     sigma_s: float = 0.05,
+    sparse_sigma: float | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -309,12 +310,19 @@ def ndt_om_logodds(
     Each scan is ``(origin, endpoints)`` or ``(origin, endpoints, hit_mask)`` (world
     frame). Per scan, every touched cell is updated once, from the state at the scan's
     start: a cell with hits takes ``N_p log(p_o / (1 - p_o))``; otherwise, with
-    ``miss_model="ndt"`` and a Gaussian of >= ``min_points`` points, the sum of
-    :func:`ndt_miss_term` over the rays passing it; otherwise ``N_e log(p_e / (1 - p_e))``;
-    then the clamp. A free update that leaves ``l <= 0`` erases the cell's Gaussian. The
-    scan's hits then join their cells' Gaussians. Returns ``(logodds, points)``: the
-    points of each cell's current Gaussian.
+    ``miss_model="ndt"`` and points, the sum of :func:`ndt_miss_term` over the rays
+    passing it (mean and covariance of its points; with fewer than ``min_points`` points
+    ``sparse_sigma^2`` added on every axis, default the map's NDT_SPARSE_SIGMA);
+    otherwise ``N_e log(p_e / (1 - p_e))``; then the clamp. A free update that leaves
+    ``l <= 0`` erases the cell's Gaussian. With ``miss_model="ndt"`` a hit cell that held
+    no points starts from ``max(l, 0)``. The scan's hits then join their cells'
+    Gaussians. Returns ``(logodds, points)``: the points of each cell's current Gaussian.
     """
+    if sparse_sigma is None:
+        from ndtom_ti.map import NDT_SPARSE_SIGMA
+
+        sparse_sigma = NDT_SPARSE_SIGMA
+    ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
     logodds: dict[Cell, float] = {}
@@ -326,10 +334,13 @@ def ndt_om_logodds(
         n_p = endpoint_counts(ends, r, hit)
         gauss = {}
         for c, pts in points.items():
-            if len(pts) >= min_points:
+            if len(pts) >= (1 if ndt else min_points):
                 P = np.asarray(pts)
                 d = P - P.mean(axis=0)
-                gauss[c] = (P.mean(axis=0), d.T @ d / max(len(P) - 1, 1))
+                C = d.T @ d / max(len(P) - 1, 1)
+                if len(P) < min_points:
+                    C = C + sparse_sigma**2 * np.eye(3)
+                gauss[c] = (P.mean(axis=0), C)
         passes: dict[Cell, list] = {}
         for i in range(len(ends)):
             cells = ray_cells(origin, ends[i], r)
@@ -338,7 +349,9 @@ def ndt_om_logodds(
         for c in set(n_p) | set(passes):
             if n_p.get(c, 0) > 0:
                 inc = n_p[c] * lo_hit
-            elif miss_model == "ndt" and c in gauss:
+                if ndt and not len(points.get(c, ())):
+                    logodds[c] = max(logodds.get(c, 0.0), 0.0)
+            elif ndt and c in gauss:
                 mu, C = gauss[c]
                 inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s) for i in passes[c])
             else:

@@ -10,6 +10,7 @@ from reference import ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap, runtime
+from ndtom_ti.map import NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
 ETA, SIGMA_S = MapConfig().eta, MapConfig().sigma_s
@@ -92,8 +93,9 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     assert after - before == pytest.approx(expected, abs=2e-6)
     # A few sigma above: small evidence, far from the paper's constant rate per ray.
     assert -0.05 < expected < 0.0
-    # The same ray through the plane's mean height takes the strong update.
-    o2, z2 = mu + np.array([-4.0, 0.0, 0.0]), mu + np.array([6.0, 0.0, 0.0])
+    # The same ray through the plane's mean height, ending far past it (p(x_ML|z) ~ 0),
+    # takes the strong update.
+    o2, z2 = mu + np.array([-4.0, 0.0, 0.0]), mu + np.array([16.0, 0.0, 0.0])
     insert_world(m, o2, [z2])
     strong = ndt_miss_term(o2, z2, True, mu, C, ETA, SIGMA_S)
     assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(strong, abs=2e-6)
@@ -112,14 +114,36 @@ def test_ray_ending_inside_the_cell_takes_the_hit_update_only(rng):
     assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(L_HIT, abs=1e-6)
 
 
-def test_cell_with_fewer_than_min_points_keeps_the_count_update(rng):
+def test_cell_with_fewer_than_min_points_takes_the_model_with_the_prior(rng):
+    """2 < min_points points: their mean and covariance plus NDT_SPARSE_SIGMA^2 on every
+    axis. A ray through their mean clears them; one passing 0.24 m beside barely does."""
     res = 0.5
     m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
-    insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])  # 2 < 3 points
+    pts = np.array([[2.25, 0.25, 0.2], [2.25, 0.25, 0.3]])
+    insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
     before = logodds_of(m)[(4, 0, 0)]
-    o = np.array([2.25, 0.25, -3.0])
-    insert_world(m, o, [[2.25, 0.25, 4.0]] * 3)
-    assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(3 * L_FREE, abs=1e-6)
+    mu = pts.mean(axis=0)
+    d = pts - mu
+    C = d.T @ d + NDT_SPARSE_SIGMA**2 * np.eye(3)
+    o, z = np.array([2.25, 0.25, -3.0]), np.array([2.25, 0.25, 4.0])
+    insert_world(m, o, [z] * 3)
+    through = ndt_miss_term(o, z, True, mu, C, ETA, SIGMA_S)
+    assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(3 * through, abs=2e-6)
+    assert through < 10 * L_FREE  # far stronger than the count update's -0.04 a ray
+    beside = ndt_miss_term(o + [0.24, 0.0, 0.0], z + [0.24, 0.0, 0.0], True, mu, C, ETA, SIGMA_S)
+    assert 0.01 * through < beside < 0.0
+
+
+def test_first_points_of_a_cell_restart_from_zero(rng):
+    """Misses that a cell took while it held no points tested no surface: its first points
+    start from log-odds 0 (NDT miss model); the paper's model keeps the sum."""
+    res = 0.5
+    for model, start in (("ndt", 0.0), ("paper", 20 * L_FREE)):
+        m = NdtOmMap(res, config=MapConfig(miss_model=model, logodds_min=-100, logodds_max=100))
+        insert_world(m, np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]] * 20)  # 20 rays pass (4, 0, 0)
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(20 * L_FREE, abs=1e-5)
+        insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.2, 0.2, 0.2]])
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(start + L_HIT, abs=1e-5)
 
 
 def test_paper_model_keeps_eq12_for_gaussian_cells(rng):
