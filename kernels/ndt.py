@@ -3,7 +3,7 @@
 Per scan, in this order:
 1. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
                      rays passing each cell: in a dense scan-local block over the scan's
-                     cells (``rays_dense`` when it holds them all), in the tree past it
+                     cells (mode "dense" when it holds them all), in the tree past it
                      with a compact list of the cells touched there.
 2. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
 3. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.

@@ -50,7 +50,7 @@ def warm_up(m) -> None:
         T = np.eye(4)
         plan = w.plan
         modes = [
-            {},  # dense block, rows flagged
+            {"row_flags": "always"},  # dense block, rows flagged
             {"row_flags": "never"},  # dense block, every row read
             {"block_cells": w.layout.leaf**3},  # a block that holds part of the scan, the tree the rest
             {"block_cells": 0},  # the tree only (also the batched path's kernel)

@@ -109,3 +109,32 @@ def test_every_plan_gives_the_same_map(rng, plan):
     ga, gb = ref.gaussians(min_probability=0), m.gaussians(min_probability=0)
     np.testing.assert_array_equal(ga["n"], gb["n"])
     np.testing.assert_allclose(ga["mean"], gb["mean"], rtol=0, atol=1e-12)
+
+
+def _compiled(st) -> dict:
+    """Compiled variants per kernel family and config of the storage."""
+    return {key: len(b.kernel._primal.compiled_kernels) for key, b in st.__dict__.get("kernel_cache", {}).items()}
+
+
+@pytest.mark.parametrize("model", ["paper", "ndt"])
+def test_first_scan_compiles_every_variant_later_scans_use(rng, model):
+    """After a map's first scan (its warm-up), scans through every one-pass plan, both
+    count widths and both point dtypes compile nothing more."""
+    first = NdtOmMap(0.25, miss_model=model)
+    first.insert_scan(rng.normal(size=(500, 3)), np.eye(4))
+    st = runtime.storage(first.layout)
+    before = _compiled(st)
+    d = rng.normal(size=(4000, 3))
+    pts = d * rng.uniform(1.0, 6.0, (4000, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
+    for plan in ({}, {"row_flags": "never"}, {"row_flags": "always"}, {"u16_rays": 0}, {"block_cells": 8**3 * 8},
+                 {"block_cells": 0}, {"touched_rows": 1}):  # fmt: skip
+        for dtype in (np.float32, np.float64):
+            m = NdtOmMap(0.25, miss_model=model)
+            for k, v in plan.items():
+                setattr(m.plan, k, v)
+            for s in range(3):
+                T = np.eye(4)
+                T[:3, 3] = [0.2 * s, 0.0, 0.0]
+                m.insert_scan(pts.astype(dtype), T)
+            m.close()
+    assert _compiled(st) == before
