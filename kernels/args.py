@@ -178,7 +178,7 @@ class Bound:
             if use == typ.names():
                 get = _whole
             elif len(idx) == 1:
-                get = (lambda t, g=operator.itemgetter(idx[0]): (g(t),))
+                get = lambda t, g=operator.itemgetter(idx[0]): (g(t),)
             else:
                 get = operator.itemgetter(*idx)
             if name is None:  # a group this variant does not read: its stand-in's fields

@@ -1,7 +1,6 @@
 """Queries, export and load: kernels over a map's slot of the sparse trees, called with a
 few positional arguments (no per-scan launch cost to save)."""
 
-
 from types import SimpleNamespace
 
 import taichi as ti
@@ -12,8 +11,9 @@ from .ndt import C_EXPORT, NE_GAUSS, device_funcs, f32_1d, i8_4d, i32_2d, i64_1d
 
 def io_kernels(f: Storage) -> SimpleNamespace:
     """Build (once) the query, export and load kernels of the storage ``f``."""
-    if getattr(f, "kernels", None) is not None:
-        return f.kernels
+    built = getattr(f, "kernels", None)
+    if built is not None:
+        return built
     F = device_funcs(f)
     lo, ne, olm, gslot, glm = f.lo, f.ne, f.olm, f.gslot, f.glm
     row, at, note_leaf = F.row, F.at, F.note_leaf
@@ -78,7 +78,7 @@ def io_kernels(f: Storage) -> SimpleNamespace:
                             ti.deactivate(l2, p)
                     ti.deactivate(l1, [slot, i, j, k])
 
-    f.kernels = SimpleNamespace(
+    ns = SimpleNamespace(
         query=query,
         count_known=count_known,
         export_known=export_known,
@@ -87,4 +87,5 @@ def io_kernels(f: Storage) -> SimpleNamespace:
         count_leaf_cells=count_leaf_cells,
         clear_slot=clear_slot,
     )
-    return f.kernels
+    f.kernels = ns
+    return ns

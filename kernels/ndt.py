@@ -364,13 +364,11 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             out = ti.cast(ti.round(ti.log(p / (1.0 - p)) * MISS_SCALE), ti.i64)
         return out
 
-    f.funcs = SimpleNamespace(**{k: v for k, v in locals().items() if k not in ("f", "L", "lo", "ne", "olm", "gslot", "hn", "glm")})
+    f.funcs = SimpleNamespace(
+        leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, spread=spread, SEC=SEC,
+        row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
+        free_update=free_update, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
+        add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,
+        ndt_floor=ndt_floor, ndt_icov=ndt_icov, ndt_miss=ndt_miss,
+    )  # fmt: skip
     return f.funcs
-
-
-def make_kernels(f: Storage):
-    """The kernel families bound to the storage ``f`` (see kernels/families.py)."""
-    from .families import kernel_set
-
-    return kernel_set(f)
-

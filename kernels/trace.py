@@ -3,7 +3,6 @@
 (marking the cells whose Gaussians the NDT miss model tests, undoing a refused batch,
 counting the nodes a scan's hits would add)."""
 
-
 from dataclasses import dataclass
 
 import taichi as ti
@@ -77,7 +76,14 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     F = device_funcs(f)
     ne, olm = f.ne, f.olm
     row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
-    ndt_visit, ndt_tree_visit, spread, SEC, SHIFT, leaf = F.ndt_visit, F.ndt_tree_visit, F.spread, F.SEC, F.SHIFT, F.leaf
+    ndt_visit, ndt_tree_visit, spread, SEC, SHIFT, leaf = (
+        F.ndt_visit,
+        F.ndt_tree_visit,
+        F.spread,
+        F.SEC,
+        F.SHIFT,
+        F.leaf,
+    )
     mode, flags, ndt = cfg.mode, cfg.flags, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)

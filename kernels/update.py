@@ -4,7 +4,6 @@ for it (``merge``), then eq. (12) once per cell that rays passed and no endpoint
 (``block_apply(_all)`` over the dense block, ``apply_free(_all)`` over the tree), with the
 reset of the Gaussian of a cell whose log-odds fell to <= 0."""
 
-
 from dataclasses import dataclass
 
 import taichi as ti
@@ -350,9 +349,11 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                 sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
                 ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
             mu_y = sv / n
-            s_y = ss - ti.Vector(
-                [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
-            ) / n
+            s_y = (
+                ss
+                - ti.Vector([sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]])
+                / n
+            )
             m_i = rec_n[r]
             tot_i = m_i + cnt
             if m_i == 0:

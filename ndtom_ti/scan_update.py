@@ -88,7 +88,7 @@ class UpdatePlan:
         if name == "row_flags" and value not in ROW_FLAGS:
             raise ValueError(f"row_flags must be one of {ROW_FLAGS}, got {value!r}")
         if name in ("block_cells", "u16_rays", "touched_rows") and (
-            isinstance(value, bool) or int(value) != value or value < (1 if name == "touched_rows" else 0)
+            isinstance(value, bool) or int(value) != value or int(value) < (1 if name == "touched_rows" else 0)
         ):
             raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
         super().__setattr__(name, value)
@@ -245,7 +245,9 @@ class ScanUpdate:
         world, cells, n_hit, n = p.world, p.cells, p.n_hit, len(p.world)
         self.batches = 0
         if p.one_pass:
-            lo, hi = np.minimum(p.box[0], p.ocell), np.maximum(p.box[1], p.ocell)
+            box = p.box
+            assert box is not None  # the scan has rays
+            lo, hi = np.minimum(box[0], p.ocell), np.maximum(box[1], p.ocell)
             flagged, whole = True, False
             base = blk.base
             if dense and (base <= lo).all() and (base + np.array(blk.block.shape) > hi).all():
