@@ -160,7 +160,7 @@ class Storage:
         self.node_high_water = np.zeros(4, np.int64)
         self._counts: dict = {}  # slot -> (its leaf counts, its node counts)
         self.free_slots = list(range(slots - 1, -1, -1))
-        self.kernels: Any = None  # built lazily by kernels.ndt.make_kernels
+        self.kernels: Any = None  # queries, export, load: built lazily by kernels.io.io_kernels
         # Scan scratch shared by the maps: the dense ray-count block and its row flags, all
         # zero between updates, which hold ``lock`` while they use it.
         self.block_buf = np.zeros(0, np.int32)

@@ -48,22 +48,23 @@ def warm_up(m) -> None:
     try:
         scans = _scans(w.resolution)
         T = np.eye(4)
+        plan = w.plan
         modes = [
-            {},  # dense block, rows flagged
-            {"_block_density": float("inf")},  # dense block, every row read
+            {"row_flags": "always"},  # dense block, rows flagged
+            {"row_flags": "never"},  # dense block, every row read
             {"block_cells": w.layout.leaf**3},  # a block that holds part of the scan, the tree the rest
             {"block_cells": 0},  # the tree only (also the batched path's kernel)
-            {"block_cells": 0, "_touched": np.empty((1, 3), np.int32)},  # touched list overflow
+            {"block_cells": 0, "touched_rows": 1},  # touched list overflow
         ]
         for dtype in (np.float32, np.float64):
-            for u16 in (m._u16_rays, 0):  # 16- and 32-bit ray counts
+            for u16 in (m.plan.u16_rays, 0):  # 16- and 32-bit ray counts
                 for opts in modes:
                     for pts in scans:
-                        w._u16_rays = u16
+                        plan.u16_rays = u16
                         for k, v in opts.items():
-                            setattr(w, k, v)
-                        w._insert_guarded(pts.astype(dtype), T)  # not a user's scan
-                    w.block_cells, w._block_density = m.block_cells, 0.0
+                            setattr(plan, k, v)
+                        w._update.insert_guarded(pts.astype(dtype), T)  # not a user's scan
+                    plan.block_cells, plan.row_flags = m.plan.block_cells, "auto"
         w._warm = True
         len(w)
         w.known_cells()

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from ndtom_ti.kernels.args import Bound
 from reference import batch_stats, eq12_logodds, ray_cells, ray_pass_counts
 
 from ndtom_ti import MapConfig, NdtOmMap
@@ -123,11 +124,29 @@ BLOCKS = [None, "unflagged", "i32", "i32 unflagged", 8**3 * 27, 0]
 def set_block(m, block_cells):
     if isinstance(block_cells, str):
         if "unflagged" in block_cells:
-            m._block_density = float("inf")
+            m.plan.row_flags = "never"
         if "i32" in block_cells:
-            m._u16_rays = 0
+            m.plan.u16_rays = 0
     elif block_cells is not None:
-        m.block_cells = block_cells
+        m.plan.block_cells = block_cells
+
+
+def interrupt_kernels(monkeypatch, *names):
+    """Make the update kernels ``names`` raise KeyboardInterrupt (Ctrl-C between kernels)."""
+    call = Bound.__call__
+
+    def maybe_interrupt(self, **kw):
+        if self.name in names:
+            raise KeyboardInterrupt
+        return call(self, **kw)
+
+    monkeypatch.setattr(Bound, "__call__", maybe_interrupt)
+
+
+def records_made(m):
+    """Records handed out so far: in use or on the free stack."""
+    rep = m.memory_report()
+    return rep["records_in_use"] + rep["records_free"]
 
 
 @pytest.mark.parametrize("block_cells", BLOCKS)
@@ -352,11 +371,11 @@ def test_records_of_erased_gaussians_are_reused(block_cells):
                 break
         else:
             raise AssertionError(f"the Gaussian of cell {x} was not erased")
-        assert m._nrec == 2  # cell 9's and the one reused by each object in turn
+        assert records_made(m) == 2  # cell 9's and the one reused by each object in turn
     # Five new cells at once, one free record: one takes it, four get new records.
     cells = np.array([[2, 2, 0], [2, -2, 0], [-2, 2, 0], [-2, -2, 0], [0, 3, 0]])
     m.insert_scan(np.repeat(cells + 0.5, 3, axis=0) + np.tile(blob, (5, 1)) * 0.5 - T[:3, 3], T)
-    assert m._nrec == 6
+    assert records_made(m) == 6
     g = m.gaussians(min_probability=0.0)
     got = {tuple(i): (n, mu) for i, n, mu in zip(g["index"].tolist(), g["n"].tolist(), g["mean"])}
     assert set(got) == {(9, 0, 0), *map(tuple, cells.tolist())}
@@ -373,7 +392,7 @@ def test_records_grow_only_for_cells_that_need_one(block_cells):
     hit cells); the cells that found no record are merged after the growth."""
     m = NdtOmMap(1.0)
     set_block(m, block_cells)
-    cap0 = len(m._rec_n)
+    cap0 = m.memory_report()["records_held"]
     blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]]) - 0.1
     # A wall of cells facing the sensor: every ray ends in its own cell.
     wall = np.array([[30, y, z] for y in range(-20, 20) for z in range(-13, 13)])
@@ -385,10 +404,10 @@ def test_records_grow_only_for_cells_that_need_one(block_cells):
 
     m.insert_scan(scan(wall), np.eye(4))
     m.insert_scan(scan(np.vstack([wall, extra[:20]])), np.eye(4))  # all known cells hit again
-    assert (m._nrec, len(m._rec_n)) == (cap0 - 4, cap0)
+    assert (records_made(m), m.memory_report()["records_held"]) == (cap0 - 4, cap0)
     m.insert_scan(scan(np.vstack([wall, extra[20:60]])), np.eye(4))
-    assert m._nrec == cap0 + 36
-    assert cap0 + 36 <= len(m._rec_n) <= cap0 + max(cap0 // 8, len(wall) + 40)
+    assert records_made(m) == cap0 + 36
+    assert cap0 + 36 <= m.memory_report()["records_held"] <= cap0 + max(cap0 // 8, len(wall) + 40)
     g = m.gaussians(min_probability=0.0)
     got = dict(zip(map(tuple, g["index"].tolist()), g["n"].tolist()))
     assert got == {**{tuple(c): 9 for c in wall.tolist()}, **{tuple(c): 3 for c in extra[:60].tolist()}}
@@ -406,14 +425,9 @@ def test_interrupt_after_merge_does_not_hand_out_a_record_twice(monkeypatch):
     far = np.array([[9.5, 0.5, 0.5]] * 10) - T[:3, 3]
     while [5, 0, 0] in m.gaussians(min_probability=0.0)["index"].tolist():
         m.insert_scan(far, T)
-    assert m._nfree == 1
+    assert m.memory_report()["records_free"] == 1
 
-    def interrupt(*a):
-        raise KeyboardInterrupt
-
-    for kb in m._k.block.values():  # after merge took the free record for cell (0, 3, 0)
-        monkeypatch.setattr(kb, "block_apply", interrupt)
-        monkeypatch.setattr(kb, "block_apply_all", interrupt)
+    interrupt_kernels(monkeypatch, "block_apply", "block_apply_all")  # after merge took the free record for (0, 3, 0)
     with pytest.raises(KeyboardInterrupt):
         m.insert_scan(blob + [0.0, 3.0, -0.5], T)
     monkeypatch.undo()

@@ -1,15 +1,16 @@
 """The lighter kernel call (kernels/launch.py) and the CPU ray order (make_spread)."""
 
 import collections
-import types
 
 import numpy as np
 import pytest
 import taichi as ti
 
-from ndtom_ti import NdtOmMap
+from ndtom_ti import NdtOmMap, runtime
 from ndtom_ti.kernels import launch
+from ndtom_ti.kernels.families import kernel_set
 from ndtom_ti.kernels.ndt import make_spread
+from ndtom_ti.kernels.update import MergeConfig
 
 F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
@@ -92,23 +93,14 @@ def test_plain_launch_switch(monkeypatch):
     assert not launch.enabled()
 
 
-def _plain(ns):
-    """A copy of a kernel namespace with every Launcher replaced by Taichi's call."""
-    out = types.SimpleNamespace()
-    for k, v in vars(ns).items():
-        if isinstance(v, launch.Launcher):
-            v = v.kernel
-        elif isinstance(v, dict):
-            v = {kk: _plain(vv) for kk, vv in v.items()}
-        setattr(out, k, v)
-    return out
-
-
-def test_maps_through_both_calls_are_identical(sim_hall_dynamic):
-    a, b = NdtOmMap(0.4), NdtOmMap(0.4)
-    b._k = _plain(a._k)
-    assert isinstance(a._k.prepare, launch.Launcher) == launch.enabled()
-    assert not isinstance(b._k.block[np.dtype(np.uint16)].merge, launch.Launcher)
+def test_maps_through_both_calls_are_identical(sim_hall_dynamic, monkeypatch):
+    a = NdtOmMap(0.4)
+    monkeypatch.setenv("NDTOM_PLAIN_LAUNCH", "1")
+    b = NdtOmMap(0.4)  # every kernel through Taichi's own call
+    monkeypatch.undo()
+    st = runtime.storage(a.layout)
+    assert isinstance(kernel_set(st).prepare().call, launch.Launcher) == launch.enabled()
+    assert not isinstance(kernel_set(st, fast=False).merge(MergeConfig()).call, launch.Launcher)
     d = sim_hall_dynamic
     for i in range(0, 8, 2):
         pts, T = d.scan(i), d.poses[i]

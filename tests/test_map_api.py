@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import DATA
 from reference import batch_stats
-from test_core import assert_matches_batch, random_pose, to_world
+from test_core import assert_matches_batch, interrupt_kernels, random_pose, to_world
 
 import ndtom_ti
 from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap, NoFreeSlotError
@@ -306,22 +306,20 @@ def test_len_repr_and_memory_report(rng):
     assert rep["records_in_use"] == len(m.gaussians(min_probability=0.0, min_points=1)["n"])
     # the dense ray-count block: at least this scene's box, at most its cap (+ row flags)
     assert 0 < rep["process_scratch_bytes"] <= BLOCK_CELLS * (4 + 1 / 8)
-    assert not m._st.block_buf.any() and not m._st.bflag_buf.any()  # zero between updates
+    st = runtime.storage(m.layout)
+    assert not st.block_buf.any() and not st.bflag_buf.any()  # zero between updates
 
 
 def test_interrupted_update_leaves_the_shared_block_zero(rng, monkeypatch):
     scans = scene_scans(rng, 1)
     m, other = NdtOmMap(0.25), NdtOmMap(0.25)
 
-    def interrupt(*a):
-        raise KeyboardInterrupt
-
-    for kb in m._k.block.values():  # after the rays and the hits counted in the block
-        monkeypatch.setattr(kb, "merge", interrupt)
+    interrupt_kernels(monkeypatch, "merge")  # after the rays and the hits counted in the block
     with pytest.raises(KeyboardInterrupt):
         m.insert_scan(*scans[0])
     monkeypatch.undo()
-    assert not m._st.block_buf.any() and not m._st.bflag_buf.any()
+    st = runtime.storage(m.layout)
+    assert not st.block_buf.any() and not st.bflag_buf.any()
     ref = NdtOmMap(0.25)
     for mm in (other, ref):
         mm.insert_scan(*scans[0])
@@ -499,18 +497,13 @@ def test_batched_tracing_under_memory_pressure_gives_the_same_map(rng):
     st = runtime.storage(ndtom_ti.Layout())
     old = runtime.pool_limit()
     b = NdtOmMap(0.1, metadata={"source": "test"})
-    calls = []
-    orig_trace, orig_bound = b._trace, b._scan_bound
-    b._trace = lambda *args: calls.append(args[-1]) or orig_trace(*args)
-    # The one-pass (bounding box) bound never fits; batch bounds are the real ones.
-    b._scan_bound = lambda *a, tight=False, **k: orig_bound(*a, tight=tight, **k) * (1 if tight else 10**9)
+    b.plan.one_pass = False  # traced in batches, each checked against the budget
     try:
         runtime._state.pool_limit = st.pool_bytes(st.nodes(a._slot))
-        for pts, T in scans:
-            b.insert_scan(pts, T)
+        batches = [b.insert_scan(pts, T).ray_batches for pts, T in scans]
     finally:
         runtime._state.pool_limit = old
-    assert calls == [False, False, False]
+    assert min(batches) >= 1, batches  # batched every time
     ka, kb = a.known_cells(), b.known_cells()
     assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
     ga, gb = a.gaussians(min_points=1, min_probability=0), b.gaussians(min_points=1, min_probability=0)

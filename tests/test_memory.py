@@ -66,17 +66,13 @@ REGIONS = """
             crossed.append(k)  # the scan whose nodes crossed a GiB of pool
         k += 1
     print("FILLED", k, st.pool_bytes(), *crossed)
-    ctr = np.zeros_like(m._ctr)
-    m._k.count_known(m._slot, ctr)
-    print("SIZE scans", k, "known", int(ctr[4]), "gaussians", m._nrec, "map_MiB", m.memory_bytes() / 2**20,
+    rep = m.memory_report()
+    print("SIZE scans", k, "known", rep["known_cells"], "gaussians", rep["records_in_use"], "map_MiB", m.memory_bytes() / 2**20,
           "pool_MiB", st.pool_bytes() / 2**20)
 
     def region(mm, c):
         g = np.mgrid[-96:97, -96:97, -96:97].reshape(3, -1).T + c
-        cells = np.ascontiguousarray(g.astype(np.int32))
-        out = np.empty(len(cells), np.float32)
-        mm._k.query(mm._slot, cells, len(cells), out)
-        return out
+        return mm.logodds_at(g.astype(np.int64)).astype(np.float32)  # exact: stored as f32
 
     for s in sorted({0, *crossed, k - 1}):
         pts, T = scan(s)
@@ -87,14 +83,11 @@ REGIONS = """
         assert np.array_equal(a.view(np.int32), b.view(np.int32)), s
         assert np.count_nonzero(b) == len(f.known_cells()["index"]) > 100000
         gf = f.gaussians(min_points=1, min_probability=0)
-        n = m._nrec
-        inside = (m._rec_n[:n] > 0) & (np.abs(m._rec_cell[:n] - c).max(axis=1) <= 96)
-        idx = m._rec_cell[:n][inside]
-        order = np.argsort((idx[:, 0].astype(np.int64) * 2**21 + idx[:, 1]) * 2**21 + idx[:, 2])
-        assert np.array_equal(idx[order], gf["index"]), s
-        assert np.array_equal(m._rec_n[:n][inside][order], gf["n"]), s
-        mean = m.cell_center(idx[order]) + m._rec_mean[:n][inside][order]
-        np.testing.assert_allclose(mean, gf["mean"], rtol=0, atol=1e-9)
+        gm = m.gaussians(min_points=1, min_probability=0)
+        inside = np.abs(gm["index"] - c).max(axis=1) <= 96
+        assert np.array_equal(gm["index"][inside], gf["index"]), s
+        assert np.array_equal(gm["n"][inside], gf["n"]), s
+        np.testing.assert_allclose(gm["mean"][inside], gf["mean"], rtol=0, atol=1e-9)
         del f
         gc.collect()
     print("EQUAL", len({0, *crossed, k - 1}))

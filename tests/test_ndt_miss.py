@@ -9,7 +9,7 @@ from conftest import DATA
 from reference import ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
-from ndtom_ti import MapConfig, NdtOmMap, runtime
+from ndtom_ti import MapConfig, NdtOmMap
 from ndtom_ti.map import NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -219,22 +219,15 @@ def test_batched_tracing_matches_the_reference(rng):
     cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
     scans = random_scans(rng, n_scans=3)
     m = NdtOmMap(res, config=cfg)
-    passes = []
-    orig_trace, orig_bound = m._trace, m._scan_bound
-    m._trace = lambda *args: passes.append(args[-1]) or orig_trace(*args)
-    m._scan_bound = lambda *a, tight=False, **k: orig_bound(*a, tight=tight, **k) * (1 if tight else 10**9)
-    old = runtime.pool_limit()
-    try:
-        runtime._state.pool_limit = max(old, 2**30 - 1)  # the one-pass bound (x 1e9) never fits
-        for o, ends, hit in reference_scans(scans, 6.0):
-            T = np.eye(4)
-            T[:3, 3] = o
-            local = ends - o
-            local[~hit] *= 1.5
-            m.insert_scan(local, T)
-    finally:
-        runtime._state.pool_limit = old
-    assert passes == [False, False, False]  # batched every time
+    m.plan.one_pass = False
+    batches = []
+    for o, ends, hit in reference_scans(scans, 6.0):
+        T = np.eye(4)
+        T[:3, 3] = o
+        local = ends - o
+        local[~hit] *= 1.5
+        batches.append(m.insert_scan(local, T).ray_batches)
+    assert min(batches) >= 1  # batched every time
     ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=SIGMA_S)
     assert_matches(m, ref_lo, ref_pts)
 

@@ -1,0 +1,349 @@
+"""The ray-traversal family: exact Amanatides-Woo traversal of each ray origin -> endpoint
+(method.md section 2), counting the rays that pass each cell; and what goes with it
+(marking the cells whose Gaussians the NDT miss model tests, undoing a refused batch,
+counting the nodes a scan's hits would add)."""
+
+from dataclasses import dataclass
+
+import taichi as ti
+
+from .args import Block, Bound, NdtRecords, Nodes, Rays, Records, Sensor, Touched
+from .layout import Storage
+from .ndt import (
+    BIG,
+    C_VISITS,
+    MARK_I32,
+    MARK_U16,
+    NE_GAUSS,
+    TIE_MARGIN,
+    device_funcs,
+    f64_1d,
+    f64_2d,
+    i8_1d,
+    i8_3d,
+    i8_4d,
+    i32_1d,
+    i32_2d,
+    i32_3d,
+    i64_1d,
+    i64_2d,
+)
+
+BLOCK_DTYPES = ("u16", "i32")
+
+
+def block_type(bt: str):
+    """Taichi dtype of the dense block: u16 halves its memory traffic and holds any count
+    of a scan of at most 65534 rays (a ray passes a cell once); i32 takes larger scans."""
+    if bt not in BLOCK_DTYPES:
+        raise ValueError(f"block dtype must be one of {BLOCK_DTYPES}, got {bt!r}")
+    return ti.u16 if bt == "u16" else ti.i32
+
+
+def block_mark(bt: str) -> int:
+    """Block entry of a cell holding a usable Gaussian (NDT miss model), as the i32 that
+    block_cell compares."""
+    return MARK_U16 if bt == "u16" else MARK_I32
+
+
+@dataclass(frozen=True)
+class RaysConfig:
+    """One variant of the rays kernel.
+
+    mode: "full" counts in the dense block where it covers the cell, else in the tree;
+    "dense": the block covers every cell of the scan: no bounds checks, no tree;
+    "floor": the benchmark floor: the same traversal through the tree, one integer atomic
+    per visited cell and nothing else.
+    flags: ("dense") set row flags (a second cache line per visit); without them
+    block_apply_all reads every cell, for blocks that rays fill densely.
+    ndt: the NDT miss model: a visit to a cell holding a usable Gaussian (its block entry
+    marked, or NE_GAUSS in the tree and enough points) adds the ray's likelihood term to
+    the Gaussian's record; other visits only count.
+    """
+
+    bt: str = "u16"
+    mode: str = "full"
+    flags: bool = True
+    ndt: bool = False
+
+    def __post_init__(self):
+        block_type(self.bt)
+        if self.mode not in ("full", "dense", "floor"):
+            raise ValueError(f"rays mode must be full, dense or floor, got {self.mode!r}")
+
+
+def rays(f: Storage, cfg: RaysConfig) -> Bound:
+    F = device_funcs(f)
+    ne, olm = f.ne, f.olm
+    row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
+    ndt_visit, ndt_tree_visit, spread, SEC, SHIFT, leaf = (
+        F.ndt_visit,
+        F.ndt_tree_visit,
+        F.spread,
+        F.SEC,
+        F.SHIFT,
+        F.leaf,
+    )
+    mode, flags, ndt = cfg.mode, cfg.flags, cfg.ndt
+    bt = block_type(cfg.bt)
+    mark = block_mark(cfg.bt)
+    full = mode != "floor"
+    b3d = ti.types.ndarray(dtype=bt, ndim=3)
+    b1d = ti.types.ndarray(dtype=bt, ndim=1)
+
+    def rays(
+        slot: ti.i32,
+        pts: f64_2d,  # Rays
+        cells: i32_2d,
+        n_hit: ti.i32,
+        n: ti.i32,
+        origin: f64_1d,  # Sensor
+        ocell: i32_1d,
+        res: ti.f64,
+        touched: i32_2d,  # Touched
+        cap: ti.i64,
+        ctr: i64_1d,  # [CTR_SIZE] counters (C_VISITS, C_TOUCHED)
+        occ_regions: i8_4d,  # Nodes
+        leaves: i64_2d,
+        block: b3d,  # Block (empty: every visit counts in the tree)
+        bflag: i8_3d,
+        base: i32_1d,
+        block1: b1d,
+        bflag1: i8_1d,
+        rec_n: i32_1d,  # Records (ndt)
+        rec_miss: i64_1d,  # NdtRecords (ndt): out, the rays' summed miss terms
+        rec_icov: f64_2d,
+        ndt_prm: f64_1d,
+        ndt_minp: ti.i32,
+    ):
+        o = ti.Vector([origin[0], origin[1], origin[2]])
+        strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+        co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+        q = n // SEC
+        inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
+        for it in range(n):
+            i = spread(it, q, inv_q)
+            ce = row(cells, i)
+            z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
+            d = z - o
+            length = d.norm()  # the NDT miss model's (dead code without it)
+            u = d / length
+            cur = co
+            step = ti.Vector([0, 0, 0], dt=ti.i32)
+            rem = ti.Vector([0, 0, 0], dt=ti.i32)
+            tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+            tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+            for a in ti.static(range(3)):
+                diff = ce[a] - co[a]
+                if diff != 0:
+                    step[a] = 1 if diff > 0 else -1
+                    rem[a] = ti.abs(diff)
+                    face = co[a] + 1 if diff > 0 else co[a]
+                    tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                    tdel[a] = res / ti.abs(d[a])
+            visits = 0
+            last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
+            li = (co - b0).dot(strides)  # flat index of the current cell in the block
+            dli = step * strides
+            left = rem[0] + rem[1] + rem[2]
+            # Each pass steps at least one axis towards the endpoint cell, so the loop
+            # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+            while left > 0:
+                rel = cur - b0
+                if ti.static(mode == "dense"):
+                    if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
+                        ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
+                    else:
+                        ti.atomic_add(block1[li], ti.cast(1, bt))
+                    if ti.static(flags):
+                        bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
+                elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
+                    # Near the sensor every ray passes: count in the dense block,
+                    # applied to the tree once per cell by block_apply.
+                    if ti.static(ndt) and block[rel[0], rel[1], rel[2]] == ti.cast(mark, bt):
+                        ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
+                    else:
+                        ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
+                    lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
+                    if (lb != last_leaf).any():
+                        bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
+                        last_leaf = lb
+                else:
+                    lf = cur // leaf
+                    if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
+                        note_leaf(olm, slot, cur, occ_regions, leaves, 0)
+                        last_leaf = lf
+                    if ti.static(full):
+                        g = visit(slot, cur, touched, cap, ctr)
+                        if ti.static(ndt) and g != 0:
+                            ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_n, rec_icov,
+                                           rec_miss, ndt_minp)  # fmt: skip
+                    else:
+                        ti.atomic_add(ne[at(slot, cur)], 1)
+                visits += 1
+                # One axis crosses first by a clear margin (the common case): step it,
+                # advancing its crossing parameter by addition.
+                first = -1
+                if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
+                    first = 0
+                elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
+                    first = 1
+                elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
+                    first = 2
+                if first >= 0:
+                    for a in ti.static(range(3)):
+                        if a == first:
+                            cur[a] += step[a]
+                            rem[a] -= 1
+                            left -= 1
+                            li += dli[a]
+                            tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
+                else:
+                    # Near a tie: the crossings recomputed by division, as the decision
+                    # the margin stands in for (the sums stray far less than it).
+                    for a in ti.static(range(3)):
+                        tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                    tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                    ties = 0
+                    up = False
+                    for a in ti.static(range(3)):
+                        if tmax[a] == tmin:
+                            ties += 1
+                            if step[a] > 0:
+                                up = True
+                    # An exact tie (the segment crosses an edge or corner): axes stepping
+                    # up move first, so the cell holding the crossing point is visited.
+                    for a in ti.static(range(3)):
+                        if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                            cur[a] += step[a]
+                            rem[a] -= 1
+                            left -= 1
+                            li += dli[a]
+                            tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+            if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
+                if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                    if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
+                        ndt_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
+                    else:
+                        ti.atomic_add(block1[li], ti.cast(1, bt))
+                    if ti.static(flags):
+                        bflag1[li >> SHIFT] = ti.i8(1)
+                else:
+                    note_leaf(olm, slot, ce, occ_regions, leaves, 0)
+                    g = visit(slot, ce, touched, cap, ctr)
+                    if ti.static(ndt) and g != 0:
+                        ndt_tree_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss,
+                                       ndt_minp)  # fmt: skip
+                visits += 1
+            tally(ctr, C_VISITS, i >> 5, visits)
+
+    ndt_part = ("ndt", NdtRecords) if ndt else (None, NdtRecords)
+    return Bound(rays, ("slot", ("rays", Rays), ("sensor", Sensor), ("touched", Touched), "ctr",
+                        ("nodes", Nodes, ("occ_regions", "leaves")), ("block", Block), ("records", Records, ("rec_n",)),
+                        ndt_part))  # fmt: skip
+
+
+def mark_gaussians(f: Storage, bt: str) -> Bound:
+    """Before the rays of the NDT miss model: the block entries of cells holding a
+    Gaussian of >= ndt_minp points get the mark (their rows flagged, so that block_apply
+    visits and clears them)."""
+    F = device_funcs(f)
+    row, leaf = F.row, F.leaf
+    mark, bt_ = block_mark(bt), block_type(bt)
+    b3d = ti.types.ndarray(dtype=bt_, ndim=3)
+
+    def mark_gaussians(
+        nrec: ti.i32,  # records in use
+        rec_n: i32_1d,  # Records
+        rec_cell: i32_2d,
+        ndt_minp: ti.i32,  # NdtRecords
+        block: b3d,  # Block: the scan's zeroed ray counts
+        bflag: i8_3d,
+        base: i32_1d,
+    ):
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+        for r in range(nrec):
+            if rec_n[r] >= ndt_minp:
+                rel = row(rec_cell, r) - b0
+                if (rel >= 0).all() and (rel < bsize).all():
+                    block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
+                    bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+
+    return Bound(mark_gaussians, ("nrec", ("records", Records, ("rec_n", "rec_cell")), ("ndt", NdtRecords, ("ndt_minp",)),
+                                  ("block", Block, ("block", "bflag", "base"))))  # fmt: skip
+
+
+def reset_rays(f: Storage, _cfg=None) -> Bound:
+    """Clears the ray counts of the touched cells (a batch refused for memory)."""
+    F = device_funcs(f)
+    ne, row, at = f.ne, F.row, F.at
+
+    def reset_rays(slot: ti.i32, touched: i32_2d, nt: ti.i32):  # touched: [T, 3] cells
+        for t in range(nt):
+            c = row(touched, t)
+            ne[at(slot, c)] = ne[at(slot, c)] & NE_GAUSS
+
+    return Bound(reset_rays, ("slot", "touched", "nt"))
+
+
+def reset_rays_all(f: Storage, _cfg=None) -> Bound:
+    """reset_rays for every cell of the slot (when the touched list overflowed)."""
+    ne = f.ne
+
+    def reset_rays_all(slot: ti.i32):
+        for I in ti.grouped(ne):
+            if I[0] == slot:
+                ne[I] = ne[I] & NE_GAUSS
+
+    return Bound(reset_rays_all, ("slot",))
+
+
+def count_new_nodes(f: Storage, dedup: bool) -> Bound:
+    """Nodes the cells would allocate in each tree, each counted once. Reading never
+    allocates. dedup: flag leaves in ``seen`` (False: the cells lie in distinct leaves
+    already, and ``seen`` is not passed)."""
+    F = device_funcs(f)
+    olm, glm, row, at = f.olm, f.glm, F.row, F.at
+    leaf, region = F.leaf, F.region
+    grid_lo = F.grid_lo
+
+    def count_new_nodes(
+        slot: ti.i32,
+        cells: i32_2d,  # [N, 3] hit cells
+        n: ti.i32,
+        lbase: i32_1d,  # [3] first leaf of ``seen``
+        seen: i32_3d,  # zeroed flags over the cells' box of leaves (dedup)
+        rbase: i32_1d,  # [3] first region of ``rseen``
+        rseen: i32_3d,  # zeroed flags over the cells' box of regions
+        occ_regions: i8_4d,  # Nodes
+        gidx_regions: i8_4d,
+        out: i64_1d,  # [4] out: new occupancy leaves, index leaves, occupancy regions, index regions
+    ):
+        b0 = ti.Vector([lbase[0], lbase[1], lbase[2]], dt=ti.i32)
+        r0 = ti.Vector([rbase[0], rbase[1], rbase[2]], dt=ti.i32)
+        for i in range(n):
+            c = row(cells, i)
+            lf = c // leaf
+            first = True
+            if ti.static(dedup):
+                q = lf - b0
+                first = ti.atomic_or(seen[q[0], q[1], q[2]], 1) == 0
+            if first:
+                b = at(slot, lf)
+                if olm[b] == 0:
+                    ti.atomic_add(out[0], 1)
+                if glm[b] == 0:
+                    ti.atomic_add(out[1], 1)
+                r = (c - grid_lo) // region
+                q = r - r0
+                if ti.atomic_or(rseen[q[0], q[1], q[2]], 1) == 0:
+                    if occ_regions[slot, r[0], r[1], r[2]] == 0:
+                        ti.atomic_add(out[2], 1)
+                    if gidx_regions[slot, r[0], r[1], r[2]] == 0:
+                        ti.atomic_add(out[3], 1)
+
+    return Bound(count_new_nodes, ("slot", "cells", "n", "lbase", "seen", "rbase", "rseen",
+                                   ("nodes", Nodes, ("occ_regions", "gidx_regions")), "out"))  # fmt: skip

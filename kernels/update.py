@@ -1,0 +1,575 @@
+"""The occupancy-update family (method.md section 3): a scan's points to world cells,
+hits counted and summed per cell, the RCU merge of each hit cell's Gaussian with eq. (12)
+for it (``merge``), then eq. (12) once per cell that rays passed and no endpoint hit
+(``block_apply(_all)`` over the dense block, ``apply_free(_all)`` over the tree), with the
+reset of the Gaussian of a cell whose log-odds fell to <= 0."""
+
+from dataclasses import dataclass
+
+import taichi as ti
+
+from .args import (
+    Block,
+    Bound,
+    GroupedHits,
+    Model,
+    NdtRecords,
+    Nodes,
+    Records,
+    Touched,
+    TreeSums,
+)
+from .layout import Storage
+from .ndt import (
+    C_BLOCK_CELLS,
+    C_FREE,
+    C_HIT_CELLS,
+    C_HIT_PASSED,
+    C_NO_RECORD,
+    C_RECORDS,
+    HIT_CHUNKS,
+    NE_COUNT,
+    NE_GAUSS,
+    device_funcs,
+    f64_1d,
+    f64_2d,
+    i8_1d,
+    i8_3d,
+    i8_4d,
+    i32_1d,
+    i32_2d,
+    i64_1d,
+    i64_2d,
+    u64_1d,
+)
+from .trace import block_mark, block_type
+
+
+@dataclass(frozen=True)
+class MergeConfig:
+    """One variant of ``merge``. grouped: the hits were grouped by hits_dense in the
+    dense block (GroupedHits), else counted and summed in the tree (TreeSums). ndt: the
+    NDT miss model (the merge clears a record's miss sum and refreshes what rays read)."""
+
+    bt: str = "u16"
+    grouped: bool = False
+    ndt: bool = False
+
+    def __post_init__(self):
+        block_type(self.bt)
+
+
+@dataclass(frozen=True)
+class FreeConfig:
+    """One variant of the free-space kernels: the dense block's dtype and whether the
+    NDT miss model's sums replace the ray counts of cells holding a usable Gaussian."""
+
+    bt: str = "u16"
+    ndt: bool = False
+
+    def __post_init__(self):
+        block_type(self.bt)
+
+
+def prepare(f: Storage, _cfg=None) -> Bound:
+    """Sensor-frame points to world points and cells, each with its status."""
+    grid_lo = device_funcs(f).grid_lo
+    grid_n = ti.Vector(list(f.layout.cells))
+
+    def prepare(
+        pts: ti.types.ndarray(ndim=2),  # [N, 3] sensor-frame points (f32 or f64)
+        n: ti.i32,
+        rot: f64_1d,  # [9] R of T_world_sensor, row-major
+        trans: f64_1d,  # [3] its translation
+        res: ti.f64,
+        r2: f64_1d,  # [3] min_range^2, max_range^2, max_range (free rays past it if > 0)
+        out_world: f64_2d,  # [N, 3]
+        out_cells: i32_2d,  # [N, 3]
+        status: i8_1d,  # [N] 0 hit, 1 free ray, 2 not finite, 3 out of range, 4 outside the grid
+    ):
+        # No atomics: the caller compacts by status (contended counters cost more).
+        for i in range(n):
+            p = ti.Vector([ti.cast(pts[i, 0], ti.f64), ti.cast(pts[i, 1], ti.f64), ti.cast(pts[i, 2], ti.f64)])
+            st = ti.i8(2)
+            # Exponent bits all set: inf or NaN. (ti.math.isinf/isnan cast to f32 first,
+            # which made finite points past 3.4e38 read as infinite.)
+            e = ti.Vector([(ti.bit_cast(p[a], ti.u64) >> ti.u64(52)) & ti.u64(0x7FF) for a in ti.static(range(3))])
+            if not (e == ti.u64(0x7FF)).any():
+                st = ti.i8(3)
+                d2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+                if d2 >= r2[0] and d2 <= r2[1]:
+                    st = ti.i8(0)
+                elif d2 > r2[1] and r2[2] > 0.0:
+                    p = p * (r2[2] / ti.sqrt(d2))  # carve free space up to max_range
+                    st = ti.i8(1)
+                if st <= 1:
+                    w = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+                    for a in ti.static(range(3)):
+                        w[a] = rot[3 * a] * p[0] + rot[3 * a + 1] * p[1] + rot[3 * a + 2] * p[2] + trans[a]
+                    cf = ti.floor(w / res)
+                    if (cf >= grid_lo.cast(ti.f64)).all() and (cf < (grid_lo + grid_n).cast(ti.f64)).all():
+                        for a in ti.static(range(3)):
+                            out_world[i, a] = w[a]
+                            out_cells[i, a] = ti.cast(cf[a], ti.i32)
+                    else:
+                        st = ti.i8(4)
+            status[i] = st
+
+    return Bound(prepare, ("pts", "n", "rot", "trans", "res", "r2", "out_world", "out_cells", "status"))
+
+
+def hits_count(f: Storage, _cfg=None) -> Bound:
+    """Points per hit cell in the index tree (integer atomics), and a compact hit list."""
+    F = device_funcs(f)
+    hn, hslot, glm, row, at, note_leaf = f.hn, f.hslot, f.glm, F.row, F.at, F.note_leaf
+
+    def hits_count(
+        slot: ti.i32,
+        cells: i32_2d,  # [N, 3] cell of each hit point
+        n: ti.i32,
+        hitlist: i32_2d,  # [N, 3] out: distinct hit cells
+        ctr: i64_1d,  # [CTR_SIZE] counters (C_HIT_CELLS)
+        gidx_regions: i8_4d,  # Nodes
+        leaves: i64_2d,
+    ):
+        for i in range(n):
+            c = row(cells, i)
+            if ti.atomic_add(hn[at(slot, c)], 1) == 0:
+                # Every leaf these writes allocate holds a cell's first point: count it there.
+                note_leaf(glm, slot, c, gidx_regions, leaves, 1)
+                s = ti.atomic_add(ctr[C_HIT_CELLS], 1)
+                for a in ti.static(range(3)):
+                    hitlist[s, a] = c[a]
+                hslot[at(slot, c)] = ti.i32(s)
+
+    return Bound(hits_count, ("slot", "cells", "n", "hitlist", "ctr", ("nodes", Nodes, ("gidx_regions", "leaves"))))
+
+
+def hits_sum(f: Storage, _cfg=None) -> Bound:
+    """Scan-local sums relative to the cell centre, one slot per hit cell."""
+    F = device_funcs(f)
+    hslot, row, at = f.hslot, F.row, F.at
+
+    def hits_sum(
+        slot: ti.i32,
+        pts: f64_2d,  # [N, 3] world points
+        cells: i32_2d,  # [N, 3]
+        n: ti.i32,
+        acc: f64_2d,  # [H, 9] out: sum q (3), sum q q^T (6), q = x - cell centre
+        res: ti.f64,
+    ):
+        for i in range(n):
+            c = row(cells, i)
+            s = hslot[at(slot, c)]
+            q = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - (c.cast(ti.f64) + 0.5) * res
+            ti.atomic_add(acc[s, 0], q[0])
+            ti.atomic_add(acc[s, 1], q[1])
+            ti.atomic_add(acc[s, 2], q[2])
+            ti.atomic_add(acc[s, 3], q[0] * q[0])
+            ti.atomic_add(acc[s, 4], q[0] * q[1])
+            ti.atomic_add(acc[s, 5], q[0] * q[2])
+            ti.atomic_add(acc[s, 6], q[1] * q[1])
+            ti.atomic_add(acc[s, 7], q[1] * q[2])
+            ti.atomic_add(acc[s, 8], q[2] * q[2])
+
+    return Bound(hits_sum, ("slot", "pts", "cells", "n", "acc", "res"))
+
+
+def hits_dense(f: Storage, bt: str) -> Bound:
+    """Points grouped by hit cell in the dense block, for a block holding every cell of
+    the scan (on the CPU: its prefix sum runs on one thread)."""
+    F = device_funcs(f)
+    row = F.row
+    bt_ = block_type(bt)
+    bt = bt_
+    b3d = ti.types.ndarray(dtype=bt_, ndim=3)
+
+    def hits_dense(
+        cells: i32_2d,  # [N, 3] cells of the hits
+        n: ti.i32,
+        hitlist: i32_2d,  # [N, 3] out: distinct hit cells (the first ctr[C_HIT_CELLS])
+        hcnt: i32_1d,  # [N] out: points per hit cell
+        off: i32_1d,  # [N] out: where each hit cell's points start in ``order``
+        rank: i32_1d,  # [N] scratch: a point's rank among its cell's points
+        order: i32_1d,  # [N] out: the points grouped by hit cell
+        ctr: i64_1d,
+        block: b3d,  # the scan's ray counts, covering every cell of the scan
+        base: i32_1d,
+        first: i32_1d,  # [HIT_CHUNKS + 1] scratch: first hit-list slot of each chunk
+    ):
+        # Points grouped by hit cell without the tree, for a block that holds every hit
+        # cell (an entry holds any count or slot: at most one per ray): a hit cell's ray
+        # count is dropped anyway (eq. 12), so its block entry counts the cell's points,
+        # then holds its slot.
+        # merge then sums each cell's points itself (no atomics per point).
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        size = (n + HIT_CHUNKS - 1) // HIT_CHUNKS
+        for i in range(n):
+            q = row(cells, i) - b0
+            block[q[0], q[1], q[2]] = ti.cast(0, bt)
+        for i in range(n):
+            q = row(cells, i) - b0
+            rank[i] = ti.cast(ti.atomic_add(block[q[0], q[1], q[2]], ti.cast(1, bt)), ti.i32)
+        # Hit-list slots by a prefix sum over chunks of points: a counter shared by the
+        # threads cost a cache-line transfer per hit cell. The hit list comes out in
+        # the order of the cells' first points.
+        for c in range(HIT_CHUNKS):
+            k = 0
+            for i in range(c * size, ti.min(n, (c + 1) * size)):
+                if rank[i] == 0:
+                    k += 1
+            first[c + 1] = k
+        for _ in range(1):  # prefix sums, one thread
+            first[0] = 0
+            for c in range(HIT_CHUNKS):
+                first[c + 1] += first[c]
+            ctr[C_HIT_CELLS] = first[HIT_CHUNKS]
+        for c in range(HIT_CHUNKS):
+            s = first[c]
+            for i in range(c * size, ti.min(n, (c + 1) * size)):
+                if rank[i] == 0:
+                    q = row(cells, i) - b0
+                    for a in ti.static(range(3)):
+                        hitlist[s, a] = cells[i, a]
+                    hcnt[s] = ti.cast(block[q[0], q[1], q[2]], ti.i32)
+                    block[q[0], q[1], q[2]] = ti.cast(s, bt)
+                    s += 1
+        for _ in range(1):
+            run = 0
+            for s in range(first[HIT_CHUNKS]):
+                off[s] = run
+                run += hcnt[s]
+        for i in range(n):
+            q = row(cells, i) - b0
+            order[off[ti.cast(block[q[0], q[1], q[2]], ti.i32)] + rank[i]] = i
+
+    return Bound(hits_dense, ("cells", "n", "hitlist", "hcnt", "off", "rank", "order", "ctr",
+                              ("block", Block, ("block", "base")), "first"))  # fmt: skip
+
+
+def merge(f: Storage, cfg: MergeConfig) -> Bound:
+    """One thread per hit cell: the RCU merge of the scan's Gaussian into the cell's
+    record (a new record for a cell's first points), then eq. (12) for the cell."""
+    F = device_funcs(f)
+    lo, ne, hn, gslot, glm, olm = f.lo, f.ne, f.hn, f.gslot, f.glm, f.olm
+    row, at, note_leaf, ndt_icov = F.row, F.at, F.note_leaf, F.ndt_icov
+    grouped, ndt = cfg.grouped, cfg.ndt
+    bt = block_type(cfg.bt)
+    b3d = ti.types.ndarray(dtype=bt, ndim=3)
+
+    @ti.func
+    def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
+                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template()):  # fmt: skip
+        # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
+        # the cell has a Gaussian record now.
+        note_leaf(olm, slot, c, regions, leaves, 0)
+        lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
+        if ti.static(not grouped):
+            hn[at(slot, c)] = 0
+        v = ne[at(slot, c)]
+        ne[at(slot, c)] = NE_GAUSS
+        rel = c - b0
+        if (rel >= 0).all() and (rel < bsize).all():
+            block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
+        elif v & NE_COUNT != 0:
+            ti.atomic_add(ctr[C_HIT_PASSED], 1)
+
+    def merge(
+        slot: ti.i32,
+        hitlist: i32_2d,  # [H, 3] the scan's hit cells
+        acc: f64_2d,  # TreeSums (not grouped)
+        hcnt: i32_1d,  # GroupedHits (grouped)
+        off: i32_1d,
+        order: i32_1d,
+        pts: f64_2d,
+        nh: ti.i32,  # hit cells to merge
+        n_max: ti.i32,  # cap on a Gaussian's N (0: none)
+        rec_n: i32_1d,  # Records
+        rec_cell: i32_2d,
+        rec_mean: f64_2d,
+        rec_scat: f64_2d,
+        rec_free: i32_1d,
+        ctr: i64_1d,  # [CTR_SIZE]; C_RECORDS holds the records in use, C_FREE the free stack's
+        l_hit: ti.f64,  # Model
+        l_min: ti.f32,
+        l_max: ti.f32,
+        occ_regions: i8_4d,  # Nodes
+        gidx_regions: i8_4d,
+        leaves: i64_2d,
+        block: b3d,  # Block: the scan's dense ray counts (empty: none)
+        base: i32_1d,
+        res: ti.f64,
+        left: i32_1d,  # [H] out: hit cells (s) left untouched, all records taken
+        rec_miss: i64_1d,  # NdtRecords (ndt): a hit cell takes the hit update only
+        rec_icov: f64_2d,  # out: ndt_icov of the changed records
+        ndt_prm: f64_1d,
+        ndt_minp: ti.i32,
+    ):
+        # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
+        # Records are not reserved for the worst case (every hit cell new): a cell that
+        # finds none is left as it was, for the caller to grow the records and merge it.
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+        for s in range(nh):
+            c = row(hitlist, s)
+            r = gslot[at(slot, c)] - 1
+            if r < 0:
+                # A record from the free stack, else a new one. Pops only here (pushes
+                # only in eq. 12's kernels): a pop that finds it empty puts its count back.
+                k = ti.atomic_sub(ctr[C_FREE], 1) - 1
+                if k >= 0:
+                    r = rec_free[ti.cast(k, ti.i32)]
+                else:
+                    ti.atomic_add(ctr[C_FREE], 1)
+                    r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                if r >= rec_n.shape[0]:
+                    left[ti.atomic_add(ctr[C_NO_RECORD], 1)] = s
+                    continue
+                if ti.static(grouped):  # hits_count did not touch the index tree
+                    note_leaf(glm, slot, c, gidx_regions, leaves, 1)
+                gslot[at(slot, c)] = r + 1
+                for a in ti.static(range(3)):
+                    rec_cell[r, a] = c[a]
+            cnt = 0
+            if ti.static(grouped):
+                cnt = hcnt[s]
+            else:
+                cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
+            n = ti.cast(cnt, ti.f64)
+            sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+            ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
+            if ti.static(grouped):  # sums relative to the cell centre, as hits_sum's
+                centre = (c.cast(ti.f64) + 0.5) * res
+                for j in range(off[s], off[s] + cnt):
+                    i = order[j]
+                    x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
+                    sv += x
+                    ss += ti.Vector([x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]])
+            else:
+                sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+                ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
+            mu_y = sv / n
+            s_y = (
+                ss
+                - ti.Vector([sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]])
+                / n
+            )
+            m_i = rec_n[r]
+            tot_i = m_i + cnt
+            if m_i == 0:
+                for a in ti.static(range(3)):
+                    rec_mean[r, a] = mu_y[a]
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = s_y[a]
+            else:
+                m = ti.cast(m_i, ti.f64)
+                tot = m + n
+                mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+                d = mu_x - mu_y
+                w = m * n / tot
+                dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
+                mu = (m * mu_x + n * mu_y) / tot
+                for a in ti.static(range(3)):
+                    rec_mean[r, a] = mu[a]
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
+            if n_max > 0 and tot_i > n_max:
+                k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
+                for a in ti.static(range(6)):
+                    rec_scat[r, a] = rec_scat[r, a] * k
+                tot_i = n_max
+            rec_n[r] = tot_i
+            if ti.static(ndt):  # (the paper's model reads no NDT arrays)
+                rec_miss[r] = ti.i64(0)
+                if tot_i >= ndt_minp:  # what rays read of the cell's points
+                    ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
+                # A cell's first points: the misses it took while it held none tested no
+                # surface, so its log-odds restarts from 0 if they had lowered it.
+                if m_i == 0 and lo[at(slot, c)] < 0.0:
+                    lo[at(slot, c)] = 0.0
+            hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped)
+
+    return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
+                         ("grouped", GroupedHits) if grouped else (None, GroupedHits), "nh", "n_max",
+                         ("records", Records), "ctr", ("model", Model, ("l_hit", "l_min", "l_max")),
+                         ("nodes", Nodes), ("block", Block, ("block", "base")), "res", "left",
+                         ("ndt", NdtRecords) if ndt else (None, NdtRecords)))  # fmt: skip
+
+
+def _free_parts(ndt: bool) -> tuple:
+    return (("model", Model, ("l_free", "l_min", "l_max")), ("records", Records, ("rec_n", "rec_free")), "ctr")
+
+
+def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
+    """eq. (12) for the cells of the dense block, straight from their counts (hit cells
+    were zeroed by merge), visiting only the rows that rays flagged; block and flags are
+    zero afterwards."""
+    F = device_funcs(f)
+    block_cell, tally, leaf = F.block_cell, F.tally, F.leaf
+    mark, ndt = block_mark(cfg.bt), cfg.ndt
+    b3d = ti.types.ndarray(dtype=block_type(cfg.bt), ndim=3)
+    bt = block_type(cfg.bt)
+
+    def block_apply(
+        slot: ti.i32,
+        block: b3d,  # Block: ray counts, zeroed here
+        bflag: i8_3d,  # rows entered, zeroed here
+        base: i32_1d,
+        l_free: ti.f64,  # Model
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,  # Records
+        rec_free: i32_1d,
+        ctr: i64_1d,
+        occ_regions: i8_4d,  # Nodes
+        leaves: i64_2d,
+        rec_miss: i64_1d,  # NdtRecords (ndt): miss sums of marked cells, consumed here
+    ):
+        # eq. (12) for the cells of the dense block, straight from their counts (hit cells
+        # were zeroed by merge). One leaf of the tree per iteration, so its cells are
+        # updated together (the block is leaf-aligned).
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
+            cells = 0
+            for ii, jj in ti.ndrange(leaf, leaf):
+                i, j = bi * leaf + ii, bj * leaf + jj
+                if bflag[i, j, kb] != 0:
+                    bflag[i, j, kb] = ti.i8(0)
+                    for kk in range(leaf):
+                        k = kb * leaf + kk
+                        v = ti.cast(block[i, j, k], ti.i32)
+                        if v != 0:
+                            block[i, j, k] = ti.cast(0, bt)
+                            cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max,
+                                                rec_n, ctr, occ_regions, leaves, rec_free, rec_miss, mark, ndt)  # fmt: skip
+            if cells > 0:
+                tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
+
+    return Bound(block_apply, ("slot", ("block", Block, ("block", "bflag", "base")), *_free_parts(ndt),
+                               ("nodes", Nodes, ("occ_regions", "leaves")),
+                               ("ndt", NdtRecords, ("rec_miss",)) if ndt else (None, NdtRecords, ("rec_miss",))))  # fmt: skip
+
+
+def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
+    """block_apply for a block the rays filled densely (no row flags): every cell read."""
+    F = device_funcs(f)
+    block_cell, tally, SHIFT = F.block_cell, F.tally, F.SHIFT
+    mark, ndt = block_mark(cfg.bt), cfg.ndt
+    bits = 16 if cfg.bt == "u16" else 32
+    lanes = 64 // bits  # block entries per 64-bit word
+    mask = (1 << bits) - 1
+
+    def block_apply_all(
+        slot: ti.i32,
+        words: u64_1d,  # the block, flat, as 64-bit words: ray counts, zeroed here
+        shape: i32_1d,  # [3] its shape in cells
+        base: i32_1d,  # [3] cell index of its first cell
+        l_free: ti.f64,  # Model
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,  # Records
+        rec_free: i32_1d,
+        ctr: i64_1d,
+        occ_regions: i8_4d,  # Nodes
+        leaves: i64_2d,
+        rec_miss: i64_1d,  # NdtRecords (ndt)
+    ):
+        # block_apply for a block the rays filled densely (no row flags): every column
+        # of cells along z read in memory order, a word of `lanes` cells at a time, so
+        # the empty cells (most of them) cost one test per word. Little-endian: lane 0
+        # is the word's first cell.
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        wz = shape[2] // lanes  # a multiple of the leaf size: whole words
+        for i, j in ti.ndrange(shape[0], shape[1]):
+            cells = 0
+            last = -1
+            col = (i * shape[1] + j) * wz
+            for kw in range(wz):
+                w = words[col + kw]
+                if w != 0:
+                    words[col + kw] = ti.u64(0)
+                    for lane in ti.static(range(lanes)):
+                        v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
+                        if v != 0:
+                            k = kw * lanes + lane
+                            cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min,
+                                                l_max, rec_n, ctr, occ_regions, leaves, rec_free, rec_miss, mark, ndt)  # fmt: skip
+                            last = k >> SHIFT
+            if cells > 0:
+                tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
+
+    return Bound(block_apply_all, ("slot", "words", "shape", "base", *_free_parts(ndt),
+                                   ("nodes", Nodes, ("occ_regions", "leaves")),
+                                   ("ndt", NdtRecords, ("rec_miss",)) if ndt else (None, NdtRecords, ("rec_miss",))))  # fmt: skip
+
+
+def apply_free(f: Storage, ndt: bool) -> Bound:
+    """eq. (12) for the cells of the tree that rays touched and no endpoint hit."""
+    F = device_funcs(f)
+    row, free_update_tree = F.row, F.free_update_tree
+
+    def apply_free(
+        slot: ti.i32,
+        touched: i32_2d,  # Touched: [T, 3] cells
+        nt: ti.i32,  # the first nt of them
+        l_free: ti.f64,  # Model
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,  # Records
+        rec_free: i32_1d,
+        ctr: i64_1d,
+        rec_miss: i64_1d,  # NdtRecords (ndt): miss sums, consumed here
+        ndt_minp: ti.i32,
+    ):
+        for t in range(nt):
+            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp, ndt)
+
+    return Bound(apply_free, ("slot", ("touched", Touched, ("touched",)), "nt", *_free_parts(ndt),
+                              ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
+                              else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
+
+
+def apply_free_all(f: Storage, ndt: bool) -> Bound:
+    """apply_free over every cell of the slot: the fallback when the touched list overflowed."""
+    F = device_funcs(f)
+    ne, free_update_tree = f.ne, F.free_update_tree
+
+    def apply_free_all(
+        slot: ti.i32,
+        l_free: ti.f64,  # Model
+        l_min: ti.f32,
+        l_max: ti.f32,
+        rec_n: i32_1d,  # Records
+        rec_free: i32_1d,
+        ctr: i64_1d,
+        rec_miss: i64_1d,  # NdtRecords (ndt)
+        ndt_minp: ti.i32,
+    ):
+        for I in ti.grouped(ne):
+            if I[0] == slot and ne[I] & NE_COUNT > 0:
+                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss,
+                                 ndt_minp, ndt)  # fmt: skip
+
+    return Bound(apply_free_all, ("slot", *_free_parts(ndt),
+                                  ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
+                                  else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
+
+
+def ndt_refresh(f: Storage, _cfg=None) -> Bound:
+    """ndt_icov of every record (after a load: merge keeps them current afterwards)."""
+    ndt_icov = device_funcs(f).ndt_icov
+
+    def ndt_refresh(
+        nrec: ti.i32,  # records in use
+        rec_n: i32_1d,  # Records
+        rec_mean: f64_2d,
+        rec_scat: f64_2d,
+        rec_icov: f64_2d,  # NdtRecords: out
+        ndt_prm: f64_1d,
+    ):
+        for r in range(nrec):
+            if rec_n[r] > 0:
+                ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
+
+    return Bound(ndt_refresh, ("nrec", ("records", Records, ("rec_n", "rec_mean", "rec_scat")),
+                               ("ndt", NdtRecords, ("rec_icov", "ndt_prm"))))  # fmt: skip

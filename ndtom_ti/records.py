@@ -1,0 +1,116 @@
+"""A map's Gaussian records: dense numpy arrays outside Taichi's pool, and their growth.
+
+A cell that receives points gets a record (its number + 1 sits in the cell's ``gslot`` in
+the Gaussian index tree); the RCU merge (kernels/update.py ``merge``) writes it. Records
+of erased Gaussians wait on a free stack for the next new ones, so the records held follow
+the Gaussians alive, not all ever made. Records grow only when the cells of a scan find
+none free (``grow_for``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .cellkeys import lex_order
+from .kernels.args import NdtRecords, Records
+from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
+
+START_RECORDS = 1024
+
+
+class GaussianRecords:
+    """The records of one map.
+
+    ``n`` [C] i32 points (0: unused or erased), ``cell`` [C, 3] i32 cell index, ``mean``
+    [C, 3] f64 mean minus the cell centre, ``scat`` [C, 6] f64 scatter (xx xy xz yy yz
+    zz), ``free`` [C] i32 the free stack (its first ``nfree`` entries). With the NDT miss
+    model also ``miss`` [C] i64, the scan's summed log-odds changes (zero between updates),
+    and ``icov`` [C, 9] f64, what rays read (inverse regularised covariance, mean); a
+    placeholder row each without it. ``count``: records handed out so far (in use or on
+    the free stack).
+    """
+
+    def __init__(self, ndt: bool, ndt_prm: np.ndarray | None = None, ndt_minp: int = 0,
+                 capacity: int = START_RECORDS):  # fmt: skip
+        self.ndt = bool(ndt)
+        self.ndt_prm = np.zeros(5) if ndt_prm is None else ndt_prm
+        self.ndt_minp = int(ndt_minp)
+        self.count = 0
+        self.nfree = 0
+        self.n = np.zeros(0, np.int32)
+        self.grow(capacity)
+
+    @property
+    def capacity(self) -> int:
+        return len(self.n)
+
+    @property
+    def in_use(self) -> int:
+        return self.count - self.nfree
+
+    def nbytes(self) -> int:
+        return self.capacity * (RECORD_BYTES + (NDT_RECORD_BYTES if self.ndt else 0))
+
+    def grow(self, capacity: int) -> None:
+        """Hold ``capacity`` records, keeping those handed out (and, mid-update, the
+        rays' miss sums not applied yet)."""
+        k = self.count
+        old = self.n if k or self.nfree else None
+        n_ = np.zeros(capacity, np.int32)
+        cell = np.zeros((capacity, 3), np.int32)
+        mean = np.zeros((capacity, 3), np.float64)
+        scat = np.zeros((capacity, 6), np.float64)
+        free = np.zeros(capacity, np.int32)
+        miss = np.zeros(capacity if self.ndt else 1, np.int64)
+        icov = np.zeros((capacity if self.ndt else 1, 9), np.float64)
+        if old is not None:
+            n_[:k], cell[:k], mean[:k], scat[:k] = self.n[:k], self.cell[:k], self.mean[:k], self.scat[:k]
+            if self.ndt:
+                miss[:k] = self.miss[:k]
+                icov[:k] = self.icov[:k]
+            free[: self.nfree] = self.free[: self.nfree]
+        self.n, self.cell, self.mean, self.scat, self.free = n_, cell, mean, scat, free
+        self.miss, self.icov = miss, icov
+        # The arrays as kernel arguments (rebuilt with them).
+        self.group = Records(rec_n=n_, rec_cell=cell, rec_mean=mean, rec_scat=scat, rec_free=free)
+        self.ndt_group = (
+            NdtRecords(rec_miss=miss, rec_icov=icov, ndt_prm=self.ndt_prm, ndt_minp=self.ndt_minp) if self.ndt else None
+        )
+
+    def grow_for(self, new_cells: int) -> None:
+        """Grow when new cells found no record: by an eighth, or by a scan's hit cells
+        (fewer copies while a small map explores), as the memory should follow the place."""
+        cap = self.capacity
+        self.grow(cap + max(cap // 8, new_cells))
+
+    def clear_miss(self) -> None:
+        self.miss[:] = 0
+
+    def holding_points(self) -> dict:
+        """Every record that holds points, sorted by cell index: ``index`` (K, 3) i32,
+        ``n``, ``mean_rel``, ``scatter``."""
+        k = self.count
+        keep = self.n[:k] > 0
+        idx = self.cell[:k][keep]
+        order = lex_order(idx)
+        return {
+            "index": np.ascontiguousarray(idx[order]),
+            "n": self.n[:k][keep][order],
+            "mean_rel": self.mean[:k][keep][order],
+            "scatter": self.scat[:k][keep][order],
+        }
+
+    def with_points(self, min_points: int) -> np.ndarray:
+        """Cells (K, 3) of the records with at least ``min_points`` points."""
+        cand = np.flatnonzero(self.n[: self.count] >= min_points)
+        return np.ascontiguousarray(self.cell[cand])
+
+    def load(self, index: np.ndarray, n: np.ndarray, mean_rel: np.ndarray, scatter: np.ndarray) -> None:
+        """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
+        k = len(index)
+        self.grow(max(START_RECORDS, k))
+        self.n[:k] = n
+        self.cell[:k] = index
+        self.mean[:k] = mean_rel
+        self.scat[:k] = scatter
+        self.count = k

@@ -1,0 +1,436 @@
+"""One scan's update of a map (method.md sections 2 and 3): validation, the memory plan,
+ray tracing (one pass with a dense block near the sensor, or batches under memory
+pressure), hits, the RCU merge and eq. (12). The kernels are those of kernels/families.py;
+``UpdatePlan`` holds the choices that change speed only: every plan gives the same map,
+cell for cell."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from .kernels.args import Block, GroupedHits, Model, Rays, Sensor, Touched, TreeSums
+from .kernels.ndt import (
+    C_BLOCK_CELLS,
+    C_ERASED,
+    C_FREE,
+    C_HIT_CELLS,
+    C_HIT_PASSED,
+    C_NO_RECORD,
+    C_RECORDS,
+    C_TOUCHED,
+    C_VISITS,
+    CTR_SIZE,
+    HIT_CHUNKS,
+    total,
+)
+from .kernels.trace import RaysConfig
+from .kernels.update import FreeConfig, MergeConfig
+from .scaninput import as_points, as_pose, cell_box
+
+# Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
+# counting there is several times cheaper than in the sparse tree. Past it the block keeps
+# the part nearest the sensor, where rays are densest, and the rest counts in the tree.
+BLOCK_CELLS = 1 << 25
+TOUCHED_START = 1 << 20
+ROW_FLAGS = ("auto", "always", "never")
+
+
+@dataclass
+class ScanReport:
+    """What one ``insert_scan`` did."""
+
+    points_in: int = 0
+    points_used: int = 0  # endpoints inserted as hits
+    free_rays: int = 0  # rays past max_range carved as free space (max_range_mode="free")
+    dropped_nonfinite: int = 0
+    dropped_range: int = 0  # closer than min_range, or past max_range with mode "drop"
+    dropped_outside_grid: int = 0
+    cells_hit: int = 0
+    cells_passed: int = 0  # distinct cells rays passed without an endpoint: free-space updates
+    ray_cell_visits: int = 0
+    gaussians_erased: int = 0
+    ray_batches: int = 0  # batches the rays were traced in under memory pressure (0: one pass)
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class UpdatePlan:
+    """How a map's updates run. Speed only: any plan gives the same map, cell for cell.
+
+    block_cells: most cells of the dense ray-count block around the sensor (0: count
+        every ray visit in the sparse tree).
+    u16_rays: scans of at most this many rays count in 16 bits on the CPU (a ray passes
+        a cell once; 65535 marks a cell holding a Gaussian for the NDT miss model); larger
+        scans, or 0, in 32 bits.
+    row_flags: for a block that holds the whole scan: "auto" flags the rows rays enter
+        when the last scan made few visits per block cell, "always", or "never" (every
+        row is read).
+    one_pass: False traces every scan in batches through the tree, as under memory
+        pressure.
+    touched_rows: rows of the list of tree cells a scan's rays touch (doubled past a
+        scan that overflows it; that scan visits every cell of the map instead).
+    """
+
+    block_cells: int = BLOCK_CELLS
+    u16_rays: int = 65534
+    row_flags: str = "auto"
+    one_pass: bool = True
+    touched_rows: int = TOUCHED_START
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "row_flags" and value not in ROW_FLAGS:
+            raise ValueError(f"row_flags must be one of {ROW_FLAGS}, got {value!r}")
+        if name in ("block_cells", "u16_rays", "touched_rows") and (
+            isinstance(value, bool) or int(value) != value or int(value) < (1 if name == "touched_rows" else 0)
+        ):
+            raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+        super().__setattr__(name, value)
+
+
+@dataclass
+class PreparedScan:
+    """A validated scan: world endpoints and their cells, hits first, then free rays."""
+
+    world: np.ndarray  # [N, 3] f64
+    cells: np.ndarray  # [N, 3] i32
+    n_hit: int
+    origin: np.ndarray  # [3] f64 sensor origin
+    ocell: np.ndarray  # [3] i64 its cell
+    report: ScanReport
+    box: tuple[np.ndarray, np.ndarray] | None  # the cells' bounding box
+    one_pass: bool  # the whole scan fits the memory budget at once
+    hit_nodes: tuple[np.ndarray, np.ndarray] | None  # (nodes the hits add, hit cells) when batched
+
+
+class ScanUpdate:
+    """Runs the updates of one map (its slot ``slot`` of storage ``st``)."""
+
+    def __init__(self, *, st, slot, kernels, records, budget, plan: UpdatePlan, config, resolution: float,
+                 occupancy: bool, arch: str):  # fmt: skip
+        self.st, self.slot, self.k = st, slot, kernels
+        self.records, self.budget, self.plan = records, budget, plan
+        self.config, self.resolution, self.occupancy, self.arch = config, resolution, occupancy, arch
+        self.ndt = bool(config.ndt_misses)
+        self.layout = st.layout
+        self.glo = np.array(self.layout.lo, np.int64)
+        self.ghi = np.array(self.layout.hi, np.int64)
+        self.ctr = np.zeros(CTR_SIZE, np.int64)
+        self.chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
+        self.block_density = 0.0  # ray visits per cell of the last scan's dense block
+        self.batches = 0  # ray batches of the last scan (0: one pass)
+        self.model = Model(l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min),
+                           l_max=float(config.logodds_max))  # fmt: skip
+        self._touched_rows = 0
+        self._sync_touched()
+        self._empty = {
+            bt: Block.of(np.zeros((0, 0, 0), dt), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32))
+            for bt, dt in (("u16", np.uint16), ("i32", np.int32))
+        }
+
+    def _sync_touched(self) -> None:
+        if self.plan.touched_rows != self._touched_rows:
+            self.touched = np.empty((self.plan.touched_rows, 3), np.int32)
+            self.touched_group = Touched(touched=self.touched, cap=len(self.touched))
+            self._touched_rows = self.plan.touched_rows
+
+    def _ndt_kw(self) -> dict:
+        return {"ndt": self.records.ndt_group} if self.ndt else {}
+
+    # ------------------------------------------------------------------ preparation
+
+    def prepare(self, points: Any, T_world_sensor: Any) -> PreparedScan:
+        """Validate a scan and turn it into world endpoints and their cells (hits first,
+        then free rays), reserving the pool memory the update may need."""
+        pts = as_points(points)
+        T = as_pose(T_world_sensor)
+        cfg = self.config
+        res = self.resolution
+        rep = ScanReport(points_in=len(pts))
+
+        origin = np.ascontiguousarray(T[:3, 3])
+        ocell = np.floor(origin / res).astype(np.int64)
+        if ((ocell < self.glo) | (ocell >= self.ghi)).any():
+            lo, hi = self.glo * res, self.ghi * res
+            raise ValueError(
+                f"sensor origin {origin.tolist()} is outside the map grid "
+                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
+            )
+
+        n = len(pts)
+        world = np.empty((n, 3), np.float64)
+        cells = np.empty((n, 3), np.int32)
+        status = np.empty(n, np.int8)
+        free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
+        r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
+        if n:
+            self.k.prepare()(pts=pts, n=n, rot=np.ascontiguousarray(T[:3, :3]).reshape(-1), trans=origin, res=res, r2=r2,
+                             out_world=world, out_cells=cells, status=status)  # fmt: skip
+        cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
+        n_hit, n_free = int(cnt[0]), int(cnt[1])
+        if n_hit + n_free < n:
+            hit = status == 0
+            if n_free:
+                free = status == 1
+                world = np.concatenate([world[hit], world[free]])
+                cells = np.concatenate([cells[hit], cells[free]])
+            else:
+                world, cells = world[hit], cells[hit]
+        elif n_free:  # nothing dropped, but hits must come first
+            order = np.argsort(status, kind="stable")
+            world, cells = world[order], cells[order]
+        rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
+        rep.points_used = n_hit
+        rep.free_rays = n_free
+        box = cell_box(cells) if len(cells) else None
+
+        # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
+        # fit and the rays are traced in batches, each checked against exact counts.
+        budget = self.budget
+        bound = budget.scan_bound(cells, n_hit, ocell, box=box)
+        one_pass = self.plan.one_pass and budget.fits(bound)
+        hit_nodes = None
+        if not one_pass:
+            # The index tree takes only hit cells: count its new nodes exactly and retry.
+            new = budget.new_hit_nodes(cells[:n_hit])
+            bound[2:] = new[2:]
+            one_pass = self.plan.one_pass and budget.fits(bound)
+            if not one_pass:
+                budget.reserve(new)
+                # What the hits write after the batched rays: each batch must leave room for it.
+                hit_nodes = (new, cells[:n_hit])
+        return PreparedScan(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
+
+    # ------------------------------------------------------------------ rays
+
+    def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """The benchmark floor (NdtOmMap.traverse_only)."""
+        t0 = time.perf_counter()
+        self._sync_touched()
+        p = self.prepare(points, T_world_sensor)
+        self.ctr[:] = 0
+        if len(p.world):
+            self.trace("floor", p)
+        rep = p.report
+        rep.ray_cell_visits = total(self.ctr, C_VISITS)
+        rep.seconds = time.perf_counter() - t0
+        return rep
+
+    def trace(self, mode: str, p: PreparedScan):
+        """Run the ray kernel of ``mode`` ("full" or "floor") over all rays, in batches
+        when memory is tight. Returns the dense block they counted in (a Block), whether
+        the rays set its row flags, and whether it holds every cell of the scan; or None."""
+        st, slot, k, ctr = self.st, self.slot, self.k, self.ctr
+        dense = p.one_pass and mode == "full"  # the floor counts in the tree only
+        # 16-bit counts on the CPU only: NVIDIA GPUs have no 16-bit atomics.
+        bt = "u16" if self.arch == "cpu" and len(p.world) <= self.plan.u16_rays else "i32"
+        ndt = mode == "full" and self.ndt
+        blk = self.block_for(p.box if dense else None, p.ocell, bt)
+        common = {"slot": slot, "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution),
+                  "touched": self.touched_group, "ctr": ctr, "nodes": self.budget.nodes, "block": blk,
+                  "records": self.records.group}  # fmt: skip
+        if ndt:
+            common["ndt"] = self.records.ndt_group
+        # The Gaussians the rays test are those of the scan's start: merge runs after them.
+        if ndt and blk.block.size:
+            k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
+                                 block=blk)  # fmt: skip
+        cfg = RaysConfig(bt=bt, mode="full" if mode == "full" else "floor", ndt=ndt)
+        world, cells, n_hit, n = p.world, p.cells, p.n_hit, len(p.world)
+        self.batches = 0
+        if p.one_pass:
+            box = p.box
+            assert box is not None  # the scan has rays
+            lo, hi = np.minimum(box[0], p.ocell), np.maximum(box[1], p.ocell)
+            flagged, whole = True, False
+            base = blk.base
+            if dense and (base <= lo).all() and (base + np.array(blk.block.shape) > hi).all():
+                whole = True
+                # The block covers every cell of the scan. Row flags pay off only where
+                # rays leave most rows empty: the last scan made few visits per block cell
+                # (measured on the hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15).
+                rf = self.plan.row_flags
+                flagged = self.block_density < 0.2 if rf == "auto" else rf == "always"
+                cfg = RaysConfig(bt=bt, mode="dense", flags=flagged, ndt=ndt)
+            k.rays(cfg)(rays=Rays(pts=world, cells=cells, n_hit=n_hit, n=n), **common)
+            st.note_usage()
+            if not (dense and blk.block.size):
+                return None
+            self.block_density = total(ctr, C_VISITS) / blk.block.size  # the only rays kernel of the update
+            return blk, flagged, whole
+        # Hits first, then free rays, each by azimuth: batches stay spatially compact.
+        d = world - p.origin
+        az = np.arctan2(d[:, 1], d[:, 0])
+        order = np.concatenate([np.argsort(az[:n_hit]), n_hit + np.argsort(az[n_hit:])])
+        ws, cs = world[order], cells[order]
+        budget = self.budget
+        rays = k.rays(cfg)
+        pending = [(0, n)]
+        # Nodes the hits write after the rays (merge): an upper bound, counted again exactly
+        # when a batch does not fit, as the rays may have made some of them already.
+        hits, hit_cells = p.hit_nodes or (np.zeros(4, np.int64), cells[:0])
+        fresh = True
+        while pending:
+            a, b = pending.pop()
+            bound = budget.scan_bound(cs[a:b], 0, p.ocell, tight=True, rays=True)
+            fits = budget.fits(bound + hits)
+            if not fits and not fresh:
+                hits, fresh = budget.new_hit_nodes(hit_cells), True
+                fits = budget.fits(bound + hits)
+            if fits:
+                # No dense block here: its cells would reach the tree outside this batch's bound.
+                rays(rays=Rays(pts=np.ascontiguousarray(ws[a:b]), cells=np.ascontiguousarray(cs[a:b]),
+                               n_hit=max(0, min(n_hit - a, b - a)), n=b - a), **common)  # fmt: skip
+                st.note_usage()
+                self.batches += 1
+                fresh = len(hit_cells) == 0
+            elif b - a > 1:
+                mid = (a + b) // 2
+                pending += [(mid, b), (a, mid)]
+            else:
+                nt = int(ctr[C_TOUCHED])
+                if nt <= len(self.touched):
+                    k.reset_rays()(slot=slot, touched=self.touched, nt=nt)
+                else:
+                    k.reset_rays_all()(slot=slot)
+                need = st.pool_bytes(bound + hits, all_types=True)
+                # The leaves these rays made hold nothing now: give them back for later scans.
+                from .kernels.release import release_empty_leaves
+
+                release_empty_leaves(st, slot)
+                budget.refuse(need)  # nothing of this scan is kept
+        return None
+
+    def block_for(self, box, ocell: np.ndarray, bt: str = "i32") -> Block:
+        """The dense ray-count block (dtype ``bt``) of a scan: the leaf-aligned box of its
+        cells and the sensor, trimmed on its far sides to ``plan.block_cells`` cells
+        (empty with no ``box``)."""
+        leaf = self.layout.leaf
+        limit = self.plan.block_cells
+        if box is None or limit < leaf**3:
+            return self._empty[bt]
+        dtype = np.uint16 if bt == "u16" else np.int32
+        oleaf = ocell // leaf
+        lo = np.minimum(box[0] // leaf, oleaf)  # in leaves
+        hi = np.maximum(box[1] // leaf, oleaf) + 1
+        while int(np.prod(hi - lo)) * leaf**3 > limit:
+            a = int(np.argmax(hi - lo))
+            cut = max(1, int(hi[a] - lo[a]) // 8)
+            if hi[a] - oleaf[a] - 1 >= oleaf[a] - lo[a]:  # trim the side farther from the sensor
+                hi[a] = max(hi[a] - cut, oleaf[a] + 1)
+            else:
+                lo[a] = min(lo[a] + cut, oleaf[a])
+        shape = tuple(int(x) * leaf for x in hi - lo)
+        n = shape[0] * shape[1] * shape[2]
+        st = self.st
+        words = -(-n * np.dtype(dtype).itemsize // 4)  # the buffer is int32, viewed as dtype
+        if words > len(st.block_buf):
+            st.block_buf = np.zeros(max(words, min(len(st.block_buf) * 5 // 4, BLOCK_CELLS)), np.int32)
+        if n // leaf > len(st.bflag_buf):
+            st.bflag_buf = np.zeros(max(n // leaf, min(len(st.bflag_buf) * 5 // 4, BLOCK_CELLS // leaf)), np.int8)
+        block = st.block_buf.view(dtype)[:n].reshape(shape)
+        bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
+        return Block.of(block, bflag, (lo * leaf).astype(np.int32))
+
+    # ------------------------------------------------------------------ the update
+
+    def insert_guarded(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """``insert``, leaving the shared scratch clean when it raises (the caller holds
+        the storage's lock)."""
+        try:
+            return self.insert(points, T_world_sensor)
+        except BaseException:
+            # Interrupted between kernels (Ctrl-C) or refused: keep the shared block and
+            # the NDT miss sums zero.
+            self.st.block_buf[:] = 0
+            self.st.bflag_buf[:] = 0
+            self.records.clear_miss()
+            raise
+
+    def insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        t0 = time.perf_counter()
+        self._sync_touched()
+        p = self.prepare(points, T_world_sensor)
+        rep, world, cells, n_hit = p.report, p.world, p.cells, p.n_hit
+        n = len(world)
+        cfg, res = self.config, self.resolution
+        k, ctr, slot, recs, nodes, model = self.k, self.ctr, self.slot, self.records, self.budget.nodes, self.model
+        ctr[:] = 0
+        ctr[C_FREE] = recs.nfree
+        dense = None
+        if self.occupancy and n:
+            dense = self.trace("full", p)  # may refuse
+        blk, flagged, whole = dense if dense is not None else (self._empty["i32"], True, False)
+        bt = "u16" if blk.block.dtype == np.uint16 else "i32"
+        hitlist = np.empty((max(n_hit, 1), 3), np.int32)
+        nh = 0
+        # Points per hit cell counted in the block (no tree walks) when it holds them all; on
+        # the CPU only (its prefix sum runs on one thread).
+        grouped = whole and self.arch == "cpu"
+        if n_hit:
+            if grouped:
+                hcnt, off, order = np.empty(n_hit, np.int32), np.empty(n_hit, np.int32), np.empty(n_hit, np.int32)
+                k.hits_dense(bt)(cells=cells, n=n_hit, hitlist=hitlist, hcnt=hcnt, off=off, rank=np.empty(n_hit, np.int32),
+                                 order=order, ctr=ctr, block=blk, first=self.chunks)  # fmt: skip
+                nh = int(ctr[C_HIT_CELLS])
+            else:
+                k.hits_count()(slot=slot, cells=cells, n=n_hit, hitlist=hitlist, ctr=ctr, nodes=nodes)
+                nh = int(ctr[C_HIT_CELLS])
+                acc = np.zeros((nh, 9), np.float64)
+                k.hits_sum()(slot=slot, pts=world, cells=cells, n=n_hit, acc=acc, res=res)
+            left, todo = np.empty(nh, np.int32), nh
+            merge = k.merge(MergeConfig(bt=bt, grouped=grouped, ndt=self.ndt))
+            while True:
+                cap = recs.capacity
+                ctr[C_RECORDS], ctr[C_NO_RECORD] = recs.count, 0
+                hits = {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world)} if grouped else {
+                    "sums": TreeSums(acc=acc)}  # fmt: skip
+                merge(slot=slot, hitlist=hitlist, **hits, nh=todo, n_max=int(cfg.n_max), records=recs.group, ctr=ctr,
+                      model=model, nodes=nodes, block=blk, res=res, left=left, **self._ndt_kw())  # fmt: skip
+                # At once, like the record count: an update cut short later must not hand
+                # out the records merge took from the free stack again.
+                recs.count, recs.nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
+                todo = int(ctr[C_NO_RECORD])
+                if not todo:
+                    break
+                recs.grow_for(nh)
+                s = np.sort(left[:todo])
+                hitlist = hitlist[s]
+                if grouped:
+                    hcnt, off = hcnt[s], off[s]
+                else:
+                    acc = acc[s]
+        if dense is not None:
+            fc = FreeConfig(bt=bt, ndt=self.ndt)
+            if flagged:
+                k.block_apply(fc)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes,
+                                  **self._ndt_kw())  # fmt: skip
+            else:
+                block = blk.block
+                k.block_apply_all(fc)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=np.array(block.shape, np.int32),
+                                      base=blk.base, model=model, records=recs.group, ctr=ctr, nodes=nodes,
+                                      **self._ndt_kw())  # fmt: skip
+        if self.occupancy and n:
+            nt = int(ctr[C_TOUCHED])
+            if 0 < nt <= len(self.touched):
+                k.apply_free(self.ndt)(slot=slot, touched=self.touched_group, nt=nt, model=model, records=recs.group,
+                                       ctr=ctr, **self._ndt_kw())  # fmt: skip
+            elif nt:
+                k.apply_free_all(self.ndt)(slot=slot, model=model, records=recs.group, ctr=ctr, **self._ndt_kw())
+                self.plan.touched_rows = 2 * nt
+                self._sync_touched()
+            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
+        self.st.note_usage()
+        rep.cells_hit = nh
+        rep.ray_cell_visits = total(ctr, C_VISITS)
+        rep.gaussians_erased = int(ctr[C_ERASED])
+        rep.ray_batches = self.batches
+        recs.nfree = int(ctr[C_FREE])
+        rep.seconds = time.perf_counter() - t0
+        return rep

@@ -1,0 +1,140 @@
+"""Kernels called by keyword with typed argument groups (kernels/args.py), the kernel
+families cached per config (kernels/families.py) and the update plan (scan_update.py)."""
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from ndtom_ti import NdtOmMap, runtime
+from ndtom_ti.kernels.args import Bound, Model, Records
+from ndtom_ti.kernels.families import kernel_set
+from ndtom_ti.kernels.trace import RaysConfig
+from ndtom_ti.kernels.update import FreeConfig, MergeConfig
+from ndtom_ti.scan_update import UpdatePlan
+
+F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+def _scale(out: F64, l_hit: ti.f64, l_min: ti.f32, n: ti.i32, rec_n: I32, rec_free: I32):
+    for i in range(n):
+        out[i] = l_hit * rec_n[i] + l_min + rec_free[i]
+
+
+def _records(k: int) -> Records:
+    return Records(rec_n=np.arange(k, dtype=np.int32), rec_cell=np.zeros((k, 3), np.int32),
+                   rec_mean=np.zeros((k, 3)), rec_scat=np.zeros((k, 6)), rec_free=np.full(k, 100, np.int32))  # fmt: skip
+
+
+def test_bound_kernel_flattens_groups_in_declared_order():
+    k = Bound(_scale, ("out", ("model", Model, ("l_hit", "l_min")), "n", ("records", Records, ("rec_n", "rec_free"))))
+    out = np.zeros(4)
+    k(out=out, model=Model(l_hit=2.0, l_free=-9.0, l_min=0.5, l_max=9.0), n=4, records=_records(4))
+    np.testing.assert_array_equal(out, [100.5, 102.5, 104.5, 106.5])
+
+
+def test_bound_kernel_rejects_swapped_missing_and_unknown_arguments():
+    k = Bound(_scale, ("out", ("model", Model, ("l_hit", "l_min")), "n", ("records", Records, ("rec_n", "rec_free"))))
+    model, recs, out = Model(l_hit=1.0, l_free=0.0, l_min=0.0, l_max=0.0), _records(2), np.zeros(2)
+    with pytest.raises(TypeError, match="model must be a Model, got Records"):
+        k(out=out, model=recs, n=2, records=model)
+    with pytest.raises(TypeError, match="missing argument 'n'"):
+        k(out=out, model=model, records=recs)
+    with pytest.raises(TypeError, match="unexpected arguments"):
+        k(out=out, model=model, n=2, records=recs, extra=1)
+    assert not out.any()  # nothing ran
+
+
+def test_bound_kernel_whose_parameters_differ_from_its_groups_is_refused():
+    with pytest.raises(TypeError, match="do not match"):
+        Bound(_scale, ("out", ("model", Model, ("l_min", "l_hit")), "n", ("records", Records, ("rec_n", "rec_free"))))
+    with pytest.raises(TypeError, match="has no fields"):
+        Bound(_scale, ("out", ("model", Model, ("l_hit", "l_low")), "n", ("records", Records, ("rec_n", "rec_free"))))
+
+
+def test_variants_without_a_group_need_no_placeholder():
+    """A merge compiled for the paper's model and tree sums takes neither the NDT arrays
+    nor the grouped hits: the caller passes none."""
+    ks = kernel_set(runtime.storage(NdtOmMap(1.0).layout))
+    merge = ks.merge(MergeConfig(bt="i32", grouped=False, ndt=False))
+    assert {"sums", "records", "block", "nodes", "model"} <= merge.keywords
+    assert not {"ndt", "grouped"} & merge.keywords
+    assert "ndt" in ks.merge(MergeConfig(bt="i32", grouped=True, ndt=True)).keywords
+
+
+def test_families_are_cached_per_config_and_shared_between_launch_kinds():
+    st = runtime.storage(NdtOmMap(1.0).layout)
+    fast, plain = kernel_set(st, fast=True), kernel_set(st, fast=False)
+    assert kernel_set(st, fast=True) is fast
+    cfg = RaysConfig(bt="u16", mode="dense", flags=False, ndt=True)
+    assert fast.rays(cfg) is fast.rays(RaysConfig(bt="u16", mode="dense", flags=False, ndt=True))
+    assert fast.rays(cfg).kernel is plain.rays(cfg).kernel  # one Taichi kernel, compiled once
+    assert fast.block_apply(FreeConfig("u16", False)) is not fast.block_apply(FreeConfig("u16", True))
+    with pytest.raises(ValueError, match="block dtype"):
+        RaysConfig(bt="u8")
+    with pytest.raises(ValueError, match="rays mode"):
+        RaysConfig(mode="sparse")
+
+
+def test_update_plan_is_checked():
+    plan = UpdatePlan()
+    with pytest.raises(ValueError, match="row_flags"):
+        plan.row_flags = "sometimes"
+    with pytest.raises(ValueError, match="block_cells"):
+        plan.block_cells = -1
+    with pytest.raises(ValueError, match="touched_rows"):
+        UpdatePlan(touched_rows=0)
+    m = NdtOmMap(1.0)
+    m.block_cells = 4096  # the map's older attribute is the plan's
+    assert m.plan.block_cells == 4096
+
+
+@pytest.mark.parametrize("plan", [{"row_flags": "always"}, {"row_flags": "never"}, {"one_pass": False},
+                                  {"touched_rows": 1}, {"u16_rays": 0}, {"block_cells": 0}])  # fmt: skip
+def test_every_plan_gives_the_same_map(rng, plan):
+    d = rng.normal(size=(3000, 3))
+    scans = [(d * rng.uniform(2.0, 8.0, (3000, 1)) / np.linalg.norm(d, axis=1, keepdims=True), np.eye(4)) for _ in range(3)]
+    for s, (_, T) in enumerate(scans):
+        T[:3, 3] = [0.3 * s, -0.2 * s, 0.1]
+    ref, m = NdtOmMap(0.25), NdtOmMap(0.25)
+    for k, v in plan.items():
+        setattr(m.plan, k, v)
+    for pts, T in scans:
+        ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
+        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
+        assert (rb.ray_batches > 0) == (plan.get("one_pass") is False)
+    ka, kb = ref.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(ka["index"], kb["index"])
+    np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
+    ga, gb = ref.gaussians(min_probability=0), m.gaussians(min_probability=0)
+    np.testing.assert_array_equal(ga["n"], gb["n"])
+    np.testing.assert_allclose(ga["mean"], gb["mean"], rtol=0, atol=1e-12)
+
+
+def _compiled(st) -> dict:
+    """Compiled variants per kernel family and config of the storage."""
+    return {key: len(b.kernel._primal.compiled_kernels) for key, b in st.__dict__.get("kernel_cache", {}).items()}
+
+
+@pytest.mark.parametrize("model", ["paper", "ndt"])
+def test_first_scan_compiles_every_variant_later_scans_use(rng, model):
+    """After a map's first scan (its warm-up), scans through every one-pass plan, both
+    count widths and both point dtypes compile nothing more."""
+    first = NdtOmMap(0.25, miss_model=model)
+    first.insert_scan(rng.normal(size=(500, 3)), np.eye(4))
+    st = runtime.storage(first.layout)
+    before = _compiled(st)
+    d = rng.normal(size=(4000, 3))
+    pts = d * rng.uniform(1.0, 6.0, (4000, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
+    for plan in ({}, {"row_flags": "never"}, {"row_flags": "always"}, {"u16_rays": 0}, {"block_cells": 8**3 * 8},
+                 {"block_cells": 0}, {"touched_rows": 1}):  # fmt: skip
+        for dtype in (np.float32, np.float64):
+            m = NdtOmMap(0.25, miss_model=model)
+            for k, v in plan.items():
+                setattr(m.plan, k, v)
+            for s in range(3):
+                T = np.eye(4)
+                T[:3, 3] = [0.2 * s, 0.0, 0.0]
+                m.insert_scan(pts.astype(dtype), T)
+            m.close()
+    assert _compiled(st) == before
