@@ -95,7 +95,7 @@ class UpdatePlan:
 
 
 @dataclass
-class PreparedScan:
+class PreparedRays:
     """A validated scan: world endpoints and their cells, hits first, then free rays."""
 
     world: np.ndarray  # [N, 3] f64
@@ -145,7 +145,7 @@ class ScanUpdate:
 
     # ------------------------------------------------------------------ preparation
 
-    def prepare(self, points: Any, T_world_sensor: Any) -> PreparedScan:
+    def prepare(self, points: Any, T_world_sensor: Any) -> PreparedRays:
         """Validate a scan and turn it into world endpoints and their cells (hits first,
         then free rays), reserving the pool memory the update may need."""
         pts = as_points(points)
@@ -205,7 +205,7 @@ class ScanUpdate:
                 budget.reserve(new)
                 # What the hits write after the batched rays: each batch must leave room for it.
                 hit_nodes = (new, cells[:n_hit])
-        return PreparedScan(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
+        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
 
     # ------------------------------------------------------------------ rays
 
@@ -222,7 +222,7 @@ class ScanUpdate:
         rep.seconds = time.perf_counter() - t0
         return rep
 
-    def trace(self, mode: str, p: PreparedScan):
+    def trace(self, mode: str, p: PreparedRays):
         """Run the ray kernel of ``mode`` ("full" or "floor") over all rays, in batches
         when memory is tight. Returns the dense block they counted in (a Block), whether
         the rays set its row flags, and whether it holds every cell of the scan; or None."""
