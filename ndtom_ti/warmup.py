@@ -2,7 +2,7 @@
 
 Taichi compiles a kernel at its first call with a given argument signature. An update
 picks among several variants scan by scan (16- or 32-bit ray counts, row-flagged or not,
-the dense block or the tree, float32 or float64 points, each miss model), so without this
+the dense block or the tree, float32 or float64 points, each miss model, one pass or batches), so without this
 a scan that first needs one stalls for a second or more in the middle of a run (a real
 Livox recording: 1.3 s at its first scan of fewer than 65,535 points). ``warm_up`` runs
 tiny scans through each path on a scratch map of the same storage and model; with the
@@ -10,8 +10,6 @@ offline cache (on by default) later processes load them instead of compiling.
 """
 
 from __future__ import annotations
-
-import gc
 
 import numpy as np
 
@@ -55,6 +53,7 @@ def warm_up(m) -> None:
             {"block_cells": w.layout.leaf**3},  # a block that holds part of the scan, the tree the rest
             {"block_cells": 0},  # the tree only (also the batched path's kernel)
             {"block_cells": 0, "touched_rows": 1},  # touched list overflow
+            {"one_pass": False},  # rays in batches, as under memory pressure (exact node counts)
         ]
         for dtype in (np.float32, np.float64):
             for u16 in (m.plan.u16_rays, 0):  # 16- and 32-bit ray counts
@@ -64,7 +63,11 @@ def warm_up(m) -> None:
                         for k, v in opts.items():
                             setattr(plan, k, v)
                         w._update.insert_guarded(pts.astype(dtype), T)  # not a user's scan
-                    plan.block_cells, plan.row_flags = m.plan.block_cells, "auto"
+                    plan.block_cells, plan.row_flags, plan.one_pass = m.plan.block_cells, "auto", True
+        # The exact node count of hits spread over more leaves than it flags one by one (a
+        # sparse, wide scan under memory pressure): two cells far apart.
+        span = np.array([[-1, -1, -1], [1, 1, 1]]) * (w.layout.leaf * 132)
+        w._budget.new_hit_nodes(span.astype(np.int32))
         w._warm = True
         len(w)
         w.known_cells()
@@ -72,5 +75,4 @@ def warm_up(m) -> None:
     except MemoryError:
         pass
     finally:
-        del w
-        gc.collect()  # the scratch map's slot goes back to the storage
+        w.close()  # the scratch map's slot goes back to the storage

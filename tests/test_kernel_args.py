@@ -118,8 +118,9 @@ def _compiled(st) -> dict:
 
 @pytest.mark.parametrize("model", ["paper", "ndt"])
 def test_first_scan_compiles_every_variant_later_scans_use(rng, model):
-    """After a map's first scan (its warm-up), scans through every one-pass plan, both
-    count widths and both point dtypes compile nothing more."""
+    """After a map's first scan (its warm-up), scans through every plan (one pass, or rays in
+    batches as under memory pressure), both count widths and both point dtypes, and the exact
+    node count of a sparse, wide scan, compile nothing more."""
     first = NdtOmMap(0.25, miss_model=model)
     first.insert_scan(rng.normal(size=(500, 3)), np.eye(4))
     st = runtime.storage(first.layout)
@@ -127,7 +128,7 @@ def test_first_scan_compiles_every_variant_later_scans_use(rng, model):
     d = rng.normal(size=(4000, 3))
     pts = d * rng.uniform(1.0, 6.0, (4000, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
     for plan in ({}, {"row_flags": "never"}, {"row_flags": "always"}, {"u16_rays": 0}, {"block_cells": 8**3 * 8},
-                 {"block_cells": 0}, {"touched_rows": 1}):  # fmt: skip
+                 {"block_cells": 0}, {"touched_rows": 1}, {"one_pass": False}):  # fmt: skip
         for dtype in (np.float32, np.float64):
             m = NdtOmMap(0.25, miss_model=model)
             for k, v in plan.items():
@@ -137,4 +138,7 @@ def test_first_scan_compiles_every_variant_later_scans_use(rng, model):
                 T[:3, 3] = [0.2 * s, 0.0, 0.0]
                 m.insert_scan(pts.astype(dtype), T)
             m.close()
+    with NdtOmMap(0.25, miss_model=model) as m:
+        wide = np.array([[-1, -1, -1], [1, 1, 1]], np.int32) * (8 * 140)
+        m._budget.new_hit_nodes(wide)  # more leaves than are flagged one by one
     assert _compiled(st) == before
