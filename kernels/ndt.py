@@ -351,7 +351,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # min_points, prior variance of a cell with fewer points (ndt_icov)].
         centre = (c.cast(ti.f64) + 0.5) * res
         oc = o - centre
-        i0, i1, i2, i3, i4, i5 = rec_icov[r, 0], rec_icov[r, 1], rec_icov[r, 2], rec_icov[r, 3], rec_icov[r, 4], rec_icov[r, 5]
+        i0, i1, i2, i3, i4, i5 = (
+            rec_icov[r, 0],
+            rec_icov[r, 1],
+            rec_icov[r, 2],
+            rec_icov[r, 3],
+            rec_icov[r, 4],
+            rec_icov[r, 5],
+        )
         inv = ti.Matrix([[i0, i1, i2], [i1, i3, i4], [i2, i4, i5]], dt=ti.f64)
         mu = ti.Vector([rec_icov[r, 6], rec_icov[r, 7], rec_icov[r, 8]])
         a = inv @ u

@@ -72,8 +72,16 @@ __all__ = [
 ]
 
 FORMATS = ("ply", "pcd", "npz", "csv", "bt", "grid")
-SUFFIXES = {".ply": "ply", ".pcd": "pcd", ".npz": "npz", ".csv": "csv", ".bt": "bt", ".pgm": "grid",
-            ".yaml": "grid", ".yml": "grid"}
+SUFFIXES = {
+    ".ply": "ply",
+    ".pcd": "pcd",
+    ".npz": "npz",
+    ".csv": "csv",
+    ".bt": "bt",
+    ".pgm": "grid",
+    ".yaml": "grid",
+    ".yml": "grid",
+}
 DEFAULT_SUFFIX = {"ply": ".ply", "pcd": ".pcd", "npz": ".npz", "csv": ".csv", "bt": ".bt", "grid": ".pgm"}
 COV_TERMS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -104,12 +112,16 @@ def format_for(path: str | Path | None, fmt: str | None = None) -> str:
     if fmt is None:
         if by_suffix is None:
             what = f"suffix {suffix!r}" if suffix else "no suffix"
-            raise ValueError(f"cannot tell the export format of {path} ({what}); use one of the suffixes "
-                             f"{suffixes} or give the format ({known})")
+            raise ValueError(
+                f"cannot tell the export format of {path} ({what}); use one of the suffixes "
+                f"{suffixes} or give the format ({known})"
+            )
         return by_suffix
     if by_suffix is not None and by_suffix != fmt:
-        raise ValueError(f"{path} has the suffix of the {by_suffix} format but the format asked for is {fmt}; "
-                         f"use the suffix {DEFAULT_SUFFIX[fmt]} or leave the format out")
+        raise ValueError(
+            f"{path} has the suffix of the {by_suffix} format but the format asked for is {fmt}; "
+            f"use the suffix {DEFAULT_SUFFIX[fmt]} or leave the format out"
+        )
     return fmt
 
 
@@ -132,8 +144,9 @@ def height_colors(z: Any, z_range: tuple[float, float] | None = None) -> tuple[n
     return np.rint(rgb).astype(np.uint8), (lo, hi)
 
 
-def write_ply(g: dict, path: str | Path, *, comment: str | None = None,
-              z_range: tuple[float, float] | None = None) -> Path:
+def write_ply(
+    g: dict, path: str | Path, *, comment: str | None = None, z_range: tuple[float, float] | None = None
+) -> Path:
     """Binary little-endian PLY: one vertex per Gaussian, coloured by height (module doc)."""
     k = len(g["n"])
     dt = np.dtype([(name, code) for name, _, code in PLY_PROPERTIES])
@@ -226,8 +239,14 @@ def write_csv(g: dict, path: str | Path) -> Path:
         fh.write((",".join(CSV_COLUMNS) + "\n").encode())
         # repr of float64 round-trips exactly
         for r in range(len(n)):
-            row = [*map(str, idx[r].tolist()), *map(repr, mean[r].tolist()), str(int(n[r])), repr(float(p[r])),
-                   repr(float(lo[r])), *map(repr, c6[r].tolist())]
+            row = [
+                *map(str, idx[r].tolist()),
+                *map(repr, mean[r].tolist()),
+                str(int(n[r])),
+                repr(float(p[r])),
+                repr(float(lo[r])),
+                *map(repr, c6[r].tolist()),
+            ]
             fh.write((",".join(row) + "\n").encode())
 
     return atomic_write(path, write)
@@ -256,8 +275,10 @@ def octree_stream(index: Any, occupied: Any) -> tuple[int, bytes]:
         return 0, b""
     key = idx + _OCTO_OFFSET
     if (key < 0).any() or (key >= 1 << _OCTO_DEPTH).any():
-        raise ValueError(f"cells beyond OctoMap's tree ({_OCTO_DEPTH} levels: cell indices in "
-                         f"[-{_OCTO_OFFSET}, {_OCTO_OFFSET}) per axis); use a coarser map")
+        raise ValueError(
+            f"cells beyond OctoMap's tree ({_OCTO_DEPTH} levels: cell indices in "
+            f"[-{_OCTO_OFFSET}, {_OCTO_OFFSET}) per axis); use a coarser map"
+        )
     code = _spread3(key[:, 0]) | (_spread3(key[:, 1]) << np.uint64(1)) | (_spread3(key[:, 2]) << np.uint64(2))
     order = np.argsort(code, kind="stable")
     code = code[order]
@@ -290,9 +311,11 @@ def octree_stream(index: Any, occupied: Any) -> tuple[int, bytes]:
 def write_bt(index: Any, occupied: Any, resolution: float, path: str | Path) -> Path:
     """OctoMap binary tree (``.bt``) of cells ``index`` (K, 3) at ``resolution`` (module doc)."""
     size, data = octree_stream(index, occupied)
-    header = ("# Octomap OcTree binary file\n"
-              "# written by ndtom_ti: known cells of an NDT Occupancy Map, occupied or free\n"
-              f"id OcTree\nsize {size}\nres {float(resolution)!r}\ndata\n").encode("ascii")
+    header = (
+        "# Octomap OcTree binary file\n"
+        "# written by ndtom_ti: known cells of an NDT Occupancy Map, occupied or free\n"
+        f"id OcTree\nsize {size}\nres {float(resolution)!r}\ndata\n"
+    ).encode("ascii")
 
     def write(fh: IO[bytes]) -> None:
         fh.write(header)
@@ -329,8 +352,9 @@ def floor_plane(m: Any, *, min_probability: float = 0.5) -> tuple[np.ndarray, st
     start pose as the map frame) get a tilted floor."""
     g = m.gaussians(min_probability=max(float(min_probability), 0.5))
     if len(g["n"]) == 0:
-        raise ValueError("the map has no occupied Gaussians to find the floor by; give the height band "
-                         "(--z-min and --z-max)")
+        raise ValueError(
+            "the map has no occupied Gaussians to find the floor by; give the height band (--z-min and --z-max)"
+        )
     mean = g["mean"]
     tile = max(1.0, 4 * float(m.resolution))
     t = np.floor(mean[:, :2] / tile).astype(np.int64)
@@ -359,12 +383,20 @@ def floor_plane(m: Any, *, min_probability: float = 0.5) -> tuple[np.ndarray, st
         if inliers.sum() >= 3:
             best = np.linalg.lstsq(a_design[inliers], low[inliers, 2], rcond=None)[0]
     tilt = math.degrees(math.atan(math.hypot(best[1], best[2])))
-    return best, (f"floor plane z = {best[0]:.2f} {best[1]:+.4f} x {best[2]:+.4f} y (tilt {tilt:.1f} deg), fitted to "
-                  f"the lowest Gaussians of {len(low)} tiles of {tile:g} m")
+    return best, (
+        f"floor plane z = {best[0]:.2f} {best[1]:+.4f} x {best[2]:+.4f} y (tilt {tilt:.1f} deg), fitted to "
+        f"the lowest Gaussians of {len(low)} tiles of {tile:g} m"
+    )
 
 
-def occupancy_grid(m: Any, z_min: float | None = None, z_max: float | None = None, *,
-                   min_probability: float = 0.5, above_floor: tuple[float, float] = (0.3, 2.0)) -> Grid:
+def occupancy_grid(
+    m: Any,
+    z_min: float | None = None,
+    z_max: float | None = None,
+    *,
+    min_probability: float = 0.5,
+    above_floor: tuple[float, float] = (0.3, 2.0),
+) -> Grid:
     """The 2-D occupancy grid of map ``m`` (see the module doc) over a height band: the
     cells whose height span meets ``[z_min, z_max]`` (metres, map frame), or, when neither
     is given, the cells whose centre is ``above_floor`` metres (at least one cell) over the
@@ -383,8 +415,9 @@ def occupancy_grid(m: Any, z_min: float | None = None, z_max: float | None = Non
         what = f"{lo:.2f} .. {hi:.2f} m above the floor"
     else:
         if z_min is None or z_max is None:
-            raise ValueError("give both ends of the height band (z_min and z_max), or neither to take "
-                             "0.3 .. 2 m above the floor")
+            raise ValueError(
+                "give both ends of the height band (z_min and z_max), or neither to take 0.3 .. 2 m above the floor"
+            )
         z_min, z_max = float(z_min), float(z_max)
         if not (math.isfinite(z_min) and math.isfinite(z_max) and z_min < z_max):
             raise ValueError(f"the height band needs finite z_min < z_max, got [{z_min}, {z_max}]")
@@ -394,8 +427,11 @@ def occupancy_grid(m: Any, z_min: float | None = None, z_max: float | None = Non
         z_band = (z_min, z_max)
         what = f"z = {z_min:.2f} .. {z_max:.2f} m"
     if not band.any():
-        span = (f"the map's known cells span z = {idx[:, 2].min() * r:.2f} .. {(idx[:, 2].max() + 1) * r:.2f} m"
-                if len(idx) else "the map has no known cells")
+        span = (
+            f"the map's known cells span z = {idx[:, 2].min() * r:.2f} .. {(idx[:, 2].max() + 1) * r:.2f} m"
+            if len(idx)
+            else "the map has no known cells"
+        )
         raise ValueError(f"no known cells in the height band {what}; {span}")
     idx, p = idx[band], p[band]
     thr = max(float(min_probability), 0.5)
@@ -427,8 +463,7 @@ def write_grid(grid: Grid, path: str | Path) -> tuple[Path, Path]:
     none). Returns (pgm path, yaml path)."""
     pgm, yml = grid_paths(path)
     h, w = grid.image.shape
-    head = (f"P5\n# ndtom_ti occupancy grid: {grid.band}, {grid.resolution!r} m cells\n"
-            f"{w} {h}\n255\n").encode("ascii")
+    head = (f"P5\n# ndtom_ti occupancy grid: {grid.band}, {grid.resolution!r} m cells\n{w} {h}\n255\n").encode("ascii")
     ox, oy = grid.origin
     text = (
         f"image: {pgm.name}\n"
@@ -462,8 +497,16 @@ class Exported:
         return self.paths[0]
 
 
-def export_file(m: Any, path: str | Path, fmt: str | None = None, *, min_probability: float = 0.5,
-                min_points: int | None = None, z_min: float | None = None, z_max: float | None = None) -> Exported:
+def export_file(
+    m: Any,
+    path: str | Path,
+    fmt: str | None = None,
+    *,
+    min_probability: float = 0.5,
+    min_points: int | None = None,
+    z_min: float | None = None,
+    z_max: float | None = None,
+) -> Exported:
     """Export map ``m`` (an NdtOmMap or a MapSnapshot) to ``path`` as ``fmt`` (default:
     from the suffix; see :func:`format_for`). Gaussian formats hold the Gaussians with
     ``p_occ > min_probability`` (0: every Gaussian, occupied or not); ``bt`` and ``grid`` hold cells
@@ -478,8 +521,10 @@ def export_file(m: Any, path: str | Path, fmt: str | None = None, *, min_probabi
         h, w = grid.image.shape
         n_occ = int((grid.image == Grid.OCCUPIED).sum())
         n_free = int((grid.image == Grid.FREE).sum())
-        summary = (f"occupancy grid {w} x {h} at {grid.resolution:g} m of {grid.band} "
-                   f"({n_occ:,} occupied, {n_free:,} free cells) to {pgm} and {yml}")
+        summary = (
+            f"occupancy grid {w} x {h} at {grid.resolution:g} m of {grid.band} "
+            f"({n_occ:,} occupied, {n_free:,} free cells) to {pgm} and {yml}"
+        )
         notes = [f"{grid.z_band_note}; a band of map-frame heights: --z-min/--z-max"] if grid.z_band_note else []
         return Exported([pgm, yml], fmt, n_occ + n_free, summary, notes)
     if fmt == "bt":
@@ -490,14 +535,20 @@ def export_file(m: Any, path: str | Path, fmt: str | None = None, *, min_probabi
         out = write_bt(k["index"][keep], occ[keep], m.resolution, path)
         n_occ = int(occ.sum())
         n_free = int(keep.sum()) - n_occ
-        return Exported([out], fmt, n_occ + n_free, f"OctoMap tree of {n_occ:,} occupied and {n_free:,} free "
-                        f"cells at {m.resolution:g} m to {out}")
+        return Exported(
+            [out],
+            fmt,
+            n_occ + n_free,
+            f"OctoMap tree of {n_occ:,} occupied and {n_free:,} free cells at {m.resolution:g} m to {out}",
+        )
     g = m.gaussians(min_points=min_points, min_probability=mp)
     if fmt == "ply":
         from . import __version__
 
-        comment = (f"ndtom_ti {__version__} NDT-OM Gaussians: resolution {m.resolution:g} m, "
-                   f"p_occ > {mp:g}; covariances in m^2")
+        comment = (
+            f"ndtom_ti {__version__} NDT-OM Gaussians: resolution {m.resolution:g} m, "
+            f"p_occ > {mp:g}; covariances in m^2"
+        )
         out = write_ply(g, path, comment=comment)
     elif fmt == "pcd":
         out = write_pcd(g, path)
@@ -509,9 +560,16 @@ def export_file(m: Any, path: str | Path, fmt: str | None = None, *, min_probabi
     return Exported([out], fmt, k, f"{k:,} Gaussians (p_occ > {mp:g}) to {out}")
 
 
-def export_map(m: Any, path: str | Path, fmt: str | None = None, *, min_probability: float = 0.5,
-               min_points: int | None = None, z_min: float | None = None,
-               z_max: float | None = None) -> tuple[Path, int]:
+def export_map(
+    m: Any,
+    path: str | Path,
+    fmt: str | None = None,
+    *,
+    min_probability: float = 0.5,
+    min_points: int | None = None,
+    z_min: float | None = None,
+    z_max: float | None = None,
+) -> tuple[Path, int]:
     """:func:`export_file`, returning (first path written, number of Gaussians or cells)."""
     e = export_file(m, path, fmt, min_probability=min_probability, min_points=min_points, z_min=z_min, z_max=z_max)
     return e.path, e.count

@@ -139,9 +139,17 @@ class NdtOmMap:
         Raises TypeError or ValueError for a bad resolution or option, and
         MapMemoryError when every map slot of the process is taken.
         """
-        given = {"p_occupied": p_occupied, "p_empty": p_empty, "logodds_min": logodds_min,
-                 "logodds_max": logodds_max, "min_points": min_points, "min_range": min_range,
-                 "max_range": max_range, "max_range_mode": max_range_mode, "n_max": n_max}
+        given = {
+            "p_occupied": p_occupied,
+            "p_empty": p_empty,
+            "logodds_min": logodds_min,
+            "logodds_max": logodds_max,
+            "min_points": min_points,
+            "min_range": min_range,
+            "max_range": max_range,
+            "max_range_mode": max_range_mode,
+            "n_max": n_max,
+        }
         options = {**{k: v for k, v in given.items() if v is not None}, **options}
         resolution = check_resolution(resolution)
         if config is not None and options:
@@ -151,8 +159,10 @@ class NdtOmMap:
 
             unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
             if unknown:
-                raise TypeError(f"unknown map options {unknown}; the options are MapConfig's: "
-                                f"{', '.join(f.name for f in fields(MapConfig))}")
+                raise TypeError(
+                    f"unknown map options {unknown}; the options are MapConfig's: "
+                    f"{', '.join(f.name for f in fields(MapConfig))}"
+                )
         self.config = config if config is not None else MapConfig(**options)
         self.resolution = resolution
         self.occupancy_enabled = bool(occupancy)
@@ -349,8 +359,12 @@ class NdtOmMap:
             min_points = self.config.min_points
         if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
             raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
-        if isinstance(min_probability, bool) or not isinstance(min_probability, numbers.Real) or not (
-            0.0 <= min_probability <= 1.0  # NaN fails: it would have kept every Gaussian
+        if (
+            isinstance(min_probability, bool)
+            or not isinstance(min_probability, numbers.Real)
+            or not (
+                0.0 <= min_probability <= 1.0  # NaN fails: it would have kept every Gaussian
+            )
         ):
             raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
         raw = self._raw_gaussians()
@@ -494,8 +508,13 @@ class NdtOmMap:
         Takes a map slot, as any new map does."""
         import copy
 
-        m = cls(s.resolution, occupancy=s.occupancy_enabled, config=s.config, layout=s.layout,
-                metadata=copy.deepcopy(s.metadata))  # the map's metadata changes; the snapshot's must not
+        m = cls(
+            s.resolution,
+            occupancy=s.occupancy_enabled,
+            config=s.config,
+            layout=s.layout,
+            metadata=copy.deepcopy(s.metadata),
+        )  # the map's metadata changes; the snapshot's must not
         try:
             with m._lock:
                 m._load_state(s.state())

@@ -50,8 +50,17 @@ from .map import NdtOmMap, ScanReport
 from .runtime import MapMemoryError
 from .scan import scan_parts
 
-__all__ = ["Interrupted", "MappingSummary", "StopSignals", "config_with_ranges", "load_config_file", "map_recording",
-           "map_scans", "stop_signals", "version"]
+__all__ = [
+    "Interrupted",
+    "MappingSummary",
+    "StopSignals",
+    "config_with_ranges",
+    "load_config_file",
+    "map_recording",
+    "map_scans",
+    "stop_signals",
+    "version",
+]
 
 #: Called once before the map is made (report None; the recording's topic and pose source
 #: are known by then) and after every inserted scan.
@@ -293,7 +302,9 @@ def _stderr(text: str) -> None:
 
 @contextmanager
 def stop_signals(
-    signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM), phase: str = "idle", say=_stderr,
+    signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM),
+    phase: str = "idle",
+    say=_stderr,
     restore: bool = True,
 ) -> Iterator[StopSignals]:
     """Handle ``signums`` with a :class:`StopSignals` for the whole block (a command that
@@ -474,8 +485,9 @@ def map_scans(
     return m, summary
 
 
-def _expected_scans(rec: Any, topic: str, every: int, t_start: float | None, t_end: float | None,
-                    max_scans: int | None) -> int | None:
+def _expected_scans(
+    rec: Any, topic: str, every: int, t_start: float | None, t_end: float | None, max_scans: int | None
+) -> int | None:
     count = next((c for n, _, c in rec.topics() if n == topic), None)
     if not count:
         return None

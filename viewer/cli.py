@@ -144,8 +144,11 @@ def view_command(
                                port=0 if html is not None else port, verbose=html is None,
                                environment_map=html is None, progress=_say)  # fmt: skip
     except ValueError as exc:
-        _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine, "
-               "and a --port in 0..65535 (0: any free port)")
+        _error(
+            str(exc),
+            "use --host 127.0.0.1 (this machine only) or an address of this machine, "
+            "and a --port in 0..65535 (0: any free port)",
+        )
         return EXIT_USAGE
     except KeyboardInterrupt:
         _error("interrupted (Ctrl-C) while preparing the scene")

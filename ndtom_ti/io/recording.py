@@ -1,4 +1,5 @@
 """Open ROS1/ROS2 recordings and stream (points in sensor frame, T_world_sensor) scans."""
+
 from __future__ import annotations
 
 import difflib
@@ -43,8 +44,10 @@ POSE_TYPES = (
     'geometry_msgs/msg/TransformStamped',
 )
 _ROS1_MAGIC = b'#ROSBAG V2.0\n'
-_SUGGEST = ('Map in the sensor frame (identity poses) with --sensor-frame, give poses with --poses FILE '
-            '(TUM or KITTI), or name a pose topic with --pose-topic.')
+_SUGGEST = (
+    'Map in the sensor frame (identity poses) with --sensor-frame, give poses with --poses FILE '
+    '(TUM or KITTI), or name a pose topic with --pose-topic.'
+)
 
 
 def _s(ns: int) -> str:
@@ -64,36 +67,37 @@ class TopicSummary:
 @dataclass(frozen=True)
 class PoseSourceInfo:
     """A place poses could come from: a TF chain to a cloud frame or a pose topic."""
-    kind: str                 # 'tf' or 'topic'
-    name: str                 # 'world -> kinect -> openni_depth_optical_frame' or '/icp_odom'
-    msgtype: str              # '' for tf
+
+    kind: str  # 'tf' or 'topic'
+    name: str  # 'world -> kinect -> openni_depth_optical_frame' or '/icp_odom'
+    msgtype: str  # '' for tf
     parent_frame: str
-    child_frame: str          # '' when the message names none (PoseStamped)
-    count: int                # poses (dynamic transforms for tf; 0 if the chain is static)
+    child_frame: str  # '' when the message names none (PoseStamped)
+    count: int  # poses (dynamic transforms for tf; 0 if the chain is static)
     first_ns: int | None
     last_ns: int | None
-    constant: bool            # every pose identical (a fixed pose, not a trajectory)
+    constant: bool  # every pose identical (a fixed pose, not a trajectory)
 
 
 @dataclass
 class RecordingInfo:
     path: Path
-    format: str               # 'ros1' | 'ros2'
-    storage: str              # 'ros1' | 'sqlite3' | 'mcap'
-    start_ns: int             # bag record times (not header stamps)
+    format: str  # 'ros1' | 'ros2'
+    storage: str  # 'ros1' | 'sqlite3' | 'mcap'
+    start_ns: int  # bag record times (not header stamps)
     end_ns: int
     duration_s: float
     message_count: int
     topics: list[TopicSummary]
     tf_frames: list[str]
-    tf_tree: dict[str, str]   # child -> parent
-    tf_edges: list[TfEdge]    # with static flag, counts and stamp ranges
-    mappable_topics: list[str]          # PointCloud2 first, then depth images with CameraInfo
-    cloud_frames: dict[str, str]        # mappable topic -> header.frame_id of its first message
+    tf_tree: dict[str, str]  # child -> parent
+    tf_edges: list[TfEdge]  # with static flag, counts and stamp ranges
+    mappable_topics: list[str]  # PointCloud2 first, then depth images with CameraInfo
+    cloud_frames: dict[str, str]  # mappable topic -> header.frame_id of its first message
     pose_sources: list[PoseSourceInfo]
-    default_cloud_topic: str | None     # what scans() uses without cloud_topic
-    pose_source: str | None             # what scans() uses without pose options
-    pose_error: str | None              # why scans() without options would fail
+    default_cloud_topic: str | None  # what scans() uses without cloud_topic
+    pose_source: str | None  # what scans() uses without pose options
+    pose_error: str | None  # why scans() without options would fail
     notes: list[str] = field(default_factory=list)
 
 
@@ -106,7 +110,7 @@ PoseFn = Callable[[int, str, int], np.ndarray]
 @dataclass
 class _PoseChoice:
     fn: PoseFn | None
-    description: str          # what was chosen, or why it cannot be used
+    description: str  # what was chosen, or why it cannot be used
     fixed_frame: str = ''
     range_ns: tuple[int, int] | None = None
 
@@ -121,14 +125,17 @@ def _identity(stamp: int, frame: str, index: int) -> np.ndarray:
 
 def _tf_fn(tf: TfBuffer, target: str, source: str | None, tol: int) -> PoseFn:
     """T_target_source from TF at the cloud stamp; source None means the cloud's own frame."""
+
     def fn(stamp: int, frame: str, index: int) -> np.ndarray:
         return tf.lookup(target, frame if source is None else source, stamp, tol)
+
     return fn
 
 
 def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseFn | None = None) -> PoseFn:
     """T = pre(stamp) @ track(stamp) @ post(stamp): pre links the fixed frame to the track's
     parent frame, post the track's body frame to the cloud frame (both from TF)."""
+
     def fn(stamp: int, frame: str, index: int) -> np.ndarray:
         if track.by_index:
             if index >= len(track):
@@ -141,12 +148,14 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
                 raise TransformTimeError(
                     f"{track.source}: no pose at {_s(stamp)}, {abs(gap) / 1e9:.3f} s "
                     f"{'before the first' if gap < 0 else 'after the last'} pose "
-                    f'({_s(track.first_ns)} .. {_s(track.last_ns)}; tolerance {tol / 1e9:.3f} s)')
+                    f'({_s(track.first_ns)} .. {_s(track.last_ns)}; tolerance {tol / 1e9:.3f} s)'
+                )
         if pre is not None:
             T = pre(stamp, frame, index) @ T
         if post is not None:
             T = T @ post(stamp, frame, index)
         return T
+
     return fn
 
 
@@ -154,28 +163,38 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
 def _resolve_path(path: Path) -> tuple[Path, str, str]:
     """(path for AnyReader, 'ros1'|'ros2', storage) or RecordingError saying what the path is."""
     if not path.exists():
-        raise RecordingError(f'{path} does not exist. Give a ROS1 .bag file or a ROS2 bag folder '
-                             '(the folder that holds metadata.yaml).')
-    if path.is_file() and (path.name == 'metadata.yaml' or path.suffix in ('.db3', '.mcap')) \
-            and (path.parent / 'metadata.yaml').is_file():
+        raise RecordingError(
+            f'{path} does not exist. Give a ROS1 .bag file or a ROS2 bag folder (the folder that holds metadata.yaml).'
+        )
+    if (
+        path.is_file()
+        and (path.name == 'metadata.yaml' or path.suffix in ('.db3', '.mcap'))
+        and (path.parent / 'metadata.yaml').is_file()
+    ):
         path = path.parent  # a file inside a ROS2 bag: read the bag it belongs to
     if path.is_dir():
         meta = path / 'metadata.yaml'
         if not meta.is_file():
             inside = sorted(p.name for p in path.iterdir())
             bags = [n for n in inside if n.endswith('.bag')]
-            hint = (f' It holds ROS1 bags: pass one of them ({", ".join(bags[:5])}).' if bags else
-                    ' Pass a ROS1 .bag file or a ROS2 bag folder (the folder that holds metadata.yaml and the '
-                    '.db3/.mcap files).')
+            hint = (
+                f' It holds ROS1 bags: pass one of them ({", ".join(bags[:5])}).'
+                if bags
+                else ' Pass a ROS1 .bag file or a ROS2 bag folder (the folder that holds metadata.yaml and the '
+                '.db3/.mcap files).'
+            )
             listing = ', '.join(inside[:10]) + (' ...' if len(inside) > 10 else '') if inside else 'it is empty'
-            raise RecordingError(f'{path} is a folder but not a ROS2 bag: it has no metadata.yaml '
-                                 f'(contents: {listing}).{hint}')
+            raise RecordingError(
+                f'{path} is a folder but not a ROS2 bag: it has no metadata.yaml (contents: {listing}).{hint}'
+            )
         m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text(errors='replace'))
         storage = m.group(1).strip('\'"') if m else 'sqlite3'
         return path, 'ros2', storage
     if not path.is_file():  # opening a FIFO would wait for a writer
-        raise RecordingError(f'{path} is neither a regular file nor a folder (a pipe, device or socket). Give a '
-                             'ROS1 .bag file or a ROS2 bag folder.')
+        raise RecordingError(
+            f'{path} is neither a regular file nor a folder (a pipe, device or socket). Give a '
+            'ROS1 .bag file or a ROS2 bag folder.'
+        )
     with path.open('rb') as fh:
         head = fh.read(len(_ROS1_MAGIC))
     if head == _ROS1_MAGIC:
@@ -183,13 +202,18 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
             raise RecordingError(f'{path} is a ROS1 bag but is not named *.bag; rename it to end in .bag')
         return path, 'ros1', 'ros1'
     if head.startswith(b'#ROSBAG V1'):
-        raise RecordingError(f'{path} is a ROS1 bag of format version 1.x; convert it with '
-                             '`rosbag fix` (format 2.0 is supported)')
+        raise RecordingError(
+            f'{path} is a ROS1 bag of format version 1.x; convert it with `rosbag fix` (format 2.0 is supported)'
+        )
     if path.suffix in ('.mcap', '.db3'):
-        raise RecordingError(f'{path} is a ROS2 storage file without the metadata.yaml of its bag folder; '
-                             'pass the bag folder (it needs metadata.yaml next to the storage file)')
-    raise RecordingError(f'{path} is not a ROS bag (a ROS1 .bag starts with "#ROSBAG V2.0"; it starts with '
-                         f'{head!r}). Give a ROS1 .bag file or a ROS2 bag folder.')
+        raise RecordingError(
+            f'{path} is a ROS2 storage file without the metadata.yaml of its bag folder; '
+            'pass the bag folder (it needs metadata.yaml next to the storage file)'
+        )
+    raise RecordingError(
+        f'{path} is not a ROS bag (a ROS1 .bag starts with "#ROSBAG V2.0"; it starts with '
+        f'{head!r}). Give a ROS1 .bag file or a ROS2 bag folder.'
+    )
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -214,17 +238,22 @@ class Recording:
         if end < start:  # no messages: rosbags reports start=int64 max, end=0
             start = end = 0
         self.start_ns, self.end_ns = int(start), int(end)
-        self._topics = {name: (ti.msgtype or '', ti.msgcount, list(ti.connections))
-                        for name, ti in sorted(self._reader.topics.items())}
+        self._topics = {
+            name: (ti.msgtype or '', ti.msgcount, list(ti.connections))
+            for name, ti in sorted(self._reader.topics.items())
+        }
         self._tf: TfBuffer | None = None
         self._pose_tracks: dict[str, tuple[PoseTrack, str, str | None, list[str]]] = {}
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
 
     def _damaged(self, err: BaseException) -> str:
-        hint = ('The file looks truncated or corrupt (an interrupted recording loses the index at its end); '
-                '`rosbag reindex` can repair a ROS1 bag.' if self.format == 'ros1' else
-                'The bag folder looks truncated or corrupt: check metadata.yaml and its storage files.')
+        hint = (
+            'The file looks truncated or corrupt (an interrupted recording loses the index at its end); '
+            '`rosbag reindex` can repair a ROS1 bag.'
+            if self.format == 'ros1'
+            else 'The bag folder looks truncated or corrupt: check metadata.yaml and its storage files.'
+        )
         return f'cannot read {self.path} as a {self.format.upper()} bag ({type(err).__name__}: {err}). {hint}'
 
     # -- context manager
@@ -236,8 +265,9 @@ class Recording:
     def __enter__(self) -> Recording:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
     # -- low level reading
@@ -267,8 +297,9 @@ class Recording:
         try:
             return self._reader.deserialize(raw, msgtype)
         except Exception as err:
-            raise RecordingError(f'a {msgtype} message on {topic} in {self.path} cannot be decoded '
-                                 f'({err}); the recording is corrupt') from err
+            raise RecordingError(
+                f'a {msgtype} message on {topic} in {self.path} cannot be decoded ({err}); the recording is corrupt'
+            ) from err
 
     def _first_message(self, topic: str) -> tuple[int, Any] | None:
         if topic not in self._first:
@@ -319,8 +350,9 @@ class Recording:
                 if parent is None:
                     parent, child = p, c
                 elif (p, c) != (parent, child) and not notes:
-                    notes.append(f'{topic}: frames change from {parent} -> {child} to {p} -> {c}; '
-                                 f'using {parent} -> {child}')
+                    notes.append(
+                        f'{topic}: frames change from {parent} -> {child} to {p} -> {c}; using {parent} -> {child}'
+                    )
                 stamps.append(stamp_ns(m.header.stamp))
                 ts.append((v.x, v.y, v.z))
                 qs.append((q.x, q.y, q.z, q.w))
@@ -360,29 +392,37 @@ class Recording:
                 if len(cands) > 1:
                     raise RecordingError(
                         f'{self.path} has {len(cands)} {what} topics: {", ".join(cands)}. Choose one with '
-                        'cloud_topic (--cloud-topic).')
+                        'cloud_topic (--cloud-topic).'
+                    )
             present = ', '.join(f'{n} ({t})' for n, (t, _, _) in self._topics.items()) or '(none: the bag is empty)'
             raise RecordingError(
                 f'{self.path} has no topic to map: no sensor_msgs/PointCloud2 messages and no depth image '
-                f'(32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}')
+                f'(32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}'
+            )
         name = cloud_topic
         if name not in self._topics and '/' + name.lstrip('/') in self._topics:
             name = '/' + name.lstrip('/')
         if name not in self._topics:
             close = difflib.get_close_matches(name, [t for t, _ in mappable] or list(self._topics), n=1, cutoff=0.5)
             hint = f' Did you mean {close[0]!r}?' if close else ''
-            raise RecordingError(f'cloud topic {cloud_topic!r} is not in {self.path}.{hint} Mappable topics: '
-                                 f'{listing}. All topics: {", ".join(self._topics) or "(none)"}')
+            raise RecordingError(
+                f'cloud topic {cloud_topic!r} is not in {self.path}.{hint} Mappable topics: '
+                f'{listing}. All topics: {", ".join(self._topics) or "(none)"}'
+            )
         msgtype = self._topics[name][0]
         if msgtype == POINTCLOUD2:
             return name, 'pointcloud2'
         if msgtype == IMAGE:
             if self._camera_info_topic(name) is None:
-                raise RecordingError(f'{name} is an image topic but there is no CameraInfo topic beside it, so '
-                                     f'its pixels cannot be turned into points. Mappable topics: {listing}')
+                raise RecordingError(
+                    f'{name} is an image topic but there is no CameraInfo topic beside it, so '
+                    f'its pixels cannot be turned into points. Mappable topics: {listing}'
+                )
             return name, 'depth_image'
-        raise RecordingError(f'{name} has type {msgtype}; a cloud topic must be sensor_msgs/PointCloud2 or a depth '
-                             f'sensor_msgs/Image with CameraInfo. Mappable topics: {listing}')
+        raise RecordingError(
+            f'{name} has type {msgtype}; a cloud topic must be sensor_msgs/PointCloud2 or a depth '
+            f'sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
+        )
 
     # -- pose sources
     def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
@@ -392,49 +432,58 @@ class Recording:
 
     def _clock_text(self, what: str, first_stamp: int, lo: int, hi: int) -> str:
         far = min(abs(first_stamp - lo), abs(first_stamp - hi)) > 86_400 * 10**9
-        return (f'{what} is stamped {_s(lo)} .. {_s(hi)} but the clouds from {_s(first_stamp)} on: the times '
-                'do not overlap' + (' (different clocks, e.g. simulation time, or data of another recording)'
-                                    if far else ''))
+        return (
+            f'{what} is stamped {_s(lo)} .. {_s(hi)} but the clouds from {_s(first_stamp)} on: the times '
+            'do not overlap'
+            + (' (different clocks, e.g. simulation time, or data of another recording)' if far else '')
+        )
 
     def _tf_choice(self, frame: str, fixed_frame: str | None, first_stamp: int, tol: int) -> _PoseChoice:
         tf = self.tf()
         if not tf.frames():
             return _PoseChoice(None, 'TF: the recording has no /tf or /tf_static transforms')
         if frame not in tf:
-            return _PoseChoice(None, f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: "
-                                     f"{', '.join(tf.frames())})")
+            return _PoseChoice(
+                None,
+                f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+            )
         fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(frame)
         if fixed not in tf:
-            return _PoseChoice(None, f"TF: the fixed frame {fixed!r} is not in the TF tree (frames that exist: "
-                                     f"{', '.join(tf.frames())})")
+            return _PoseChoice(
+                None,
+                f"TF: the fixed frame {fixed!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+            )
         try:
             chain = tf.chain_str(fixed, frame)
             static = tf.chain_is_static(fixed, frame)
         except RecordingError as err:
             return _PoseChoice(None, f'TF: {err}')
         if fixed == frame and not fixed_frame:
-            return _PoseChoice(None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not '
-                                     'give its motion')
+            return _PoseChoice(
+                None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not give its motion'
+            )
         if static and not fixed_frame:
             return _PoseChoice(None, f'TF: the chain {chain} is static only (the sensor mounting, not its motion)')
         rng = tf.dynamic_range_ns(fixed, frame)
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
             return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
-        return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''),
-                           fixed, rng)
+        return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''), fixed, rng)
 
-    def _topic_choice(self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int,
-                      explicit: bool) -> _PoseChoice:
+    def _topic_choice(
+        self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int, explicit: bool
+    ) -> _PoseChoice:
         msgtype = self._topics[topic][0]
         track, parent, child, _ = self._pose_track(topic)
         label = f'pose topic {topic} ({msgtype} {parent} -> {child if child else "(no child frame)"})'
         if not len(track):
             return _PoseChoice(None, f'{label}: no messages')
-        extra = '; it is also constant (the same pose in every message)' \
-            if len(track) > 1 and track.is_constant() else ''
+        extra = (
+            '; it is also constant (the same pose in every message)' if len(track) > 1 and track.is_constant() else ''
+        )
         if not explicit and self._clock_mismatch(first_stamp, track.first_ns, track.last_ns, tol):
-            return _PoseChoice(None, f'{label}: ' + self._clock_text('it', first_stamp, track.first_ns,
-                                                                      track.last_ns) + extra)
+            return _PoseChoice(
+                None, f'{label}: ' + self._clock_text('it', first_stamp, track.first_ns, track.last_ns) + extra
+            )
         tf = self.tf()
         post: PoseFn | None = None
         desc = label
@@ -448,25 +497,43 @@ class Recording:
         elif explicit:
             desc += f' (TF does not connect {child!r} to the cloud frame {frame!r}: assuming they coincide)'
         else:
-            return _PoseChoice(None, f'{label}: TF does not connect its frame {child!r} to the cloud frame '
-                                     f'{frame!r}' + extra)
+            return _PoseChoice(
+                None, f'{label}: TF does not connect its frame {child!r} to the cloud frame {frame!r}' + extra
+            )
         pre: PoseFn | None = None
         fixed = parent
         if fixed_frame and normalize_frame(fixed_frame) != parent:
             fixed = normalize_frame(fixed_frame)
             if not (fixed in tf and parent in tf and tf.root_of(fixed) == tf.root_of(parent)):
-                return _PoseChoice(None, f'{label}: it gives poses in {parent!r}, and TF does not connect that to '
-                                         f'the fixed frame {fixed!r}')
+                return _PoseChoice(
+                    None,
+                    f'{label}: it gives poses in {parent!r}, and TF does not connect that to the fixed frame {fixed!r}',
+                )
             desc = f'tf {tf.chain_str(fixed, parent)} + ' + desc
             pre = _tf_fn(tf, fixed, parent, tol)
-        return _PoseChoice(_track_fn(track, tol, pre, post), desc + extra, fixed,
-                           (track.first_ns, track.last_ns))
+        return _PoseChoice(_track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns))
 
-    def _pose_choice(self, frame: str, first_stamp: int, *, fixed_frame: str | None, pose_topic: str | None,
-                     poses_file: str | Path | PoseTrack | None, sensor_frame_only: bool, tol: int,
-                     what: str) -> _PoseChoice:
-        given = [n for n, v in (('pose_topic', pose_topic), ('poses_file', poses_file),
-                                ('sensor_frame_only', sensor_frame_only)) if v]
+    def _pose_choice(
+        self,
+        frame: str,
+        first_stamp: int,
+        *,
+        fixed_frame: str | None,
+        pose_topic: str | None,
+        poses_file: str | Path | PoseTrack | None,
+        sensor_frame_only: bool,
+        tol: int,
+        what: str,
+    ) -> _PoseChoice:
+        given = [
+            n
+            for n, v in (
+                ('pose_topic', pose_topic),
+                ('poses_file', poses_file),
+                ('sensor_frame_only', sensor_frame_only),
+            )
+            if v
+        ]
         if len(given) > 1:
             raise RecordingError(f'give only one pose source; got {" and ".join(given)}')
         if sensor_frame_only:
@@ -482,11 +549,13 @@ class Recording:
             if name not in self._topics or self._topics[name][0] not in POSE_TYPES:
                 cands = self.pose_topics()
                 close = difflib.get_close_matches(pose_topic, cands, n=1, cutoff=0.5)
-                why = (f'has type {self._topics[name][0]}' if name in self._topics else f'is not in {self.path}')
+                why = f'has type {self._topics[name][0]}' if name in self._topics else f'is not in {self.path}'
                 raise RecordingError(
-                    f'pose topic {pose_topic!r} {why}.' + (f' Did you mean {close[0]!r}?' if close else '')
+                    f'pose topic {pose_topic!r} {why}.'
+                    + (f' Did you mean {close[0]!r}?' if close else '')
                     + f' Pose topics ({", ".join(t.split("/")[-1] for t in POSE_TYPES)}) in the recording: '
-                    + (', '.join(f'{t} ({self._topics[t][0]})' for t in cands) or '(none)'))
+                    + (', '.join(f'{t} ({self._topics[t][0]})' for t in cands) or '(none)')
+                )
             choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True)
             if not choice.usable:
                 raise RecordingError(f'{choice.description}. {_SUGGEST}')
@@ -495,21 +564,27 @@ class Recording:
         tf_choice = self._tf_choice(frame, fixed_frame, first_stamp, tol)
         if tf_choice.usable:
             return tf_choice
-        topic_choices = [self._topic_choice(t, frame, fixed_frame, first_stamp, tol, explicit=False)
-                         for t in self.pose_topics()]
+        topic_choices = [
+            self._topic_choice(t, frame, fixed_frame, first_stamp, tol, explicit=False) for t in self.pose_topics()
+        ]
         usable = [c for c in topic_choices if c.usable]
         if len(usable) == 1:
             return usable[0]
         if len(usable) > 1:
             raise RecordingError(
                 f'several pose topics can give the pose of {frame!r}: '
-                + '; '.join(c.description for c in usable) + '. Choose one with pose_topic (--pose-topic).')
+                + '; '.join(c.description for c in usable)
+                + '. Choose one with pose_topic (--pose-topic).'
+            )
         reasons = [tf_choice.description] + [c.description for c in topic_choices]
         if not topic_choices:
-            reasons.append('no pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped, '
-                           'PoseWithCovarianceStamped, TransformStamped)')
-        raise RecordingError(f'no usable poses for {what} (frame {frame!r}) in {self.path}: '
-                             + '; '.join(reasons) + f'. {_SUGGEST}')
+            reasons.append(
+                'no pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped, '
+                'PoseWithCovarianceStamped, TransformStamped)'
+            )
+        raise RecordingError(
+            f'no usable poses for {what} (frame {frame!r}) in {self.path}: ' + '; '.join(reasons) + f'. {_SUGGEST}'
+        )
 
     # -- public API
     def info(self) -> RecordingInfo:
@@ -525,8 +600,10 @@ class Recording:
             cloud_frames[topic] = normalize_frame(msg.header.frame_id)
             off = stamp_ns(msg.header.stamp) - t
             if abs(off) > 10**9:
-                notes.append(f'{topic}: header stamps differ from the bag record times by {off / 1e9:.3f} s '
-                             '(poses are matched by header stamp)')
+                notes.append(
+                    f'{topic}: header stamps differ from the bag record times by {off / 1e9:.3f} s '
+                    '(poses are matched by header stamp)'
+                )
         sources: list[PoseSourceInfo] = []
         for frame in dict.fromkeys(cloud_frames.values()):
             if frame in tf and tf.root_of(frame) != frame:
@@ -534,38 +611,90 @@ class Recording:
                 rng = tf.dynamic_range_ns(root, frame)
                 chain_children = set(tf.path(root, frame)[0][:-1])
                 n = sum(e.count for e in tf.edges() if not e.static and e.child in chain_children)
-                sources.append(PoseSourceInfo('tf', tf.chain_str(root, frame), '', root, frame, n,
-                                              rng[0] if rng else None, rng[1] if rng else None, rng is None))
+                sources.append(
+                    PoseSourceInfo(
+                        'tf',
+                        tf.chain_str(root, frame),
+                        '',
+                        root,
+                        frame,
+                        n,
+                        rng[0] if rng else None,
+                        rng[1] if rng else None,
+                        rng is None,
+                    )
+                )
         for topic in self.pose_topics():
             track, parent, child, tnotes = self._pose_track(topic)
             notes.extend(tnotes)
-            sources.append(PoseSourceInfo(
-                'topic', topic, self._topics[topic][0], parent, child or '', len(track),
-                track.first_ns if len(track) else None, track.last_ns if len(track) else None,
-                track.is_constant()))
+            sources.append(
+                PoseSourceInfo(
+                    'topic',
+                    topic,
+                    self._topics[topic][0],
+                    parent,
+                    child or '',
+                    len(track),
+                    track.first_ns if len(track) else None,
+                    track.last_ns if len(track) else None,
+                    track.is_constant(),
+                )
+            )
         default_topic = pose_source = pose_error = None
         try:
             default_topic, _ = self._resolve_cloud_topic(None)
             first = self._first_message(default_topic)
             assert first is not None
             choice = self._pose_choice(
-                cloud_frames[default_topic], stamp_ns(first[1].header.stamp), fixed_frame=None, pose_topic=None,
-                poses_file=None, sensor_frame_only=False, tol=50_000_000, what=default_topic)
+                cloud_frames[default_topic],
+                stamp_ns(first[1].header.stamp),
+                fixed_frame=None,
+                pose_topic=None,
+                poses_file=None,
+                sensor_frame_only=False,
+                tol=50_000_000,
+                what=default_topic,
+            )
             pose_source = choice.description
         except RecordingError as err:
             pose_error = str(err)
         return RecordingInfo(
-            path=self.path, format=self.format, storage=self.storage, start_ns=self.start_ns, end_ns=self.end_ns,
-            duration_s=self.duration_ns / 1e9, message_count=sum(c for _, c, _ in self._topics.values()),
-            topics=self.topics(), tf_frames=tf.frames(), tf_tree=tf.tree(), tf_edges=tf.edges(),
-            mappable_topics=[t for t, _ in mappable], cloud_frames=cloud_frames, pose_sources=sources,
-            default_cloud_topic=default_topic, pose_source=pose_source, pose_error=pose_error, notes=notes)
+            path=self.path,
+            format=self.format,
+            storage=self.storage,
+            start_ns=self.start_ns,
+            end_ns=self.end_ns,
+            duration_s=self.duration_ns / 1e9,
+            message_count=sum(c for _, c, _ in self._topics.values()),
+            topics=self.topics(),
+            tf_frames=tf.frames(),
+            tf_tree=tf.tree(),
+            tf_edges=tf.edges(),
+            mappable_topics=[t for t, _ in mappable],
+            cloud_frames=cloud_frames,
+            pose_sources=sources,
+            default_cloud_topic=default_topic,
+            pose_source=pose_source,
+            pose_error=pose_error,
+            notes=notes,
+        )
 
-    def scans(self, *, cloud_topic: str | None = None, fixed_frame: str | None = None,
-              pose_topic: str | None = None, poses_file: str | Path | PoseTrack | None = None,
-              sensor_frame_only: bool = False, every: int = 1, every_distance: float | None = None,
-              t_start: float | None = None, t_end: float | None = None, max_scans: int | None = None,
-              extrapolation_s: float = 0.05, depth_stride: int = 1) -> ScanStream:
+    def scans(
+        self,
+        *,
+        cloud_topic: str | None = None,
+        fixed_frame: str | None = None,
+        pose_topic: str | None = None,
+        poses_file: str | Path | PoseTrack | None = None,
+        sensor_frame_only: bool = False,
+        every: int = 1,
+        every_distance: float | None = None,
+        t_start: float | None = None,
+        t_end: float | None = None,
+        max_scans: int | None = None,
+        extrapolation_s: float = 0.05,
+        depth_stride: int = 1,
+    ) -> ScanStream:
         """Scans of one cloud topic with their poses; see :class:`ScanStream`.
 
         The topic and pose source are resolved now (so problems raise here); the
@@ -595,21 +724,44 @@ class Recording:
             raise RecordingError(f'{topic} has no messages')
         frame = normalize_frame(first[1].header.frame_id)
         tol = round(extrapolation_s * 1e9)
-        choice = self._pose_choice(frame, stamp_ns(first[1].header.stamp), fixed_frame=fixed_frame,
-                                   pose_topic=pose_topic, poses_file=poses_file,
-                                   sensor_frame_only=sensor_frame_only, tol=tol, what=topic)
+        choice = self._pose_choice(
+            frame,
+            stamp_ns(first[1].header.stamp),
+            fixed_frame=fixed_frame,
+            pose_topic=pose_topic,
+            poses_file=poses_file,
+            sensor_frame_only=sensor_frame_only,
+            tol=tol,
+            what=topic,
+        )
         assert choice.fn is not None
         infos: list[tuple[int, Any]] = []
         if kind == 'depth_image':
             info_topic = self._camera_info_topic(topic)
             assert info_topic is not None
-            infos = sorted(((stamp_ns(m.header.stamp), m) for m in
-                            (self._deserialize(raw, mt, info_topic) for _, mt, raw in self._messages(info_topic))),
-                           key=lambda x: x[0])
+            infos = sorted(
+                (
+                    (stamp_ns(m.header.stamp), m)
+                    for m in (self._deserialize(raw, mt, info_topic) for _, mt, raw in self._messages(info_topic))
+                ),
+                key=lambda x: x[0],
+            )
             if not infos:
                 raise RecordingError(f'{info_topic} has no messages, so {topic} cannot be turned into points')
-        return ScanStream(self, topic, kind, choice, frame, infos, every=every, every_distance=every_distance,
-                          t_start=t_start, t_end=t_end, max_scans=max_scans, depth_stride=depth_stride)
+        return ScanStream(
+            self,
+            topic,
+            kind,
+            choice,
+            frame,
+            infos,
+            every=every,
+            every_distance=every_distance,
+            t_start=t_start,
+            t_end=t_end,
+            max_scans=max_scans,
+            depth_stride=depth_stride,
+        )
 
 
 class ScanStream:
@@ -624,13 +776,26 @@ class ScanStream:
     transform). Iterating again starts over.
     """
 
-    def __init__(self, rec: Recording, topic: str, kind: str, choice: _PoseChoice, frame_id: str,
-                 camera_infos: list[tuple[int, Any]], *, every: int, every_distance: float | None,
-                 t_start: float | None, t_end: float | None, max_scans: int | None, depth_stride: int) -> None:
+    def __init__(
+        self,
+        rec: Recording,
+        topic: str,
+        kind: str,
+        choice: _PoseChoice,
+        frame_id: str,
+        camera_infos: list[tuple[int, Any]],
+        *,
+        every: int,
+        every_distance: float | None,
+        t_start: float | None,
+        t_end: float | None,
+        max_scans: int | None,
+        depth_stride: int,
+    ) -> None:
         self._rec = rec
         self.cloud_topic = topic
-        self.kind = kind                     # 'pointcloud2' | 'depth_image'
-        self.frame_id = frame_id             # frame of the first cloud
+        self.kind = kind  # 'pointcloud2' | 'depth_image'
+        self.frame_id = frame_id  # frame of the first cloud
         self.fixed_frame = choice.fixed_frame
         self.pose_source = choice.description
         self.pose_range_ns = choice.range_ns
@@ -648,8 +813,10 @@ class ScanStream:
         self.notes: list[str] = []
 
     def __repr__(self) -> str:
-        return (f'ScanStream({self.cloud_topic}, pose_source={self.pose_source!r}, kept={self.kept}, '
-                f'total_seen={self.total_seen}, skipped={dict(self.skipped)})')
+        return (
+            f'ScanStream({self.cloud_topic}, pose_source={self.pose_source!r}, kept={self.kept}, '
+            f'total_seen={self.total_seen}, skipped={dict(self.skipped)})'
+        )
 
     def _skip(self, reason: str, detail: str | None = None) -> None:
         if detail and reason not in self.skipped:
@@ -669,7 +836,7 @@ class ScanStream:
         assert self._pose is not None
         rec = self._rec
         last_pos: np.ndarray | None = None
-        stop = None if self._hi is None else self._hi + 1   # reader stop is exclusive
+        stop = None if self._hi is None else self._hi + 1  # reader stop is exclusive
         index = -1
         for t, msgtype, raw in rec._messages(self.cloud_topic, stop=stop):
             index += 1
@@ -691,8 +858,11 @@ class ScanStream:
             except TransformTimeError as err:
                 self._skip('no pose at stamp', f'cloud #{index}: {err}')
                 continue
-            if self._every_distance and last_pos is not None \
-                    and float(np.linalg.norm(T[:3, 3] - last_pos)) < self._every_distance:
+            if (
+                self._every_distance
+                and last_pos is not None
+                and float(np.linalg.norm(T[:3, 3] - last_pos)) < self._every_distance
+            ):
                 self._skip('every_distance')
                 continue
             if self.kind == 'pointcloud2':
