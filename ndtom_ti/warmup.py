@@ -55,15 +55,18 @@ def warm_up(m) -> None:
             {"block_cells": 0, "touched_rows": 1},  # touched list overflow
             {"one_pass": False},  # rays in batches, as under memory pressure (exact node counts)
         ]
+        # Every variant, whatever the plan of the map that asked: the warm-up is once per
+        # process, and later maps may have other plans.
+        block_cells, u16_rays = plan.block_cells, plan.u16_rays
         for dtype in (np.float32, np.float64):
-            for u16 in (m.plan.u16_rays, 0):  # 16- and 32-bit ray counts
+            for u16 in (u16_rays, 0):  # 16- and 32-bit ray counts
                 for opts in modes:
                     for pts in scans:
                         plan.u16_rays = u16
                         for k, v in opts.items():
                             setattr(plan, k, v)
                         w._update.insert_guarded(pts.astype(dtype), T)  # not a user's scan
-                    plan.block_cells, plan.row_flags, plan.one_pass = m.plan.block_cells, "auto", True
+                    plan.block_cells, plan.row_flags, plan.one_pass = block_cells, "auto", True
         # The exact node count of hits spread over more leaves than it flags one by one (a
         # sparse, wide scan under memory pressure): two cells far apart.
         span = np.array([[-1, -1, -1], [1, 1, 1]]) * (w.layout.leaf * 132)
