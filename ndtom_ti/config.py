@@ -126,3 +126,19 @@ def check_resolution(resolution: object, name: str = "resolution") -> float:
     if not (math.isfinite(value) and value > 0.0):
         raise ValueError(f"{name} must be a positive number of metres, got {value}")
     return value
+
+
+def check_gaussian_filter(min_points: object, min_probability: object, default_min_points: int) -> tuple[int, float]:
+    """The ``min_points`` (None: ``default_min_points``) and ``min_probability`` of a Gaussians
+    query, checked: an integer >= 0 and a number in [0, 1] (NaN fails: it would keep every
+    Gaussian)."""
+    if min_points is None:
+        min_points = default_min_points
+    if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
+        raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
+    p = float(min_probability) if isinstance(min_probability, numbers.Real) else math.nan
+    if isinstance(min_probability, bool):
+        p = math.nan
+    if not (0.0 <= p <= 1.0):
+        raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
+    return int(min_points), p

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import numbers
 import time
 import weakref
 from pathlib import Path
@@ -14,7 +13,7 @@ import numpy as np
 from . import runtime
 from .budget import MemoryBudget
 from .cellkeys import lex_order
-from .config import MapConfig, check_resolution
+from .config import MapConfig, check_gaussian_filter, check_resolution
 from .kernels.families import kernel_set
 from .kernels.io import io_kernels
 from .kernels.layout import Layout
@@ -355,18 +354,7 @@ class NdtOmMap:
         min_points) and ``p_occ > min_probability``; ``min_probability=0`` also returns
         Gaussians of cells not (yet) occupied.
         """
-        if min_points is None:
-            min_points = self.config.min_points
-        if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
-            raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
-        if (
-            isinstance(min_probability, bool)
-            or not isinstance(min_probability, numbers.Real)
-            or not (
-                0.0 <= min_probability <= 1.0  # NaN fails: it would have kept every Gaussian
-            )
-        ):
-            raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
+        min_points, min_probability = check_gaussian_filter(min_points, min_probability, self.config.min_points)
         raw = self._raw_gaussians()
         keep = raw["n"] >= max(int(min_points), 1)
         lo = raw["logodds"].astype(np.float64)

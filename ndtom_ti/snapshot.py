@@ -16,7 +16,6 @@ follow the map's later updates.
 from __future__ import annotations
 
 import copy
-import math
 import numbers
 from dataclasses import dataclass
 from functools import cached_property
@@ -26,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .cellkeys import pack
-from .config import MapConfig
+from .config import MapConfig, check_gaussian_filter, check_resolution
 from .kernels.layout import Layout
 
 if TYPE_CHECKING:
@@ -99,10 +98,7 @@ class MapSnapshot:
     g_scatter: np.ndarray
 
     def __post_init__(self) -> None:
-        r = self.resolution
-        if isinstance(r, bool) or not isinstance(r, numbers.Real) or not (math.isfinite(r) and r > 0):
-            raise ValueError(f"resolution must be a positive number of metres, got {r!r}")
-        object.__setattr__(self, "resolution", float(r))
+        object.__setattr__(self, "resolution", check_resolution(self.resolution))
         object.__setattr__(self, "occupancy_enabled", bool(self.occupancy_enabled))
         if not isinstance(self.config, MapConfig):
             raise TypeError(f"config must be a MapConfig, got {type(self.config).__name__}")
@@ -232,16 +228,7 @@ class MapSnapshot:
         float64 (scatter / (N - 1); 0 for N < 2), ``n`` (K,) int64, ``p_occ`` and
         ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's)
         and ``p_occ > min_probability`` (0: occupied or not)."""
-        if min_points is None:
-            min_points = self.config.min_points
-        if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 0:
-            raise ValueError(f"min_points must be an integer >= 0, got {min_points!r}")
-        if (
-            isinstance(min_probability, bool)
-            or not isinstance(min_probability, numbers.Real)
-            or not (0.0 <= min_probability <= 1.0)
-        ):
-            raise ValueError(f"min_probability must be a number in [0, 1], got {min_probability!r}")
+        min_points, min_probability = check_gaussian_filter(min_points, min_probability, self.config.min_points)
         keep = self.g_n >= max(int(min_points), 1)
         lo = self._g_logodds.astype(np.float64)
         with np.errstate(over="ignore"):
