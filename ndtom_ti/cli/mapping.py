@@ -421,7 +421,7 @@ def map_(
                 bar.stop()
                 raise
             code = _finish_mapping(m, summary, out_path, bar, signals=sig)
-            del m
+            m.close()  # its slot back now: the map is on disk
     raise typer.Exit(code)
 
 
@@ -523,7 +523,7 @@ def demo(
             gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
             gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
             code = _finish_mapping(m, summary, out_path, bar, [gt], signals=sig)
-            del m
+            m.close()  # its slot back now: the map is on disk
         if code == EXIT_OK:
             console_out().print(f"Next: ndtom export {out_path} --format ply", soft_wrap=True, markup=False)
     raise typer.Exit(code)

@@ -21,7 +21,6 @@ Metrics (cells ``floor(x / resolution)``):
 
 from __future__ import annotations
 
-import gc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -98,16 +97,14 @@ def mark_observed(cand: GhostCandidates, scans: Sequence[LabelledScan], resoluti
     if len(cand.cells) == 0:
         return cand
     # Clamps far out, where f32 still resolves a ray's 0.04.
-    probe = NdtOmMap(resolution, config=MapConfig(miss_model="paper", logodds_min=-1e5, logodds_max=1e5))
-    before = np.zeros(len(cand.cells))
-    for s, sc in enumerate(scans):
-        T = sc.T_world_sensor
-        probe.insert_scan((sc.points - T[:3, 3]) @ T[:3, :3], T)
-        after = probe.logodds_at(cand.cells)
-        cand.observed |= (after < before) & (s > cand.last_hit)
-        before = after
-    del probe
-    gc.collect()
+    with NdtOmMap(resolution, config=MapConfig(miss_model="paper", logodds_min=-1e5, logodds_max=1e5)) as probe:
+        before = np.zeros(len(cand.cells))
+        for s, sc in enumerate(scans):
+            T = sc.T_world_sensor
+            probe.insert_scan((sc.points - T[:3, 3]) @ T[:3, :3], T)
+            after = probe.logodds_at(cand.cells)
+            cand.observed |= (after < before) & (s > cand.last_hit)
+            before = after
     return cand
 
 
