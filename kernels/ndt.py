@@ -43,6 +43,7 @@ C_BLOCK_CELLS = 6  # cells of the dense block that took the free-space update
 C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
 C_NO_RECORD = 9  # hit cells merge left for want of a record (see merge's ``left``)
+C_NDT_STILL = 10  # tree cells rays passed whose NDT miss terms all rounded to zero: not updated
 COUNTERS = 16
 HIT_CHUNKS = 1024  # chunks of points of hits_dense's prefix sum (Taichi runs <= 512 iterations on one thread)
 SPREAD_K = 4  # sectors per CPU thread and per scan in the rays kernels (see spread)
@@ -231,6 +232,8 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                 r = gslot[at(slot, c)] - 1
                 if r >= 0 and rec_n[r] >= ndt_minp:
                     dl = take_miss(r, rec_miss)
+                    if dl == 0.0:  # not a free-space update (as a marked cell of the block)
+                        ti.atomic_add(ctr[C_NDT_STILL], 1)
             free_update(slot, c, dl, g, l_min, l_max, rec_n, ctr, rec_free)
 
     @ti.func

@@ -19,6 +19,7 @@ from .kernels.ndt import (
     C_FREE,
     C_HIT_CELLS,
     C_HIT_PASSED,
+    C_NDT_STILL,
     C_NO_RECORD,
     C_RECORDS,
     C_TOUCHED,
@@ -441,7 +442,7 @@ class ScanUpdate:
                 k.apply_free_all(self.ndt)(slot=slot, model=model, records=recs.group, ctr=ctr, **self._ndt_kw())
                 self.plan.touched_rows = 2 * nt
                 self._sync_touched()
-            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) + total(ctr, C_BLOCK_CELLS)
+            rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) - int(ctr[C_NDT_STILL]) + total(ctr, C_BLOCK_CELLS)
         self.st.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = total(ctr, C_VISITS)
