@@ -45,12 +45,17 @@ def pool_threads(threads: int) -> list[int]:
     buf = np.zeros(1 << 14)
     probe(buf)  # compiled before the counts are read
     main = threading.get_native_id()  # the caller runs no iteration: it waits for the pool
-    before = _run_times()
-    for _ in range(4):
-        probe(buf)
-    after = _run_times()
-    ran = sorted(t for t, ns in after.items() if t != main and ns > before.get(t, ns))
-    return ran if len(ran) == threads else []
+    # On a busy machine one worker may take every iteration while another waits for a CPU:
+    # a few tries, each longer than the last.
+    for attempt in range(5):
+        before = _run_times()
+        for _ in range(4 << attempt):
+            probe(buf)
+        after = _run_times()
+        ran = sorted(t for t, ns in after.items() if t != main and ns > before.get(t, ns))
+        if len(ran) == threads:
+            return ran
+    return []
 
 
 def pin_pool(threads: int) -> list[tuple[int, int]]:
