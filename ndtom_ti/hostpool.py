@@ -14,6 +14,7 @@ it is and says why; the caller then keeps the budget within the 1 GiB chunk.
 from __future__ import annotations
 
 import ctypes
+import mmap
 import os
 import struct
 import sys
@@ -132,3 +133,15 @@ def chunk_size_cell() -> ctypes.c_uint64:
     if cell.value != DEFAULT_CHUNK:
         raise GuardFailed(f"UnifiedAllocator::default_allocator_size reads {cell.value}, not 1 GiB")
     return cell
+
+
+def address_space_for(size: int) -> bool:
+    """Whether Linux gives this process ``size`` bytes of address space in one mapping (a
+    reservation with no access: nothing is committed). Taichi's pool maps its chunk so;
+    one it is refused leaves Taichi half started, which crashed the process at exit."""
+    try:
+        m = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS, prot=0)
+    except (OSError, OverflowError, ValueError):
+        return False
+    m.close()
+    return True

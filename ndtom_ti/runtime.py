@@ -192,8 +192,10 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
         cell = hostpool.chunk_size_cell()
     except (hostpool.GuardFailed, OSError, ValueError) as exc:
         cell, why = None, str(exc)
+    chunk = chunk_for(want)
+    if cell is not None and not hostpool.address_space_for(chunk):
+        cell, why = None, f"Taichi could not map a {chunk / 2**30:.1f} GiB pool (Linux refuses that address space)"
     if cell is not None:
-        chunk = chunk_for(want)
         before = hostpool.anonymous_mappings()
         cell.value = chunk
         try:

@@ -156,6 +156,14 @@ def test_guards_fall_back_to_taichis_chunk_with_a_one_line_note():
     assert values(out, "MAPPED") == ["True"]
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux address space")
+def test_address_space_probe():
+    from ndtom_ti import hostpool
+
+    assert hostpool.address_space_for(1 << 30)
+    assert not hostpool.address_space_for(2**52)  # past a 48-bit address space: refused before Taichi tries
+
+
 def test_a_pool_linux_refuses_to_map_falls_back_with_a_note():
     out = run_py(
         """
