@@ -13,7 +13,7 @@ import numpy as np
 from . import runtime
 from .budget import MemoryBudget
 from .cellkeys import lex_order
-from .config import MapConfig, check_gaussian_filter, check_resolution
+from .config import MapConfig, check_resolution
 from .kernels.families import kernel_set
 from .kernels.io import io_kernels
 from .kernels.layout import Layout
@@ -24,7 +24,7 @@ from .runtime import MapMemoryError  # noqa: F401 - raised by the map's updates;
 from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
 from .scaninput import as_pose, cell_box  # noqa: F401 - part of this module's interface
-from .snapshot import MapSnapshot
+from .snapshot import MapSnapshot, probability, select_gaussians
 from .warmup import warm_up
 
 # NDT miss model: variance added on every axis of a Gaussian's covariance before it is
@@ -354,31 +354,9 @@ class NdtOmMap:
         min_points) and ``p_occ > min_probability``; ``min_probability=0`` also returns
         Gaussians of cells not (yet) occupied.
         """
-        min_points, min_probability = check_gaussian_filter(min_points, min_probability, self.config.min_points)
         raw = self._raw_gaussians()
-        keep = raw["n"] >= max(int(min_points), 1)
-        lo = raw["logodds"].astype(np.float64)
-        p = 1.0 - 1.0 / (1.0 + np.exp(lo))
-        if min_probability > 0.0:
-            keep &= p > min_probability
-        idx = raw["index"][keep].astype(np.int64)
-        n = raw["n"][keep].astype(np.int64)
-        s = raw["scatter"][keep]
-        cov = np.empty((len(n), 3, 3))
-        for (a, b), col in zip(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), range(6)):
-            cov[:, a, b] = s[:, col]
-            cov[:, b, a] = s[:, col]
-        denom = np.maximum(n - 1, 1).astype(np.float64)
-        cov /= denom[:, None, None]
-        cov[n < 2] = 0.0
-        return {
-            "index": idx,
-            "mean": self.cell_center(idx) + raw["mean_rel"][keep],
-            "cov": cov,
-            "n": n,
-            "p_occ": p[keep],
-            "logodds": lo[keep],
-        }
+        return select_gaussians(raw["index"], raw["n"], raw["mean_rel"], raw["scatter"], raw["logodds"],
+                                self.resolution, min_points, min_probability, self.config.min_points)  # fmt: skip
 
     @_locked
     def known_cells(self) -> dict:
@@ -395,7 +373,7 @@ class NdtOmMap:
             self._io.export_known(self._slot, idx, val, ctr)
         order = lex_order(idx)
         lo = val[order].astype(np.float64)
-        return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": 1.0 - 1.0 / (1.0 + np.exp(lo))}
+        return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
 
     @_locked
     def occupancy(self, points: Any, *, return_known: bool = False) -> Any:
@@ -417,8 +395,7 @@ class NdtOmMap:
         ok &= ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
         if ok.any():
             lo = self.logodds_at(cells[ok].astype(np.int64))
-            with np.errstate(over="ignore"):  # exp of a large log-odds: p = 1
-                out[ok] = 1.0 - 1.0 / (1.0 + np.exp(lo))
+            out[ok] = probability(lo)
             known[ok] = lo != 0.0
         return (out, known) if return_known else out
 

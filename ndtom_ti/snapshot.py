@@ -46,6 +46,36 @@ ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
+def probability(logodds: np.ndarray) -> np.ndarray:
+    """Occupancy probability of float64 log-odds (a large one reads 1)."""
+    with np.errstate(over="ignore"):
+        return 1.0 - 1.0 / (1.0 + np.exp(logodds))
+
+
+def select_gaussians(index, n, mean_rel, scatter, logodds, resolution: float, min_points, min_probability,
+                     default_min_points: int) -> dict:  # fmt: skip
+    """The dict of ``gaussians()`` (a map's and a snapshot's) from Gaussian records sorted by
+    cell: ``index`` (G, 3), ``n`` (G,), ``mean_rel`` (G, 3) mean minus the cell centre,
+    ``scatter`` (G, 6) xx xy xz yy yz zz, ``logodds`` (G,) of their cells."""
+    min_points, min_probability = check_gaussian_filter(min_points, min_probability, default_min_points)
+    keep = n >= max(min_points, 1)
+    lo = np.asarray(logodds).astype(np.float64)
+    p = probability(lo)
+    if min_probability > 0.0:
+        keep &= p > min_probability
+    idx = index[keep].astype(np.int64)
+    cnt = n[keep].astype(np.int64)
+    s = scatter[keep]
+    cov = np.empty((len(cnt), 3, 3))
+    for col, (a, b) in enumerate(_COV_IJ):
+        cov[:, a, b] = s[:, col]
+        cov[:, b, a] = s[:, col]
+    cov /= np.maximum(cnt - 1, 1).astype(np.float64)[:, None, None]
+    cov[cnt < 2] = 0.0
+    mean = (idx + 0.5) * resolution + mean_rel[keep]
+    return {"index": idx, "mean": mean, "cov": cov, "n": cnt, "p_occ": p[keep], "logodds": lo[keep]}
+
+
 def _copy(metadata: dict) -> dict:
     """A copy the map's later changes do not reach (one level deep for values that
     cannot be copied deeply: saving refuses those anyway)."""
@@ -228,32 +258,14 @@ class MapSnapshot:
         float64 (scatter / (N - 1); 0 for N < 2), ``n`` (K,) int64, ``p_occ`` and
         ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's)
         and ``p_occ > min_probability`` (0: occupied or not)."""
-        min_points, min_probability = check_gaussian_filter(min_points, min_probability, self.config.min_points)
-        keep = self.g_n >= max(int(min_points), 1)
-        lo = self._g_logodds.astype(np.float64)
-        with np.errstate(over="ignore"):
-            p = 1.0 - 1.0 / (1.0 + np.exp(lo))
-        if min_probability > 0.0:
-            keep &= p > min_probability
-        idx = self.g_index[keep].astype(np.int64)
-        n = self.g_n[keep].astype(np.int64)
-        s = self.g_scatter[keep]
-        cov = np.empty((len(n), 3, 3))
-        for col, (a, b) in enumerate(_COV_IJ):
-            cov[:, a, b] = s[:, col]
-            cov[:, b, a] = s[:, col]
-        cov /= np.maximum(n - 1, 1).astype(np.float64)[:, None, None]
-        cov[n < 2] = 0.0
-        return {"index": idx, "mean": self.cell_center(idx) + self.g_mean_rel[keep], "cov": cov, "n": n,
-                "p_occ": p[keep], "logodds": lo[keep]}  # fmt: skip
+        return select_gaussians(self.g_index, self.g_n, self.g_mean_rel, self.g_scatter, self._g_logodds,
+                                self.resolution, min_points, min_probability, self.config.min_points)  # fmt: skip
 
     def known_cells(self) -> dict:
         """Every known cell (occupied and free), as ``NdtOmMap.known_cells`` gives them:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
         lo = self.occ_logodds.astype(np.float64)
-        with np.errstate(over="ignore"):
-            p = 1.0 - 1.0 / (1.0 + np.exp(lo))
-        return {"index": self.occ_index.astype(np.int64), "logodds": lo, "p_occ": p}
+        return {"index": self.occ_index.astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
 
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""

@@ -69,8 +69,8 @@ def warm_up(m) -> None:
                     plan.block_cells, plan.row_flags, plan.one_pass = block_cells, "auto", True
         # The exact node count of hits spread over more leaves than it flags one by one (a
         # sparse, wide scan under memory pressure): two cells far apart.
-        span = np.array([[-1, -1, -1], [1, 1, 1]]) * (w.layout.leaf * 132)
-        w._budget.new_hit_nodes(span.astype(np.int32))
+        span = np.array([w.layout.lo, np.array(w.layout.hi) - 1], np.int32)  # the grid's corners, any layout
+        w._budget.new_hit_nodes(span)
         w._warm = True
         len(w)
         w.known_cells()

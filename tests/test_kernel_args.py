@@ -89,6 +89,16 @@ def test_update_plan_is_checked():
     assert m.plan.block_cells == 4096
 
 
+def assert_same_map(ref, m):
+    """The same cells and log-odds, the same Gaussian counts, their means to rounding."""
+    ka, kb = ref.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(ka["index"], kb["index"])
+    np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
+    ga, gb = ref.gaussians(min_probability=0), m.gaussians(min_probability=0)
+    np.testing.assert_array_equal(ga["n"], gb["n"])
+    np.testing.assert_allclose(ga["mean"], gb["mean"], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("plan", [{"row_flags": "always"}, {"row_flags": "never"}, {"one_pass": False},
                                   {"touched_rows": 1}, {"u16_rays": 0}, {"block_cells": 0}])  # fmt: skip
 @pytest.mark.parametrize("model", ["paper", "ndt"])
@@ -104,12 +114,7 @@ def test_every_plan_gives_the_same_map(rng, plan, model):
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
         assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
         assert (rb.ray_batches > 0) == (plan.get("one_pass") is False)
-    ka, kb = ref.known_cells(), m.known_cells()
-    np.testing.assert_array_equal(ka["index"], kb["index"])
-    np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
-    ga, gb = ref.gaussians(min_probability=0), m.gaussians(min_probability=0)
-    np.testing.assert_array_equal(ga["n"], gb["n"])
-    np.testing.assert_allclose(ga["mean"], gb["mean"], rtol=0, atol=1e-12)
+    assert_same_map(ref, m)
 
 
 @pytest.mark.parametrize("model", ["paper", "ndt"])
@@ -132,12 +137,7 @@ def test_a_few_far_points_give_the_same_map(rng, model):
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
         assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits, ra.gaussians_erased) == (
             rb.cells_hit, rb.cells_passed, rb.ray_cell_visits, rb.gaussians_erased)  # fmt: skip
-    ka, kb = ref.known_cells(), m.known_cells()
-    np.testing.assert_array_equal(ka["index"], kb["index"])
-    np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
-    ga, gb = ref.gaussians(min_probability=0), m.gaussians(min_probability=0)
-    np.testing.assert_array_equal(ga["n"], gb["n"])
-    np.testing.assert_allclose(ga["mean"], gb["mean"], rtol=0, atol=1e-12)
+    assert_same_map(ref, m)
 
 
 def _compiled(st) -> dict:
