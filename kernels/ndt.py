@@ -70,10 +70,15 @@ NE_COUNT = NE_GAUSS - 1
 # of a cell holding a Gaussian as a fixed-point integer: the sum is exact and does not depend
 # on the order of the threads' atomic adds. 2^-32 per ray is far below f32 log-odds' ulp.
 MISS_SCALE = float(2**32)
-# Block entry of a cell holding a usable Gaussian (set by mark_gaussians before the rays):
-# ray counts never reach it (scans of at most 65534 rays use u16 blocks).
+# Block entries set by mark_gaussians before the rays of the NDT miss model: a cell holding
+# a usable Gaussian (MARK), and a cell that endpoints of the scan hit (HIT: it takes the hit
+# update only, so rays passing it neither count nor test its Gaussian). Ray counts never
+# reach them: u16 blocks take scans of at most U16_MAX_RAYS rays, i32 counts are >= 0.
 MARK_U16 = 0xFFFF
+HIT_U16 = 0xFFFE
+U16_MAX_RAYS = 0xFFFD
 MARK_I32 = -1
+HIT_I32 = -2
 
 # Finite in f32 too: kernel float literals are f32, and 1e300 would become inf, which
 # fast math assumes never occurs. Ray parameters that matter are <= 1.
@@ -238,28 +243,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template(), rec_miss: ti.template(),
-                   mark, ndt: ti.template()) -> ti.i32:  # fmt: skip
-        # eq. (12) for a cell of the dense block that v rays passed (v == mark: a cell
-        # holding a Gaussian, which takes the NDT miss model's sum); new_leaf: the first
+                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template()):  # fmt: skip
+        # eq. (12) for a cell of the dense block that v rays passed; new_leaf: the first
         # such cell of its tree leaf in this pass, which counts the leaf if it creates it.
-        # Returns 1 if the cell changed.
+        # (Cells marked for the NDT miss model were applied and cleared by apply_marked.)
         if new_leaf:
             note_leaf(olm, slot, c, regions, leaves, 0)
-        changed = 1
-        marked = False
-        if ti.static(ndt):  # marks exist only with the NDT miss model
-            marked = v == mark
-        if marked:
-            dl = take_miss(gslot[at(slot, c)] - 1, rec_miss)
-            if dl != 0.0:
-                free_update(slot, c, dl, NE_GAUSS, l_min, l_max, rec_n, ctr, rec_free)
-            else:
-                changed = 0
-        else:
-            free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, rec_n, ctr,
-                        rec_free)  # fmt: skip
-        return changed
+        free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, rec_n, ctr,
+                    rec_free)  # fmt: skip
 
     @ti.func
     def add_miss(r, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),

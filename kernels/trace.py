@@ -12,6 +12,8 @@ from .layout import Storage
 from .ndt import (
     BIG,
     C_VISITS,
+    HIT_I32,
+    HIT_U16,
     MARK_I32,
     MARK_U16,
     NE_GAUSS,
@@ -42,8 +44,25 @@ def block_type(bt: str):
 
 def block_mark(bt: str) -> int:
     """Block entry of a cell holding a usable Gaussian (NDT miss model), as the i32 that
-    block_cell compares."""
+    apply_marked compares."""
     return MARK_U16 if bt == "u16" else MARK_I32
+
+
+def block_counts(bt: str):
+    """``counts(v)``: whether block entry v (of dtype bt) is a ray count, not a mark."""
+    if bt == "u16":
+
+        @ti.func
+        def counts(v):
+            return v < ti.cast(HIT_U16, ti.u16)
+
+    else:
+
+        @ti.func
+        def counts(v):
+            return v >= 0
+
+    return counts
 
 
 @dataclass(frozen=True)
@@ -87,6 +106,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     mode, flags, ndt = cfg.mode, cfg.flags, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
+    counts = block_counts(cfg.bt)
     full = mode != "floor"
     b3d = ti.types.ndarray(dtype=bt, ndim=3)
     b1d = ti.types.ndarray(dtype=bt, ndim=1)
@@ -153,19 +173,27 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             while left > 0:
                 rel = cur - b0
                 if ti.static(mode == "dense"):
-                    if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                        ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
-                    else:
+                    if ti.static(not ndt):
                         ti.atomic_add(block1[li], ti.cast(1, bt))
+                    else:
+                        v = block1[li]
+                        if counts(v):
+                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                        elif v == ti.cast(mark, bt):
+                            ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                 elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                     # Near the sensor every ray passes: count in the dense block,
                     # applied to the tree once per cell by block_apply.
-                    if ti.static(ndt) and block[rel[0], rel[1], rel[2]] == ti.cast(mark, bt):
-                        ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
-                    else:
+                    if ti.static(not ndt):
                         ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
+                    else:
+                        v = block[rel[0], rel[1], rel[2]]
+                        if counts(v):
+                            ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
+                        elif v == ti.cast(mark, bt):
+                            ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
                     lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                     if (lb != last_leaf).any():
                         bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
@@ -224,10 +252,14 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
             if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                 if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                    if ti.static(ndt) and block1[li] == ti.cast(mark, bt):
-                        ndt_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
-                    else:
+                    if ti.static(not ndt):
                         ti.atomic_add(block1[li], ti.cast(1, bt))
+                    else:
+                        v = block1[li]
+                        if counts(v):
+                            ti.atomic_add(block1[li], ti.cast(1, bt))
+                        elif v == ti.cast(mark, bt):
+                            ndt_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)
                 else:
@@ -247,11 +279,11 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
 
 def mark_gaussians(f: Storage, bt: str) -> Bound:
     """Before the rays of the NDT miss model: the block entries of cells holding a
-    Gaussian of >= ndt_minp points get the mark (their rows flagged, so that block_apply
-    visits and clears them)."""
-    F = device_funcs(f)
-    row, leaf = F.row, F.leaf
+    Gaussian of >= ndt_minp points get the mark (update.apply_marked applies and clears
+    them), then those of the scan's hit cells the hit mark (merge clears them)."""
+    row = device_funcs(f).row
     mark, bt_ = block_mark(bt), block_type(bt)
+    hit = HIT_U16 if bt == "u16" else HIT_I32
     b3d = ti.types.ndarray(dtype=bt_, ndim=3)
 
     def mark_gaussians(
@@ -260,8 +292,9 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         rec_cell: i32_2d,
         ndt_minp: ti.i32,  # NdtRecords
         block: b3d,  # Block: the scan's zeroed ray counts
-        bflag: i8_3d,
         base: i32_1d,
+        cells: i32_2d,  # Rays: the endpoints' cells, hits first
+        n_hit: ti.i32,
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
@@ -270,10 +303,13 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
                     block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
-                    bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+        for i in range(n_hit):
+            rel = row(cells, i) - b0
+            if (rel >= 0).all() and (rel < bsize).all():
+                block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)
 
     return Bound(mark_gaussians, ("nrec", ("records", Records, ("rec_n", "rec_cell")), ("ndt", NdtRecords, ("ndt_minp",)),
-                                  ("block", Block, ("block", "bflag", "base"))))  # fmt: skip
+                                  ("block", Block, ("block", "base")), ("rays", Rays, ("cells", "n_hit"))))  # fmt: skip
 
 
 def reset_rays(f: Storage, _cfg=None) -> Bound:

@@ -59,18 +59,6 @@ class MergeConfig:
         block_type(self.bt)
 
 
-@dataclass(frozen=True)
-class FreeConfig:
-    """One variant of the free-space kernels: the dense block's dtype and whether the
-    NDT miss model's sums replace the ray counts of cells holding a usable Gaussian."""
-
-    bt: str = "u16"
-    ndt: bool = False
-
-    def __post_init__(self):
-        block_type(self.bt)
-
-
 def prepare(f: Storage, _cfg=None) -> Bound:
     """Sensor-frame points to world points and cells, each with its status."""
     grid_lo = device_funcs(f).grid_lo
@@ -396,19 +384,59 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                          ("ndt", NdtRecords) if ndt else (None, NdtRecords)))  # fmt: skip
 
 
-def _free_parts(ndt: bool) -> tuple:
-    return (("model", Model, ("l_free", "l_min", "l_max")), ("records", Records, ("rec_n", "rec_free")), "ctr")
+_FREE_PARTS = (("model", Model, ("l_free", "l_min", "l_max")), ("records", Records, ("rec_n", "rec_free")), "ctr")
 
 
-def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
+def apply_marked(f: Storage, bt_name: str) -> Bound:
+    """The NDT miss model's summed change of the cells mark_gaussians marked in the dense
+    block, one thread per record (after merge, before block_apply): each marked entry is
+    cleared, so block_apply meets ray counts only and never walks the tree for a cell
+    that no ray passed."""
+    F = device_funcs(f)
+    row, free_update, take_miss, tally = F.row, F.free_update, F.take_miss, F.tally
+    bt = block_type(bt_name)
+    mark = block_mark(bt_name)
+    b3d = ti.types.ndarray(dtype=bt, ndim=3)
+
+    def apply_marked(
+        slot: ti.i32,
+        nrec: ti.i32,  # records in use
+        l_min: ti.f32,  # Model
+        l_max: ti.f32,
+        rec_n: i32_1d,  # Records
+        rec_cell: i32_2d,
+        rec_free: i32_1d,
+        ctr: i64_1d,
+        block: b3d,  # Block: marks cleared here
+        base: i32_1d,
+        rec_miss: i64_1d,  # NdtRecords: the rays' sums, consumed here
+    ):
+        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+        for r in range(nrec):
+            c = row(rec_cell, r)
+            rel = c - b0
+            # merge cleared the entries (and sums) of the cells it updated: a marked entry
+            # is a cell that held its Gaussian all scan and took no endpoint.
+            if (rel >= 0).all() and (rel < bsize).all() and ti.cast(block[rel[0], rel[1], rel[2]], ti.i32) == mark:
+                block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
+                if rec_miss[r] != 0:
+                    free_update(slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, rec_n, ctr, rec_free)
+                    tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
+
+    return Bound(apply_marked, ("slot", "nrec", ("model", Model, ("l_min", "l_max")),
+                                ("records", Records, ("rec_n", "rec_cell", "rec_free")), "ctr",
+                                ("block", Block, ("block", "base")), ("ndt", NdtRecords, ("rec_miss",))))  # fmt: skip
+
+
+def block_apply(f: Storage, bt_name: str) -> Bound:
     """eq. (12) for the cells of the dense block, straight from their counts (hit cells
-    were zeroed by merge), visiting only the rows that rays flagged; block and flags are
-    zero afterwards."""
+    were zeroed by merge, marked ones by apply_marked), visiting only the rows that rays
+    flagged; block and flags are zero afterwards."""
     F = device_funcs(f)
     block_cell, tally, leaf = F.block_cell, F.tally, F.leaf
-    mark, ndt = block_mark(cfg.bt), cfg.ndt
-    b3d = ti.types.ndarray(dtype=block_type(cfg.bt), ndim=3)
-    bt = block_type(cfg.bt)
+    bt = block_type(bt_name)
+    b3d = ti.types.ndarray(dtype=bt, ndim=3)
 
     def block_apply(
         slot: ti.i32,
@@ -423,7 +451,6 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
         ctr: i64_1d,
         occ_regions: i8_4d,  # Nodes
         leaves: i64_2d,
-        rec_miss: i64_1d,  # NdtRecords (ndt): miss sums of marked cells, consumed here
     ):
         # eq. (12) for the cells of the dense block, straight from their counts (hit cells
         # were zeroed by merge). One leaf of the tree per iteration, so its cells are
@@ -440,22 +467,21 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                         v = ti.cast(block[i, j, k], ti.i32)
                         if v != 0:
                             block[i, j, k] = ti.cast(0, bt)
-                            cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max,
-                                                rec_n, ctr, occ_regions, leaves, rec_free, rec_miss, mark, ndt)  # fmt: skip
+                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max, rec_n,
+                                       ctr, occ_regions, leaves, rec_free)  # fmt: skip
+                            cells += 1
             if cells > 0:
                 tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
 
-    return Bound(block_apply, ("slot", ("block", Block, ("block", "bflag", "base")), *_free_parts(ndt),
-                               ("nodes", Nodes, ("occ_regions", "leaves")),
-                               ("ndt", NdtRecords, ("rec_miss",)) if ndt else (None, NdtRecords, ("rec_miss",))))  # fmt: skip
+    return Bound(block_apply, ("slot", ("block", Block, ("block", "bflag", "base")), *_FREE_PARTS,
+                               ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
 
 
-def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
+def block_apply_all(f: Storage, bt_name: str) -> Bound:
     """block_apply for a block the rays filled densely (no row flags): every cell read."""
     F = device_funcs(f)
     block_cell, tally, SHIFT = F.block_cell, F.tally, F.SHIFT
-    mark, ndt = block_mark(cfg.bt), cfg.ndt
-    bits = 16 if cfg.bt == "u16" else 32
+    bits = 16 if block_type(bt_name) == ti.u16 else 32
     lanes = 64 // bits  # block entries per 64-bit word
     mask = (1 << bits) - 1
 
@@ -472,7 +498,6 @@ def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
         ctr: i64_1d,
         occ_regions: i8_4d,  # Nodes
         leaves: i64_2d,
-        rec_miss: i64_1d,  # NdtRecords (ndt)
     ):
         # block_apply for a block the rays filled densely (no row flags): every column
         # of cells along z read in memory order, a word of `lanes` cells at a time, so
@@ -492,15 +517,15 @@ def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
                         if v != 0:
                             k = kw * lanes + lane
-                            cells += block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min,
-                                                l_max, rec_n, ctr, occ_regions, leaves, rec_free, rec_miss, mark, ndt)  # fmt: skip
+                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
+                                       rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
+                            cells += 1
                             last = k >> SHIFT
             if cells > 0:
                 tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
 
-    return Bound(block_apply_all, ("slot", "words", "shape", "base", *_free_parts(ndt),
-                                   ("nodes", Nodes, ("occ_regions", "leaves")),
-                                   ("ndt", NdtRecords, ("rec_miss",)) if ndt else (None, NdtRecords, ("rec_miss",))))  # fmt: skip
+    return Bound(block_apply_all, ("slot", "words", "shape", "base", *_FREE_PARTS,
+                                   ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
 
 
 def apply_free(f: Storage, ndt: bool) -> Bound:
@@ -524,7 +549,7 @@ def apply_free(f: Storage, ndt: bool) -> Bound:
         for t in range(nt):
             free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp, ndt)
 
-    return Bound(apply_free, ("slot", ("touched", Touched, ("touched",)), "nt", *_free_parts(ndt),
+    return Bound(apply_free, ("slot", ("touched", Touched, ("touched",)), "nt", *_FREE_PARTS,
                               ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
                               else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
 
@@ -550,7 +575,7 @@ def apply_free_all(f: Storage, ndt: bool) -> Bound:
                 free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss,
                                  ndt_minp, ndt)  # fmt: skip
 
-    return Bound(apply_free_all, ("slot", *_free_parts(ndt),
+    return Bound(apply_free_all, ("slot", *_FREE_PARTS,
                                   ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
                                   else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
 

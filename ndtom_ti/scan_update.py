@@ -26,10 +26,11 @@ from .kernels.ndt import (
     C_VISITS,
     CTR_SIZE,
     HIT_CHUNKS,
+    U16_MAX_RAYS,
     total,
 )
 from .kernels.trace import RaysConfig
-from .kernels.update import FreeConfig, MergeConfig
+from .kernels.update import MergeConfig
 from .scaninput import as_points, as_pose, cell_box
 
 # Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
@@ -68,7 +69,7 @@ class UpdatePlan:
     block_cells: most cells of the dense ray-count block around the sensor (0: count
         every ray visit in the sparse tree).
     u16_rays: scans of at most this many rays count in 16 bits on the CPU (a ray passes
-        a cell once; 65535 marks a cell holding a Gaussian for the NDT miss model); larger
+        a cell once; 65534 and 65535 are the NDT miss model's marks), at most 65533; larger
         scans, or 0, in 32 bits.
     row_flags: for a block that holds the whole scan: "auto" flags the rows rays enter
         when the last scan made few visits per block cell, "always", or "never" (every
@@ -80,7 +81,7 @@ class UpdatePlan:
     """
 
     block_cells: int = BLOCK_CELLS
-    u16_rays: int = 65534
+    u16_rays: int = U16_MAX_RAYS
     row_flags: str = "auto"
     one_pass: bool = True
     touched_rows: int = TOUCHED_START
@@ -92,6 +93,8 @@ class UpdatePlan:
             isinstance(value, bool) or int(value) != value or int(value) < (1 if name == "touched_rows" else 0)
         ):
             raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+        if name == "u16_rays" and int(value) > U16_MAX_RAYS:
+            raise ValueError(f"u16_rays must be at most {U16_MAX_RAYS} (16-bit ray counts), got {value!r}")
         super().__setattr__(name, value)
 
 
@@ -241,7 +244,7 @@ class ScanUpdate:
         # The Gaussians the rays test are those of the scan's start: merge runs after them.
         if ndt and blk.block.size:
             k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
-                                 block=blk)  # fmt: skip
+                                 block=blk, rays=Rays(pts=p.world, cells=p.cells, n_hit=p.n_hit, n=len(p.world)))  # fmt: skip
         cfg = RaysConfig(bt=bt, mode="full" if mode == "full" else "floor", ndt=ndt)
         world, cells, n_hit, n = p.world, p.cells, p.n_hit, len(p.world)
         self.batches = 0
@@ -424,15 +427,15 @@ class ScanUpdate:
                 else:
                     acc = acc[s]
         if dense is not None:
-            fc = FreeConfig(bt=bt, ndt=self.ndt)
+            if self.ndt and blk.block.size:  # the marked cells first: block_apply then meets counts only
+                k.apply_marked(bt)(slot=slot, nrec=recs.count, model=model, records=recs.group, ctr=ctr, block=blk,
+                                   ndt=recs.ndt_group)  # fmt: skip
             if flagged:
-                k.block_apply(fc)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes,
-                                  **self._ndt_kw())  # fmt: skip
+                k.block_apply(bt)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes)
             else:
                 block = blk.block
-                k.block_apply_all(fc)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=np.array(block.shape, np.int32),
-                                      base=blk.base, model=model, records=recs.group, ctr=ctr, nodes=nodes,
-                                      **self._ndt_kw())  # fmt: skip
+                k.block_apply_all(bt)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=np.array(block.shape, np.int32),
+                                      base=blk.base, model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
         if self.occupancy and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self.touched):
