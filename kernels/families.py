@@ -13,7 +13,7 @@ from types import SimpleNamespace
 from . import launch, trace, update
 from .layout import Storage
 from .trace import RaysConfig
-from .update import MergeConfig
+from .update import FreeConfig, MergeConfig
 
 # Kernels of every scan get the lighter call (launch.py); the rest keep Taichi's.
 _PER_SCAN = {"prepare", "hits_count", "hits_sum", "hits_dense", "merge", "rays", "mark_gaussians", "block_apply",
@@ -74,14 +74,14 @@ class KernelSet:
     def merge(self, cfg: MergeConfig):
         return self._get(update.merge, cfg)
 
-    def block_apply(self, bt: str):
-        return self._get(update.block_apply, bt)
+    def block_apply(self, cfg: FreeConfig):
+        return self._get(update.block_apply, cfg)
 
-    def block_apply_all(self, bt: str):
-        return self._get(update.block_apply_all, bt)
+    def block_apply_all(self, cfg: FreeConfig):
+        return self._get(update.block_apply_all, cfg)
 
-    def apply_marked(self, bt: str):
-        return self._get(update.apply_marked, bt)
+    def apply_marked(self):
+        return self._get(update.apply_marked, None)
 
     def apply_free(self, ndt: bool):
         return self._get(update.apply_free, bool(ndt))

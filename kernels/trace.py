@@ -44,23 +44,24 @@ def block_type(bt: str):
 
 def block_mark(bt: str) -> int:
     """Block entry of a cell holding a usable Gaussian (NDT miss model), as the i32 that
-    apply_marked compares."""
+    the rays compare."""
     return MARK_U16 if bt == "u16" else MARK_I32
 
 
 def block_counts(bt: str):
-    """``counts(v)``: whether block entry v (of dtype bt) is a ray count, not a mark."""
+    """``counts(v)``: whether block entry v of a block of dtype bt (as read, or cast to
+    i32) is a ray count, not one of mark_gaussians' marks."""
     if bt == "u16":
 
         @ti.func
         def counts(v):
-            return v < ti.cast(HIT_U16, ti.u16)
+            return ti.cast(v, ti.i32) < HIT_U16
 
     else:
 
         @ti.func
         def counts(v):
-            return v >= 0
+            return ti.cast(v, ti.i32) >= 0
 
     return counts
 
@@ -279,9 +280,11 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
 
 def mark_gaussians(f: Storage, bt: str) -> Bound:
     """Before the rays of the NDT miss model: the block entries of cells holding a
-    Gaussian of >= ndt_minp points get the mark (update.apply_marked applies and clears
-    them), then those of the scan's hit cells the hit mark (merge clears them)."""
-    row = device_funcs(f).row
+    Gaussian of >= ndt_minp points get the mark (their rows flagged: block_apply clears
+    them; update.apply_marked applies their sums), then those of the scan's hit cells the
+    hit mark (merge clears them)."""
+    F = device_funcs(f)
+    row, leaf = F.row, F.leaf
     mark, bt_ = block_mark(bt), block_type(bt)
     hit = HIT_U16 if bt == "u16" else HIT_I32
     b3d = ti.types.ndarray(dtype=bt_, ndim=3)
@@ -292,6 +295,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         rec_cell: i32_2d,
         ndt_minp: ti.i32,  # NdtRecords
         block: b3d,  # Block: the scan's zeroed ray counts
+        bflag: i8_3d,
         base: i32_1d,
         cells: i32_2d,  # Rays: the endpoints' cells, hits first
         n_hit: ti.i32,
@@ -303,13 +307,14 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
                     block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
+                    bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
         for i in range(n_hit):
             rel = row(cells, i) - b0
             if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)
 
     return Bound(mark_gaussians, ("nrec", ("records", Records, ("rec_n", "rec_cell")), ("ndt", NdtRecords, ("ndt_minp",)),
-                                  ("block", Block, ("block", "base")), ("rays", Rays, ("cells", "n_hit"))))  # fmt: skip
+                                  ("block", Block, ("block", "bflag", "base")), ("rays", Rays, ("cells", "n_hit"))))  # fmt: skip
 
 
 def reset_rays(f: Storage, _cfg=None) -> Bound:

@@ -42,7 +42,7 @@ from .ndt import (
     i64_2d,
     u64_1d,
 )
-from .trace import block_mark, block_type
+from .trace import block_counts, block_type
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,18 @@ class MergeConfig:
 
     bt: str = "u16"
     grouped: bool = False
+    ndt: bool = False
+
+    def __post_init__(self):
+        block_type(self.bt)
+
+
+@dataclass(frozen=True)
+class FreeConfig:
+    """One variant of the free-space kernels of the dense block: its dtype, and whether it
+    may hold the NDT miss model's marks (mark_gaussians), which are cleared, not applied."""
+
+    bt: str = "u16"
     ndt: bool = False
 
     def __post_init__(self):
@@ -387,16 +399,13 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
 _FREE_PARTS = (("model", Model, ("l_free", "l_min", "l_max")), ("records", Records, ("rec_n", "rec_free")), "ctr")
 
 
-def apply_marked(f: Storage, bt_name: str) -> Bound:
-    """The NDT miss model's summed change of the cells mark_gaussians marked in the dense
-    block, one thread per record (after merge, before block_apply): each marked entry is
-    cleared, so block_apply meets ray counts only and never walks the tree for a cell
-    that no ray passed."""
+def apply_marked(f: Storage, _cfg=None) -> Bound:
+    """The NDT miss model's summed change of the cells of the dense block that held a
+    usable Gaussian and took no endpoint (marked by mark_gaussians), one thread per record,
+    before block_apply (which clears the marks): their sums are the only ones of cells in
+    the block left after merge."""
     F = device_funcs(f)
     row, free_update, take_miss, tally = F.row, F.free_update, F.take_miss, F.tally
-    bt = block_type(bt_name)
-    mark = block_mark(bt_name)
-    b3d = ti.types.ndarray(dtype=bt, ndim=3)
 
     def apply_marked(
         slot: ti.i32,
@@ -407,35 +416,32 @@ def apply_marked(f: Storage, bt_name: str) -> Bound:
         rec_cell: i32_2d,
         rec_free: i32_1d,
         ctr: i64_1d,
-        block: b3d,  # Block: marks cleared here
-        base: i32_1d,
-        rec_miss: i64_1d,  # NdtRecords: the rays' sums, consumed here
+        shape: i32_1d,  # [3] the block's shape in cells
+        base: i32_1d,  # [3] cell index of its first cell
+        rec_miss: i64_1d,  # NdtRecords: the rays' sums, those of the block's cells consumed here
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
+        bsize = ti.Vector([shape[0], shape[1], shape[2]], dt=ti.i32)
         for r in range(nrec):
-            c = row(rec_cell, r)
-            rel = c - b0
-            # merge cleared the entries (and sums) of the cells it updated: a marked entry
-            # is a cell that held its Gaussian all scan and took no endpoint.
-            if (rel >= 0).all() and (rel < bsize).all() and ti.cast(block[rel[0], rel[1], rel[2]], ti.i32) == mark:
-                block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
-                if rec_miss[r] != 0:
+            if rec_miss[r] != 0:  # (the tree's are apply_free's)
+                c = row(rec_cell, r)
+                rel = c - b0
+                if (rel >= 0).all() and (rel < bsize).all():
                     free_update(slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, rec_n, ctr, rec_free)
                     tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
 
     return Bound(apply_marked, ("slot", "nrec", ("model", Model, ("l_min", "l_max")),
-                                ("records", Records, ("rec_n", "rec_cell", "rec_free")), "ctr",
-                                ("block", Block, ("block", "base")), ("ndt", NdtRecords, ("rec_miss",))))  # fmt: skip
+                                ("records", Records, ("rec_n", "rec_cell", "rec_free")), "ctr", "shape", "base",
+                                ("ndt", NdtRecords, ("rec_miss",))))  # fmt: skip
 
 
-def block_apply(f: Storage, bt_name: str) -> Bound:
+def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
     """eq. (12) for the cells of the dense block, straight from their counts (hit cells
-    were zeroed by merge, marked ones by apply_marked), visiting only the rows that rays
-    flagged; block and flags are zero afterwards."""
+    were zeroed by merge; marked cells took their sums in apply_marked), visiting only the
+    rows that rays (or marks) flagged; block and flags are zero afterwards."""
     F = device_funcs(f)
     block_cell, tally, leaf = F.block_cell, F.tally, F.leaf
-    bt = block_type(bt_name)
+    bt, ndt, counts = block_type(cfg.bt), cfg.ndt, block_counts(cfg.bt)
     b3d = ti.types.ndarray(dtype=bt, ndim=3)
 
     def block_apply(
@@ -467,9 +473,10 @@ def block_apply(f: Storage, bt_name: str) -> Bound:
                         v = ti.cast(block[i, j, k], ti.i32)
                         if v != 0:
                             block[i, j, k] = ti.cast(0, bt)
-                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max, rec_n,
-                                       ctr, occ_regions, leaves, rec_free)  # fmt: skip
-                            cells += 1
+                            if not ti.static(ndt) or counts(v):
+                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max,
+                                           rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
+                                cells += 1
             if cells > 0:
                 tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
 
@@ -477,11 +484,12 @@ def block_apply(f: Storage, bt_name: str) -> Bound:
                                ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
 
 
-def block_apply_all(f: Storage, bt_name: str) -> Bound:
+def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
     """block_apply for a block the rays filled densely (no row flags): every cell read."""
     F = device_funcs(f)
     block_cell, tally, SHIFT = F.block_cell, F.tally, F.SHIFT
-    bits = 16 if block_type(bt_name) == ti.u16 else 32
+    ndt, counts = cfg.ndt, block_counts(cfg.bt)
+    bits = 16 if cfg.bt == "u16" else 32
     lanes = 64 // bits  # block entries per 64-bit word
     mask = (1 << bits) - 1
 
@@ -515,7 +523,7 @@ def block_apply_all(f: Storage, bt_name: str) -> Bound:
                     words[col + kw] = ti.u64(0)
                     for lane in ti.static(range(lanes)):
                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                        if v != 0:
+                        if v != 0 and (not ti.static(ndt) or counts(v)):
                             k = kw * lanes + lane
                             block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
                                        rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip

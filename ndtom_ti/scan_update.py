@@ -30,7 +30,7 @@ from .kernels.ndt import (
     total,
 )
 from .kernels.trace import RaysConfig
-from .kernels.update import MergeConfig
+from .kernels.update import FreeConfig, MergeConfig
 from .scaninput import as_points, as_pose, cell_box
 
 # Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
@@ -427,15 +427,17 @@ class ScanUpdate:
                 else:
                     acc = acc[s]
         if dense is not None:
-            if self.ndt and blk.block.size:  # the marked cells first: block_apply then meets counts only
-                k.apply_marked(bt)(slot=slot, nrec=recs.count, model=model, records=recs.group, ctr=ctr, block=blk,
-                                   ndt=recs.ndt_group)  # fmt: skip
+            block, marked = blk.block, self.ndt and blk.block.size > 0
+            shape = np.array(block.shape, np.int32)
+            if marked:  # the sums of the marked cells (block_apply clears their marks)
+                k.apply_marked()(slot=slot, nrec=recs.count, model=model, records=recs.group, ctr=ctr, shape=shape,
+                                 base=blk.base, ndt=recs.ndt_group)  # fmt: skip
+            fc = FreeConfig(bt=bt, ndt=marked)
             if flagged:
-                k.block_apply(bt)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes)
+                k.block_apply(fc)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes)
             else:
-                block = blk.block
-                k.block_apply_all(bt)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=np.array(block.shape, np.int32),
-                                      base=blk.base, model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
+                k.block_apply_all(fc)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=shape, base=blk.base,
+                                      model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
         if self.occupancy and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self.touched):

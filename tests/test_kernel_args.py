@@ -9,7 +9,7 @@ from ndtom_ti import NdtOmMap, runtime
 from ndtom_ti.kernels.args import Bound, Model, Records
 from ndtom_ti.kernels.families import kernel_set
 from ndtom_ti.kernels.trace import RaysConfig
-from ndtom_ti.kernels.update import MergeConfig
+from ndtom_ti.kernels.update import FreeConfig, MergeConfig
 from ndtom_ti.scan_update import UpdatePlan
 
 F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -69,7 +69,7 @@ def test_families_are_cached_per_config_and_shared_between_launch_kinds():
     cfg = RaysConfig(bt="u16", mode="dense", flags=False, ndt=True)
     assert fast.rays(cfg) is fast.rays(RaysConfig(bt="u16", mode="dense", flags=False, ndt=True))
     assert fast.rays(cfg).kernel is plain.rays(cfg).kernel  # one Taichi kernel, compiled once
-    assert fast.block_apply("u16") is not fast.block_apply("i32")
+    assert fast.block_apply(FreeConfig("u16", False)) is not fast.block_apply(FreeConfig("u16", True))
     with pytest.raises(ValueError, match="block dtype"):
         RaysConfig(bt="u8")
     with pytest.raises(ValueError, match="rays mode"):
