@@ -291,12 +291,15 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * (s1 * s1 + s2 * s2 + s4 * s4)
             if p2 > 1e-30 * q * q:
                 p = ti.sqrt(p2 / 6.0)
-                b0, b3, b5 = (s0 - q) / p, (s3 - q) / p, (s5 - q) / p
-                b1, b2, b4 = s1 / p, s2 / p, s4 / p
+                k_p = 1.0 / p
+                b0, b3, b5 = (s0 - q) * k_p, (s3 - q) * k_p, (s5 - q) * k_p
+                b1, b2, b4 = s1 * k_p, s2 * k_p, s4 * k_p
                 hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
-                phi = ti.acos(ti.min(ti.max(hdet, -1.0), 1.0)) / 3.0
-                l3 = q + 2.0 * p * ti.cos(phi)
-                l1 = q + 2.0 * p * ti.cos(phi + 2.0943951023931957)
+                # The angle in f32 (a regularisation: eigenvalues to ~1e-7 of their
+                # spread), as its inverse cosine and cosines in f64 cost ~3x more.
+                phi = ti.acos(ti.cast(ti.min(ti.max(hdet, -1.0), 1.0), ti.f32)) / 3.0
+                l3 = q + 2.0 * p * ti.cast(ti.cos(phi), ti.f64)
+                l1 = q + 2.0 * p * ti.cast(ti.cos(phi + 2.0943951), ti.f64)
                 l2 = 3.0 * q - l1 - l3
                 out += prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
         return out
@@ -324,13 +327,13 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         c11 = a00 * a22 - s2 * s2
         c12 = s1 * s2 - a00 * s4
         c22 = a00 * a11 - s1 * s1
-        det = a00 * c00 + s1 * c01 + s2 * c02
-        rec_icov[r, 0] = c00 / det
-        rec_icov[r, 1] = c01 / det
-        rec_icov[r, 2] = c02 / det
-        rec_icov[r, 3] = c11 / det
-        rec_icov[r, 4] = c12 / det
-        rec_icov[r, 5] = c22 / det
+        k_det = 1.0 / (a00 * c00 + s1 * c01 + s2 * c02)
+        rec_icov[r, 0] = c00 * k_det
+        rec_icov[r, 1] = c01 * k_det
+        rec_icov[r, 2] = c02 * k_det
+        rec_icov[r, 3] = c11 * k_det
+        rec_icov[r, 4] = c12 * k_det
+        rec_icov[r, 5] = c22 * k_det
         for a in ti.static(range(3)):
             rec_icov[r, 6 + a] = rec_mean[r, a]
 

@@ -380,7 +380,11 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                 tot_i = n_max
             rec_n[r] = tot_i
             if ti.static(ndt):  # (the paper's model reads no NDT arrays)
-                rec_miss[r] = ti.i64(0)
+                rel = c - b0
+                if not ((rel >= 0).all() and (rel < bsize).all()):
+                    # The rays' sum, dropped: a hit cell takes the hit update only. (In the
+                    # block the rays skipped hit cells, marked before them: no sum there.)
+                    rec_miss[r] = ti.i64(0)
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
                 # A cell's first points: the misses it took while it held none tested no
