@@ -1,6 +1,8 @@
 """Taichi kernels of the NDT-OM update (method.md sections 2 and 3).
 
 Per scan, in this order:
+0. ``mark_gaussians`` (NDT miss model only): marks in the dense block the cells holding a
+                     usable Gaussian, and the scan's hit cells.
 1. ``rays``:         exact Amanatides-Woo traversal origin -> endpoint; integer count of
                      rays passing each cell: in a dense scan-local block over the scan's
                      cells (mode "dense" when it holds them all), in the tree past it
@@ -14,7 +16,8 @@ Per scan, in this order:
                      applies eq. (12) to the cell and clears its ray count.
 5. ``block_apply(_all)`` / ``apply_free``: eq. (12) once per cell that rays passed and no
                      endpoint hit, clamp, and reset of the Gaussian of a cell whose
-                     log-odds fell to <= 0.
+                     log-odds fell to <= 0 (``apply_marked`` first, with the NDT miss
+                     model: the summed terms of the block's marked cells).
 
 This module holds the constants and the ti.funcs the kernels share (``device_funcs``:
 closures over the process's storage, built once). The kernels are families of factories
