@@ -280,9 +280,9 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
 
 def mark_gaussians(f: Storage, bt: str) -> Bound:
     """Before the rays of the NDT miss model: the block entries of cells holding a
-    Gaussian of >= ndt_minp points get the mark (their rows flagged: block_apply clears
-    them; update.apply_marked applies their sums), then those of the scan's hit cells the
-    hit mark (merge clears them)."""
+    Gaussian of >= ndt_minp points get the mark (update.apply_marked applies their sums,
+    block_apply clears them: their rows are flagged where it reads flags), then those of
+    the scan's hit cells the hit mark (merge clears them)."""
     F = device_funcs(f)
     row, leaf = F.row, F.leaf
     mark, bt_ = block_mark(bt), block_type(bt)
@@ -299,6 +299,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         base: i32_1d,
         cells: i32_2d,  # Rays: the endpoints' cells, hits first
         n_hit: ti.i32,
+        flags: ti.i32,  # whether block_apply will read the row flags (else it reads every row)
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
@@ -307,14 +308,15 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
                     block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
-                    bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
+                    if flags != 0:
+                        bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
         for i in range(n_hit):
             rel = row(cells, i) - b0
             if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)
 
     return Bound(mark_gaussians, ("nrec", ("records", Records, ("rec_n", "rec_cell")), ("ndt", NdtRecords, ("ndt_minp",)),
-                                  ("block", Block, ("block", "bflag", "base")), ("rays", Rays, ("cells", "n_hit"))))  # fmt: skip
+                                  ("block", Block, ("block", "bflag", "base")), ("rays", Rays, ("cells", "n_hit")), "flags"))  # fmt: skip
 
 
 def reset_rays(f: Storage, _cfg=None) -> Bound:

@@ -492,10 +492,12 @@ def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
     """block_apply for a block the rays filled densely (no row flags): every cell read."""
     F = device_funcs(f)
     block_cell, tally, SHIFT = F.block_cell, F.tally, F.SHIFT
-    ndt, counts = cfg.ndt, block_counts(cfg.bt)
+    ndt = cfg.ndt
     bits = 16 if cfg.bt == "u16" else 32
     lanes = 64 // bits  # block entries per 64-bit word
     mask = (1 << bits) - 1
+    ones = sum(1 << (bits * i) for i in range(lanes))  # lowest bit of every lane
+    highs = ones << (bits - 1)  # highest bit of every lane
 
     def block_apply_all(
         slot: ti.i32,
@@ -525,9 +527,16 @@ def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
                 w = words[col + kw]
                 if w != 0:
                     words[col + kw] = ti.u64(0)
+                    if ti.static(ndt):
+                        # The marks (all bits set; hit marks were cleared by merge) dropped
+                        # from the whole word at once: t has a zero lane exactly there, and
+                        # no count makes t - ones borrow into a lane's top bit.
+                        t = ~w
+                        top = (t - ti.u64(ones)) & ~t & ti.u64(highs)
+                        w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
                     for lane in ti.static(range(lanes)):
                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                        if v != 0 and (not ti.static(ndt) or counts(v)):
+                        if v != 0:
                             k = kw * lanes + lane
                             block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
                                        rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip

@@ -241,10 +241,6 @@ class ScanUpdate:
                   "records": self.records.group}  # fmt: skip
         if ndt:
             common["ndt"] = self.records.ndt_group
-        # The Gaussians the rays test are those of the scan's start: merge runs after them.
-        if ndt and blk.block.size:
-            k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
-                                 block=blk, rays=Rays(pts=p.world, cells=p.cells, n_hit=p.n_hit, n=len(p.world)))  # fmt: skip
         cfg = RaysConfig(bt=bt, mode="full" if mode == "full" else "floor", ndt=ndt)
         world, cells, n_hit, n = p.world, p.cells, p.n_hit, len(p.world)
         self.batches = 0
@@ -262,6 +258,11 @@ class ScanUpdate:
                 rf = self.plan.row_flags
                 flagged = self.block_density < 0.2 if rf == "auto" else rf == "always"
                 cfg = RaysConfig(bt=bt, mode="dense", flags=flagged, ndt=ndt)
+            # The Gaussians the rays test are those of the scan's start: merge runs after them.
+            if ndt and blk.block.size:
+                k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
+                                     block=blk, rays=Rays(pts=world, cells=cells, n_hit=n_hit, n=n),
+                                     flags=int(flagged))  # fmt: skip
             k.rays(cfg)(rays=Rays(pts=world, cells=cells, n_hit=n_hit, n=n), **common)
             st.note_usage()
             if not (dense and blk.block.size):

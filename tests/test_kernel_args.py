@@ -114,6 +114,8 @@ def test_every_plan_gives_the_same_map(rng, plan, model):
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
         assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
         assert (rb.ray_batches > 0) == (plan.get("one_pass") is False)
+        st = runtime.storage(m.layout)
+        assert not st.block_buf.any() and not st.bflag_buf.any()  # counts, marks and flags cleared
     assert_same_map(ref, m)
 
 
@@ -137,6 +139,8 @@ def test_a_few_far_points_give_the_same_map(rng, model):
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
         assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits, ra.gaussians_erased) == (
             rb.cells_hit, rb.cells_passed, rb.ray_cell_visits, rb.gaussians_erased)  # fmt: skip
+        st = runtime.storage(m.layout)
+        assert not st.block_buf.any() and not st.bflag_buf.any()
     assert_same_map(ref, m)
 
 
