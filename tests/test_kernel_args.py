@@ -100,7 +100,8 @@ def assert_same_map(ref, m):
 
 
 @pytest.mark.parametrize("plan", [{"row_flags": "always"}, {"row_flags": "never"}, {"one_pass": False},
-                                  {"touched_rows": 1}, {"u16_rays": 0}, {"block_cells": 0}])  # fmt: skip
+                                  {"touched_rows": 1}, {"u16_rays": 0}, {"u16_rays": 0, "row_flags": "never"},
+                                  {"u16_rays": 0, "row_flags": "always"}, {"block_cells": 0}])  # fmt: skip
 @pytest.mark.parametrize("model", ["paper", "ndt"])
 def test_every_plan_gives_the_same_map(rng, plan, model):
     d = rng.normal(size=(3000, 3))
