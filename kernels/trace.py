@@ -112,6 +112,20 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     b3d = ti.types.ndarray(dtype=bt, ndim=3)
     b1d = ti.types.ndarray(dtype=bt, ndim=1)
 
+    @ti.func
+    def block_visit(entry: ti.template(), slot, c, o, z, u, length, hit, res, ndt_prm: ti.template(),
+                    rec_icov: ti.template(), rec_miss: ti.template()):  # fmt: skip
+        # A ray passing block entry ``entry`` (cell c): counted, or with the NDT miss model
+        # its Gaussian tested (a marked entry) or nothing (a hit cell's entry).
+        if ti.static(not ndt):
+            ti.atomic_add(entry, ti.cast(1, bt))
+        else:
+            v = entry
+            if counts(v):
+                ti.atomic_add(entry, ti.cast(1, bt))
+            elif v == ti.cast(mark, bt):
+                ndt_visit(slot, c, o, z, u, length, hit, res, ndt_prm, rec_icov, rec_miss)
+
     def rays(
         slot: ti.i32,
         pts: f64_2d,  # Rays
@@ -174,27 +188,14 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             while left > 0:
                 rel = cur - b0
                 if ti.static(mode == "dense"):
-                    if ti.static(not ndt):
-                        ti.atomic_add(block1[li], ti.cast(1, bt))
-                    else:
-                        v = block1[li]
-                        if counts(v):
-                            ti.atomic_add(block1[li], ti.cast(1, bt))
-                        elif v == ti.cast(mark, bt):
-                            ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
+                    block_visit(block1[li], slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                 elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                     # Near the sensor every ray passes: count in the dense block,
                     # applied to the tree once per cell by block_apply.
-                    if ti.static(not ndt):
-                        ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
-                    else:
-                        v = block[rel[0], rel[1], rel[2]]
-                        if counts(v):
-                            ti.atomic_add(block[rel[0], rel[1], rel[2]], ti.cast(1, bt))
-                        elif v == ti.cast(mark, bt):
-                            ndt_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
+                    block_visit(block[rel[0], rel[1], rel[2]], slot, cur, o, z, u, length, i < n_hit, res, ndt_prm,
+                                rec_icov, rec_miss)  # fmt: skip
                     lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                     if (lb != last_leaf).any():
                         bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
@@ -253,14 +254,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
             if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                 if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                    if ti.static(not ndt):
-                        ti.atomic_add(block1[li], ti.cast(1, bt))
-                    else:
-                        v = block1[li]
-                        if counts(v):
-                            ti.atomic_add(block1[li], ti.cast(1, bt))
-                        elif v == ti.cast(mark, bt):
-                            ndt_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
+                    block_visit(block1[li], slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)
                 else:
