@@ -89,6 +89,11 @@ BIG = 1.0e30
 # Ray parameters t in [0, 1] of two axes' crossings closer than this are settled by
 # recomputing both by division. Summing steps strays < 1e-11 even over 10^5 steps.
 TIE_MARGIN = 1.0e-9
+# NDT miss model: a Gaussian that rays lower keeps its points until its cell's log-odds falls
+# to <= logit(0.2) (ohm's covariance reset threshold), not 0 as in eq. (12): a thin static
+# structure that rays between the lidar's rings passed is back with its points at its next
+# hit (docs/quality.md). Cells at <= 0 are free all the same.
+NDT_RESET = -1.3862943611198906
 
 i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
 i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -197,15 +202,15 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     spread, SEC = make_spread(cpu_threads())
 
     @ti.func
-    def free_update(slot, c, dl, g, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
+    def free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n: ti.template(), ctr: ti.template(),
                     rec_free: ti.template()):  # fmt: skip
         # eq. (12) (or the NDT miss model) for a cell that rays passed and no endpoint hit:
-        # dl is its log-odds change; reset of its Gaussian (g: NE_GAUSS set) at l <= 0: its
-        # record goes on the free stack for the next new Gaussian of any cell, so records
-        # follow the Gaussians alive, not all ever made.
+        # dl is its log-odds change; reset of its Gaussian (g: NE_GAUSS set) at l <= l_reset
+        # (eq. 12: 0; NDT miss model: NDT_RESET): its record goes on the free stack for the
+        # next new Gaussian of any cell, so records follow the Gaussians alive, not all ever made.
         l = ti.min(ti.max(lo[at(slot, c)] + dl, l_min), l_max)
         lo[at(slot, c)] = l
-        if l <= 0.0 and g != 0:
+        if l <= l_reset and g != 0:
             r = gslot[at(slot, c)] - 1
             if r >= 0:
                 if rec_n[r] > 0:
@@ -236,13 +241,15 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             g = v & NE_GAUSS
             ne[at(slot, c)] = g
             dl = ti.cast(k * l_free, ti.f32)
+            l_reset = 0.0
             if ti.static(ndt) and g != 0:
                 r = gslot[at(slot, c)] - 1
                 if r >= 0 and rec_n[r] >= ndt_minp:
                     dl = take_miss(r, rec_miss)
+                    l_reset = NDT_RESET
                     if dl == 0.0:  # not a free-space update (as a marked cell of the block)
                         ti.atomic_add(ctr[C_NDT_STILL], 1)
-            free_update(slot, c, dl, g, l_min, l_max, rec_n, ctr, rec_free)
+            free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n, ctr, rec_free)
 
     @ti.func
     def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
@@ -252,7 +259,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # (Cells marked for the NDT miss model were applied and cleared by apply_marked.)
         if new_leaf:
             note_leaf(olm, slot, c, regions, leaves, 0)
-        free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, rec_n, ctr,
+        free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, 0.0, rec_n, ctr,
                     rec_free)  # fmt: skip
 
     @ti.func

@@ -2,7 +2,8 @@
 hits counted and summed per cell, the RCU merge of each hit cell's Gaussian with eq. (12)
 for it (``merge``), then eq. (12) once per cell that rays passed and no endpoint hit
 (``block_apply(_all)`` over the dense block, ``apply_free(_all)`` over the tree), with the
-reset of the Gaussian of a cell whose log-odds fell to <= 0."""
+reset of the Gaussian of a cell whose log-odds fell to <= 0 (<= NDT_RESET under the NDT
+miss model)."""
 
 from dataclasses import dataclass
 
@@ -28,6 +29,7 @@ from .ndt import (
     C_NO_RECORD,
     C_RECORDS,
     HIT_CHUNKS,
+    NDT_RESET,
     NE_COUNT,
     NE_GAUSS,
     device_funcs,
@@ -387,10 +389,10 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     rec_miss[r] = ti.i64(0)
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
-                # A cell's first points: the misses it took while it held none tested no
-                # surface, so its log-odds restarts from 0 if they had lowered it.
-                if m_i == 0 and lo[at(slot, c)] < 0.0:
-                    lo[at(slot, c)] = 0.0
+                # A hit restarts a lowered cell from 0: the misses a cell took while it held
+                # no points tested no surface, and those that lowered its Gaussian short of
+                # NDT_RESET passed beside a surface that is still there.
+                lo[at(slot, c)] = max(lo[at(slot, c)], 0.0)
             hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped)
 
     return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
@@ -431,7 +433,9 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
                 c = row(rec_cell, r)
                 rel = c - b0
                 if (rel >= 0).all() and (rel < bsize).all():
-                    free_update(slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, rec_n, ctr, rec_free)
+                    free_update(
+                        slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, NDT_RESET, rec_n, ctr, rec_free
+                    )
                     tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
 
     return Bound(apply_marked, ("slot", "nrec", ("model", Model, ("l_min", "l_max")),

@@ -352,7 +352,9 @@ class NdtOmMap:
         by N - 1), ``n`` (K,) int64, ``p_occ`` (K,) float64 occupancy probability,
         ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's
         min_points) and ``p_occ > min_probability``; ``min_probability=0`` also returns
-        Gaussians of cells not (yet) occupied.
+        Gaussians of cells not (yet) occupied, and under the NDT miss model those of free
+        cells whose log-odds rays lowered short of the reset threshold (they keep their
+        points for their next hit).
         """
         raw = self._raw_gaussians()
         return select_gaussians(raw["index"], raw["n"], raw["mean_rel"], raw["scatter"], raw["logodds"],

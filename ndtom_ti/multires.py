@@ -17,6 +17,20 @@ def _group(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return unpack(ukeys, lo, span, index.dtype), inv
 
 
+def _free_gaussians(st: dict) -> np.ndarray:
+    """Which Gaussians of the cell state lie in cells of log-odds <= 0 (none without
+    occupancy)."""
+    g, occ = st["g_index"], st["occ_index"]
+    if len(g) == 0 or len(occ) == 0:
+        return np.zeros(len(g), bool)
+    keys, _, _ = pack(np.concatenate([np.asarray(g, np.int64), np.asarray(occ, np.int64)]))
+    gk, ok = keys[: len(g)], keys[len(g) :]
+    order = np.argsort(ok, kind="stable")
+    pos = np.minimum(np.searchsorted(ok[order], gk), len(ok) - 1)
+    found = ok[order][pos] == gk
+    return found & (st["occ_logodds"][order][pos] <= 0.0)
+
+
 def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> dict:
     """Cell state (as ``NdtOmMap.state()``) of the map at ``factor * resolution``."""
     out: dict = {}
@@ -31,6 +45,12 @@ def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> d
         out["occ_index"], out["occ_logodds"] = np.zeros((0, 3), np.int32), np.zeros(0, np.float32)
 
     idx = st["g_index"].astype(np.int64)
+    free = _free_gaussians(st)
+    if free.any():
+        # A free cell's Gaussian (the NDT miss model keeps its points until its log-odds
+        # falls to NDT_RESET) is no matter of the coarser cell.
+        st = {k: st[k][~free] for k in ("g_index", "g_n", "g_mean_rel", "g_scatter")}
+        idx = idx[~free]
     if len(idx) == 0:
         out.update(
             g_index=np.zeros((0, 3), np.int32),

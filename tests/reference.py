@@ -303,6 +303,7 @@ def ndt_om_logodds(
     eta: float = 0.2,
     sigma_s: float = 0.05,
     sparse_sigma: float | None = None,
+    reset: float | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -314,14 +315,19 @@ def ndt_om_logodds(
     passing it (mean and covariance of its points; with fewer than ``min_points`` points
     ``sparse_sigma^2`` added on every axis, default the map's NDT_SPARSE_SIGMA);
     otherwise ``N_e log(p_e / (1 - p_e))``; then the clamp. A free update that leaves
-    ``l <= 0`` erases the cell's Gaussian. With ``miss_model="ndt"`` a hit cell that held
-    no points starts from ``max(l, 0)``. The scan's hits then join their cells'
-    Gaussians. Returns ``(logodds, points)``: the points of each cell's current Gaussian.
+    ``l <= 0`` erases the cell's Gaussian (the NDT miss model's: ``l <= reset``, default
+    the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, 0)``.
+    The scan's hits then join their cells' Gaussians. Returns ``(logodds, points)``: the
+    points of each cell's current Gaussian.
     """
     if sparse_sigma is None:
         from ndtom_ti.map import NDT_SPARSE_SIGMA
 
         sparse_sigma = NDT_SPARSE_SIGMA
+    if reset is None:
+        from ndtom_ti.kernels.ndt import NDT_RESET
+
+        reset = NDT_RESET
     ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
@@ -347,17 +353,19 @@ def ndt_om_logodds(
             for c in map(tuple, (cells[:-1] if hit[i] else cells).tolist()):
                 passes.setdefault(c, []).append(i)
         for c in set(n_p) | set(passes):
+            erase_at = 0.0
             if n_p.get(c, 0) > 0:
                 inc = n_p[c] * lo_hit
-                if ndt and not len(points.get(c, ())):
+                if ndt:
                     logodds[c] = max(logodds.get(c, 0.0), 0.0)
             elif ndt and c in gauss:
                 mu, C = gauss[c]
                 inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s) for i in passes[c])
+                erase_at = reset
             else:
                 inc = len(passes[c]) * lo_free
             logodds[c] = min(max(logodds.get(c, 0.0) + inc, l_min), l_max)
-            if n_p.get(c, 0) == 0 and logodds[c] <= 0.0:
+            if n_p.get(c, 0) == 0 and logodds[c] <= erase_at:
                 points.pop(c, None)
         for x in ends[hit]:
             points.setdefault(tuple(np.floor(x / r).astype(np.int64).tolist()), []).append(x)

@@ -351,10 +351,14 @@ def test_coarsen_state_equals_the_unique_rows_reference(rng):
     lo = np.full(len(uniq), -np.inf, np.float32)
     np.maximum.at(lo, inv.reshape(-1), st["occ_logodds"])
     assert np.array_equal(out["occ_index"], uniq) and np.array_equal(out["occ_logodds"], lo)
-    gp = np.floor_divide(st["g_index"].astype(np.int64), 3)
+    # Gaussians of free cells (log-odds <= 0) are left out of the coarser ones.
+    occ = dict(zip(map(tuple, st["occ_index"].tolist()), st["occ_logodds"].tolist()))
+    occupied = np.array([occ[c] > 0.0 for c in map(tuple, st["g_index"].tolist())])
+    assert 0 < occupied.sum() < len(occupied)
+    gp = np.floor_divide(st["g_index"][occupied].astype(np.int64), 3)
     guniq, ginv = np.unique(gp, axis=0, return_inverse=True)
     assert np.array_equal(out["g_index"], guniq)
-    assert np.array_equal(out["g_n"], np.bincount(ginv.reshape(-1), weights=st["g_n"]).astype(np.int32))
+    assert np.array_equal(out["g_n"], np.bincount(ginv.reshape(-1), weights=st["g_n"][occupied]).astype(np.int32))
 
 
 def test_default_budget_is_a_share_of_the_machine(arch):

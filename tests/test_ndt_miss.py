@@ -10,6 +10,7 @@ from reference import ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
+from ndtom_ti.kernels.ndt import NDT_RESET
 from ndtom_ti.map import NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -40,6 +41,12 @@ def assert_matches(m, ref_lo, ref_pts, atol=2e-6):
     assert worst <= atol, f"worst log-odds difference {worst:.2e}"
     g = m.gaussians(min_points=1, min_probability=0.0)
     assert {tuple(c): int(n) for c, n in zip(g["index"].tolist(), g["n"])} == {c: len(p) for c, p in ref_pts.items()}
+
+
+def points_of(m, cell) -> int:
+    """Points the cell's Gaussian holds, occupied or not (0: none)."""
+    g = m.gaussians(min_points=1, min_probability=0.0)
+    return dict(zip(map(tuple, g["index"].tolist()), g["n"].tolist())).get(cell, 0)
 
 
 def blob(rng, centre, n=40, sd=(0.02, 0.02, 0.02)):
@@ -144,6 +151,54 @@ def test_first_points_of_a_cell_restart_from_zero(rng):
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(20 * L_FREE, abs=1e-5)
         insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.2, 0.2, 0.2]])
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(start + L_HIT, abs=1e-5)
+
+
+def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
+    """Rays that lower a Gaussian's cell to <= 0 make it free, but its points stay until
+    the log-odds falls to <= NDT_RESET (logit 0.2); a hit then restarts the cell from 0 and
+    merges into them. Below the threshold they are gone, and a hit starts a new Gaussian."""
+    res = 0.5
+    step = math.log((0.5 - ETA) / (0.5 + ETA))  # a ray through the mean, far from its endpoint
+    for rays, kept in ((1, 4), (2, 0)):
+        m = NdtOmMap(res, config=MapConfig(**NDT))
+        insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))
+        mu = m.gaussians()["mean"][0]
+        o = mu - np.array([0.0, 0.0, 3.0])
+        insert_world(m, o, [mu + np.array([0.0, 0.0, 30.0])] * rays)
+        lo = logodds_of(m)[(4, 0, 0)]
+        assert lo == pytest.approx(4 * L_HIT + rays * step, abs=1e-5)
+        assert lo <= 0.0 and (lo > NDT_RESET) == (kept > 0)
+        assert len(m.gaussians()["n"]) == 0 and len(m) == 0  # free either way
+        assert points_of(m, (4, 0, 0)) == kept
+        insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.3, 0.3, 0.3]])
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(L_HIT, abs=1e-6)
+        assert points_of(m, (4, 0, 0)) == kept + 1
+    # The paper's model erases at 0: one point left after the same two steps.
+    m = NdtOmMap(res, config=MapConfig(miss_model="paper", p_empty=0.2))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))
+    insert_world(m, np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]] * 2)
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(4 * L_HIT + 2 * math.log(0.25), abs=1e-5)
+    insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.3, 0.3, 0.3]])
+    assert points_of(m, (4, 0, 0)) == 1
+
+
+def test_coarsening_leaves_out_the_points_of_free_cells(rng):
+    """A free cell whose Gaussian keeps its points (above NDT_RESET) adds nothing to the
+    coarser cell's Gaussian, in the map and in its snapshot."""
+    res = 0.5
+    m = NdtOmMap(res, config=MapConfig(**NDT))
+    insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))  # cell (4, 0, 0)
+    mu = m.gaussians()["mean"][0]
+    insert_world(m, mu - np.array([0.0, 0.0, 3.0]), [mu + np.array([0.0, 0.0, 30.0])])
+    assert points_of(m, (4, 0, 0)) == 4 and logodds_of(m)[(4, 0, 0)] <= 0.0
+    kept = blob(rng, (2.75, 0.25, 0.25), n=6)  # cell (5, 0, 0): same parent at factor 2
+    insert_world(m, np.array([2.75, 0.25, 3.0]), kept)
+    assert points_of(m, (4, 0, 0)) == 4
+    for c in (m.coarsen(2), m.snapshot().coarsen(2)):
+        g = c.gaussians(min_points=1, min_probability=0.0)
+        row = g["index"].tolist().index([2, 0, 0])
+        assert g["n"][row] == 6
+        np.testing.assert_allclose(g["mean"][row], kept.mean(axis=0), atol=1e-9)
 
 
 def test_paper_model_keeps_eq12_for_gaussian_cells(rng):
