@@ -7,6 +7,8 @@ import numbers
 from dataclasses import asdict, dataclass, fields
 
 MISS_MODELS = ("ndt", "paper")
+# NDT miss model: sigma_s when the config leaves it to the map, in cells (3 m at 0.2 m).
+SIGMA_S_CELLS = 15.0
 
 
 @dataclass(frozen=True)
@@ -34,11 +36,12 @@ class MapConfig:
     # "ndt": by how squarely it passes the Gaussian (Saarinen et al., IJRR 2013, eqs.
     # 22-24); "paper": by p_empty per ray, as every other cell (ICRA 2013, eq. 12).
     miss_model: str = "paper"
-    # NDT miss model: a ray's point of highest likelihood x_ML within sigma_s of its own
-    # endpoint is no evidence of emptiness. ohm uses its range noise, 0.05 m; we take 3 m:
-    # rays that graze a floor or a shelf pass just above its Gaussians in the last metres
-    # before they end on it, and erased sparse floor cells at 0.05 (docs/quality.md).
-    sigma_s: float = 3.0
+    # NDT miss model: a ray's point of highest likelihood x_ML within sigma_s metres of its
+    # own endpoint is no evidence of emptiness; None: SIGMA_S_CELLS cells of the map (3 m
+    # at 0.2 m). ohm uses its range noise, 0.05 m, which erased sparse floor cells: a ray
+    # that grazes the surface it ends on passes just above its Gaussians over a last
+    # stretch that grows with the cell (docs/quality.md).
+    sigma_s: float | None = None
     # NDT miss model: the strongest evidence of one ray, p = 0.5 - eta for a ray through a
     # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.35 clears objects that left, most
     # seen by a few rays only, while one stray ray still cannot erase a saturated cell
@@ -52,6 +55,8 @@ class MapConfig:
         # Types first (a config file may hold "0.6" or [1]): comparisons below need numbers.
         for f in fields(self):
             value, default = getattr(self, f.name), f.default
+            if value is None and default is None:
+                continue
             if isinstance(default, str):
                 if not isinstance(value, str):
                     bad(f"{f.name} must be a string, got {value!r}")
@@ -80,8 +85,8 @@ class MapConfig:
             bad(f"n_max must be 0 (off) or an integer >= 2, got {self.n_max}")
         if self.miss_model not in MISS_MODELS:
             bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
-        if not (math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
-            bad(f"sigma_s must be a positive number of metres, got {self.sigma_s!r}")
+        if self.sigma_s is not None and not (math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
+            bad(f"sigma_s must be a positive number of metres (or None: {SIGMA_S_CELLS:g} cells), got {self.sigma_s!r}")
         if not 0.0 < self.eta < 0.5:
             bad(f"eta must be in (0, 0.5), got {self.eta!r}")
 
@@ -96,6 +101,10 @@ class MapConfig:
     @property
     def ndt_misses(self) -> bool:
         return self.miss_model == "ndt"
+
+    def sigma_s_at(self, resolution: float) -> float:
+        """The NDT miss model's sigma_s in metres for a map of this resolution."""
+        return SIGMA_S_CELLS * float(resolution) if self.sigma_s is None else float(self.sigma_s)
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -187,7 +187,8 @@ class NdtOmMap:
         self._ghi = np.array(self.layout.hi, np.int64)
         self._warm = False  # warmup.warm_up done for this map (at its first scan)
         c = self.config
-        self._ndt_prm = np.array([c.eta, 0.5 / c.sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
+        sigma_s = c.sigma_s_at(self.resolution)
+        self._ndt_prm = np.array([c.eta, 0.5 / sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
                                   NDT_SPARSE_SIGMA**2])  # fmt: skip
         # Points a cell needs for the NDT miss model (1: every cell with points, those with
         # fewer than min_points under the prior above); 0: the paper's model (kernel switch).

@@ -14,7 +14,14 @@ from ndtom_ti.kernels.ndt import NDT_RESET
 from ndtom_ti.map import NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
-ETA, SIGMA_S = MapConfig().eta, MapConfig().sigma_s
+HAND = dict(miss_model="ndt", sigma_s=3.0)  # hand cases: sigma_s fixed, whatever the cell
+ETA = MapConfig().eta
+
+
+def sigma_s(res: float) -> float:
+    """The default config's sigma_s on a map of this resolution."""
+    return MapConfig().sigma_s_at(res)
+
 L_HIT = math.log(0.6 / 0.4)
 L_FREE = math.log(0.49 / 0.51)
 
@@ -59,7 +66,7 @@ def blob(rng, centre, n=40, sd=(0.02, 0.02, 0.02)):
 def test_ray_through_the_mean_far_from_its_endpoint(rng):
     """x_ML is the mean itself: p(x_ML|N) = 1, p(x_ML|z) ~ 0: l falls by logit(0.5 - eta)."""
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    m = NdtOmMap(res, config=MapConfig(**HAND, logodds_min=-100, logodds_max=100))
     pts = blob(rng, (2.25, 0.25, 0.25))
     insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
     g = m.gaussians()
@@ -82,7 +89,7 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     """A floor Gaussian (flat in z) and a ray parallel to it h above its mean: x_ML lies
     straight above the mean, p(x_ML|N) = exp(-h^2 / (2 s_z^2)) with the floored variance."""
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**NDT))  # clamped at 2: f32 log-odds exact to 2e-7
+    m = NdtOmMap(res, config=MapConfig(**HAND))  # clamped at 2: f32 log-odds exact to 2e-7
     xy = rng.uniform(0.02, 0.48, size=(200, 2))
     z = 0.2 + rng.normal(size=200) * 0.01
     pts = np.column_stack([xy, z]) + [5.0, 0.0, 0.0]
@@ -96,7 +103,7 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     o = mu + np.array([-4.0, 0.0, h])
     insert_world(m, o, [mu + np.array([6.0, 0.0, h])])
     after = logodds_of(m)[(10, 0, 0)]
-    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, ETA, SIGMA_S)
+    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, ETA, HAND["sigma_s"])
     assert after - before == pytest.approx(expected, abs=2e-6)
     # A few sigma above: small evidence, far from the paper's constant rate per ray.
     assert -0.05 < expected < 0.0
@@ -104,14 +111,14 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     # takes the strong update.
     o2, z2 = mu + np.array([-4.0, 0.0, 0.0]), mu + np.array([16.0, 0.0, 0.0])
     insert_world(m, o2, [z2])
-    strong = ndt_miss_term(o2, z2, True, mu, C, ETA, SIGMA_S)
+    strong = ndt_miss_term(o2, z2, True, mu, C, ETA, HAND["sigma_s"])
     assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(strong, abs=2e-6)
     assert strong < 0.95 * math.log((0.5 - ETA) / (0.5 + ETA))  # near the strongest a ray gives
 
 
 def test_ray_ending_inside_the_cell_takes_the_hit_update_only(rng):
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    m = NdtOmMap(res, config=MapConfig(**HAND, logodds_min=-100, logodds_max=100))
     pts = blob(rng, (2.25, 0.25, 0.25))
     insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
     before = logodds_of(m)[(4, 0, 0)]
@@ -125,7 +132,7 @@ def test_cell_with_fewer_than_min_points_takes_the_model_with_the_prior(rng):
     """2 < min_points points: their mean and covariance plus NDT_SPARSE_SIGMA^2 on every
     axis. A ray through their mean clears them; one passing 0.24 m beside barely does."""
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**NDT, logodds_min=-100, logodds_max=100))
+    m = NdtOmMap(res, config=MapConfig(**HAND, logodds_min=-100, logodds_max=100))
     pts = np.array([[2.25, 0.25, 0.2], [2.25, 0.25, 0.3]])
     insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
     before = logodds_of(m)[(4, 0, 0)]
@@ -134,10 +141,10 @@ def test_cell_with_fewer_than_min_points_takes_the_model_with_the_prior(rng):
     C = d.T @ d + NDT_SPARSE_SIGMA**2 * np.eye(3)
     o, z = np.array([2.25, 0.25, -3.0]), np.array([2.25, 0.25, 4.0])
     insert_world(m, o, [z] * 3)
-    through = ndt_miss_term(o, z, True, mu, C, ETA, SIGMA_S)
+    through = ndt_miss_term(o, z, True, mu, C, ETA, HAND["sigma_s"])
     assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(3 * through, abs=2e-6)
     assert through < 10 * L_FREE  # far stronger than the count update's -0.04 a ray
-    beside = ndt_miss_term(o + [0.24, 0.0, 0.0], z + [0.24, 0.0, 0.0], True, mu, C, ETA, SIGMA_S)
+    beside = ndt_miss_term(o + [0.24, 0.0, 0.0], z + [0.24, 0.0, 0.0], True, mu, C, ETA, HAND["sigma_s"])
     assert 0.01 * through < beside < 0.0
 
 
@@ -160,7 +167,7 @@ def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
     res = 0.5
     step = math.log((0.5 - ETA) / (0.5 + ETA))  # a ray through the mean, far from its endpoint
     for rays, kept in ((1, 4), (2, 0)):
-        m = NdtOmMap(res, config=MapConfig(**NDT))
+        m = NdtOmMap(res, config=MapConfig(**HAND))
         insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))
         mu = m.gaussians()["mean"][0]
         o = mu - np.array([0.0, 0.0, 3.0])
@@ -186,7 +193,7 @@ def test_coarsening_leaves_out_the_points_of_free_cells(rng):
     """A free cell whose Gaussian keeps its points (above NDT_RESET) adds nothing to the
     coarser cell's Gaussian, in the map and in its snapshot."""
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**NDT))
+    m = NdtOmMap(res, config=MapConfig(**HAND))
     insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))  # cell (4, 0, 0)
     mu = m.gaussians()["mean"][0]
     insert_world(m, mu - np.array([0.0, 0.0, 3.0]), [mu + np.array([0.0, 0.0, 30.0])])
@@ -199,6 +206,26 @@ def test_coarsening_leaves_out_the_points_of_free_cells(rng):
         row = g["index"].tolist().index([2, 0, 0])
         assert g["n"][row] == 6
         np.testing.assert_allclose(g["mean"][row], kept.mean(axis=0), atol=1e-9)
+
+
+def test_sigma_s_defaults_to_fifteen_cells(rng, tmp_path):
+    """Left to the map, sigma_s is 15 of its cells: the same map as that number of metres
+    given, another with the 0.2 m map's 3 m; it stays unset through a map file."""
+    assert MapConfig().sigma_s is None and MapConfig(sigma_s=0.05).sigma_s_at(0.1) == 0.05
+    scans = random_scans(rng, n_scans=2)
+    logs = {}
+    free = dict(max_range=6.0, max_range_mode="free")
+    for name, cfg in (("default", MapConfig(**NDT, **free)), ("1.5", MapConfig(**NDT, **free, sigma_s=1.5)),
+                      ("3", MapConfig(**NDT, **free, sigma_s=3.0))):  # fmt: skip
+        m = build(scans, 0.1, cfg)
+        logs[name] = m.known_cells()["logodds"]
+        if name == "default":
+            assert NdtOmMap.load(m.save(tmp_path / "m.ndtom")).config.sigma_s is None
+    assert np.array_equal(logs["default"], logs["1.5"]) and not np.array_equal(logs["default"], logs["3"])
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), 0.1, eta=ETA, sigma_s=1.5)
+    assert_matches(build(scans, 0.1, MapConfig(**NDT, **free)), ref_lo, ref_pts)
+    with pytest.raises(ValueError, match="sigma_s must be a positive number of metres"):
+        MapConfig(sigma_s=0.0)
 
 
 def test_paper_model_keeps_eq12_for_gaussian_cells(rng):
@@ -261,7 +288,7 @@ def test_logodds_match_the_float64_reference_in_every_ray_path(rng, block_cells)
     cfg = MapConfig(**NDT, max_range=6.0, max_range_mode="free")
     scans = random_scans(rng)
     m = build(scans, res, cfg, block_cells)
-    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=SIGMA_S)
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts)
     # The scans test the model: the paper's eq. (12) gives other log-odds.
     paper, _ = ndt_om_logodds(reference_scans(scans, 6.0), res, miss_model="paper")
@@ -283,7 +310,7 @@ def test_batched_tracing_matches_the_reference(rng):
         local[~hit] *= 1.5
         batches.append(m.insert_scan(local, T).ray_batches)
     assert min(batches) >= 1  # batched every time
-    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=SIGMA_S)
+    ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts)
 
 
@@ -309,7 +336,7 @@ def test_synthetic_lidar_scans_match_the_reference(sim_hall_dynamic):
         o = sim.origin(i)
         insert_world(m, o, world)
         scans.append((o, world))
-    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=SIGMA_S)
+    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
 
@@ -330,7 +357,7 @@ def test_real_lidar_scans_match_the_reference():
         T = scan.T_world_sensor
         m.insert_scan(p, T)
         scans.append((T[:3, 3].copy(), p @ T[:3, :3].T + T[:3, 3]))
-    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=SIGMA_S)
+    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
 
@@ -351,5 +378,5 @@ def test_a_loaded_map_continues_as_the_one_saved(rng, tmp_path):
         m.insert_scan(local, T)
     ka, kb = a.known_cells(), b.known_cells()
     assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
-    ref_lo, _ = ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=SIGMA_S)
-    assert_matches(b, ref_lo, ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=SIGMA_S)[1])
+    ref_lo, _ = ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=sigma_s(0.25))
+    assert_matches(b, ref_lo, ndt_om_logodds(reference_scans(scans, 6.0), 0.25, eta=ETA, sigma_s=sigma_s(0.25))[1])
