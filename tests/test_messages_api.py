@@ -65,7 +65,7 @@ def test_summary_says_why_scans_were_left_out(bags, tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert "2 left out by --every" in r.output
     info = run("info", tmp_path / "m.ndtom")
-    assert "max_range=inf" in info.output and "None" not in info.output
+    assert "max_range=inf" in info.output and "sigma_s=15 cells" in info.output and "None" not in info.output
 
 
 def test_no_pose_hint_names_options_not_parameters(bags, tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from rich.markup import escape
 from rich.text import Text
 from rich.tree import Tree
 
+from ..config import SIGMA_S_CELLS
 from .common import (
     Arch,
     check_writable,
@@ -60,16 +61,17 @@ def _info_map(path: Path) -> None:
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
         if key in md:
             t.add_row(key.replace("_", " "), escape(str(md[key])))
-    # max_range is stored as null when there is no limit
-    t.add_row(
-        "config",
-        escape(
-            ", ".join(
-                f"{k}={'inf' if k == 'max_range' and v is None else v}" for k, v in (h.get("config") or {}).items()
-            )
-        ),
-    )
+    t.add_row("config", escape(", ".join(f"{k}={_config_value(k, v)}" for k, v in (h.get("config") or {}).items())))
     out.print(t)
+
+
+def _config_value(key: str, value: object) -> object:
+    # Stored as null: max_range when there is no limit, sigma_s when it is the map's cells.
+    if value is None and key == "max_range":
+        return "inf"
+    if value is None and key == "sigma_s":
+        return f"{SIGMA_S_CELLS:g} cells"
+    return value
 
 
 def _info_recording(path: Path) -> None:
