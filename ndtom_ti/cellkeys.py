@@ -72,3 +72,24 @@ def isin_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.zeros(len(a), bool)
     keys, _, _ = pack(np.concatenate([np.asarray(a, np.int64).reshape(-1, 3), np.asarray(b, np.int64).reshape(-1, 3)]))
     return np.isin(keys[: len(a)], keys[len(a) :])
+
+
+def lookup_rows(known: np.ndarray, values: np.ndarray, want: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For the (K, 3) cell indices ``want``: whether each is a row of ``known`` (M, 3), and
+    that row's entry of ``values`` (M,) (0 where not). A binary search over the packed keys
+    (sorted first only if ``known`` is not in key order already)."""
+    values = np.asarray(values)
+    found, out = np.zeros(len(want), bool), np.zeros(len(want), values.dtype)
+    if len(want) == 0 or len(known) == 0:
+        return found, out
+    keys, _, _ = pack(
+        np.concatenate([np.asarray(known, np.int64).reshape(-1, 3), np.asarray(want, np.int64).reshape(-1, 3)])
+    )
+    kk, wk = keys[: len(known)], keys[len(known) :]
+    if (kk[1:] < kk[:-1]).any():
+        order = np.argsort(kk, kind="stable")
+        kk, values = kk[order], values[order]
+    pos = np.minimum(np.searchsorted(kk, wk), len(kk) - 1)
+    found = kk[pos] == wk
+    out[found] = values[pos[found]]
+    return found, out

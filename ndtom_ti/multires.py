@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cellkeys import group, pack, unpack
+from .cellkeys import group, lookup_rows, pack, unpack
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -20,15 +20,8 @@ def _group(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _free_gaussians(st: dict) -> np.ndarray:
     """Which Gaussians of the cell state lie in cells of log-odds <= 0 (none without
     occupancy)."""
-    g, occ = st["g_index"], st["occ_index"]
-    if len(g) == 0 or len(occ) == 0:
-        return np.zeros(len(g), bool)
-    keys, _, _ = pack(np.concatenate([np.asarray(g, np.int64), np.asarray(occ, np.int64)]))
-    gk, ok = keys[: len(g)], keys[len(g) :]
-    order = np.argsort(ok, kind="stable")
-    pos = np.minimum(np.searchsorted(ok[order], gk), len(ok) - 1)
-    found = ok[order][pos] == gk
-    return found & (st["occ_logodds"][order][pos] <= 0.0)
+    found, lo = lookup_rows(st["occ_index"], st["occ_logodds"], st["g_index"])
+    return found & (lo <= 0.0)
 
 
 def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> dict:

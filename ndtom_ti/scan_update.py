@@ -258,12 +258,12 @@ class ScanUpdate:
                 rf = self.plan.row_flags
                 flagged = self.block_density < 0.2 if rf == "auto" else rf == "always"
                 cfg = RaysConfig(bt=bt, mode="dense", flags=flagged, ndt=ndt)
+            scan_rays = Rays(pts=world, cells=cells, n_hit=n_hit, n=n)
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
                 k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
-                                     block=blk, rays=Rays(pts=world, cells=cells, n_hit=n_hit, n=n),
-                                     flags=int(flagged))  # fmt: skip
-            k.rays(cfg)(rays=Rays(pts=world, cells=cells, n_hit=n_hit, n=n), **common)
+                                     block=blk, rays=scan_rays, flags=int(flagged))  # fmt: skip
+            k.rays(cfg)(rays=scan_rays, **common)
             st.note_usage()
             if not (dense and blk.block.size):
                 return None

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .cellkeys import pack
+from .cellkeys import lookup_rows, pack
 from .config import MapConfig, check_gaussian_filter, check_resolution
 from .kernels.layout import Layout
 
@@ -237,16 +237,7 @@ class MapSnapshot:
 
     def _lookup(self, idx: np.ndarray) -> np.ndarray:
         """float32 log-odds of cells ``idx`` (K, 3): binary search in the sorted known cells."""
-        occ = self.occ_index
-        out = np.zeros(len(idx), np.float32)
-        if len(idx) == 0 or len(occ) == 0:
-            return out
-        keys, _, _ = pack(np.concatenate([occ.astype(np.int64), idx.astype(np.int64)]))
-        known, want = keys[: len(occ)], keys[len(occ) :]
-        pos = np.minimum(np.searchsorted(known, want), len(known) - 1)
-        hit = known[pos] == want
-        out[hit] = self.occ_logodds[pos[hit]]
-        return out
+        return lookup_rows(self.occ_index, self.occ_logodds.astype(np.float32, copy=False), idx)[1]
 
     @cached_property
     def _g_logodds(self) -> np.ndarray:
