@@ -94,6 +94,10 @@ TIE_MARGIN = 1.0e-9
 # structure that rays between the lidar's rings passed is back with its points at its next
 # hit (docs/quality.md). Cells at <= 0 are free all the same.
 NDT_RESET = -1.3862943611198906
+# NDT miss model: a hit lifts its cell to at least logit(0.88) = 2.0 (the default clamp)
+# before the hit update: rays that lowered the cell since its last hit passed beside a
+# surface that the hit says is still there, as between the rings past a shelf's edge.
+NDT_RESTART = 2.0
 
 i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
 i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -285,12 +289,13 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             add_miss(r, c, o, z, u, length, hit, res, prm, rec_icov, rec_miss)
 
     @ti.func
-    def ndt_floor(s0, s1, s2, s3, s4, s5, prm: ti.template()) -> ti.f64:
+    def ndt_floor(s0, s1, s2, s3, s4, s5, n, prm: ti.template()) -> ti.f64:
         # Variance added on every axis of a Gaussian (xx xy xz yy yz zz) before it is
         # inverted: a share prm[2] of its trace always (flat ones stay invertible), and for
         # a line-like Gaussian (middle eigenvalue l2 < prm[3] x the largest l3: one scan
         # line across the cell) prm[4] x (prm[3] l3 - l2) / prm[3] more, so that it stands
-        # for the surface the line samples.
+        # for the surface the line samples; times min(1, prm[7] / n) for n points, since a
+        # line that stays a line as points join it is a thin structure, not one look at a face.
         tr = s0 + s3 + s5
         out = prm[2] * tr + 1e-12
         # l2 < rho l3 needs c2 = l1 l2 + l1 l3 + l2 l3 <= (2 rho + rho^2) tr^2: the
@@ -311,7 +316,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                 l3 = q + 2.0 * p * ti.cast(ti.cos(phi), ti.f64)
                 l1 = q + 2.0 * p * ti.cast(ti.cos(phi + 2.0943951), ti.f64)
                 l2 = 3.0 * q - l1 - l3
-                out += prm[4] * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
+                out += prm[4] * ti.min(1.0, prm[7] / n) * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
         return out
 
     @ti.func
@@ -329,7 +334,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             s0 += prm[6]
             s3 += prm[6]
             s5 += prm[6]
-        eps = ndt_floor(s0, s1, s2, s3, s4, s5, prm)
+        eps = ndt_floor(s0, s1, s2, s3, s4, s5, ti.cast(rec_n[r], ti.f64), prm)
         a00, a11, a22 = s0 + eps, s3 + eps, s5 + eps
         c00 = a11 * a22 - s4 * s4
         c01 = s2 * s4 - s1 * a22
@@ -355,7 +360,8 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # and the log-odds change logit(p), in fixed point. Coordinates relative to the
         # cell centre keep f64 exact enough far from the origin. u, length: the ray's unit
         # direction and length. prm: [eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor),
-        # min_points, prior variance of a cell with fewer points (ndt_icov)].
+        # min_points, prior variance of a cell with fewer points (ndt_icov), line points
+        # (ndt_floor)].
         centre = (c.cast(ti.f64) + 0.5) * res
         oc = o - centre
         i0, i1, i2, i3, i4, i5 = (

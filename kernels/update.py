@@ -30,6 +30,7 @@ from .ndt import (
     C_RECORDS,
     HIT_CHUNKS,
     NDT_RESET,
+    NDT_RESTART,
     NE_COUNT,
     NE_GAUSS,
     device_funcs,
@@ -265,7 +266,14 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
         # the cell has a Gaussian record now.
         note_leaf(olm, slot, c, regions, leaves, 0)
-        lo[at(slot, c)] = ti.min(ti.max(lo[at(slot, c)] + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
+        l0 = lo[at(slot, c)]
+        if ti.static(ndt):
+            # NDT miss model: the cell restarts from NDT_RESTART. The misses a cell took
+            # while it held no points tested no surface, and those that lowered its
+            # Gaussian short of NDT_RESET passed beside a surface that the hit says is
+            # still there.
+            l0 = ti.max(l0, NDT_RESTART)
+        lo[at(slot, c)] = ti.min(ti.max(l0 + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
         if ti.static(not grouped):
             hn[at(slot, c)] = 0
         v = ne[at(slot, c)]
@@ -389,10 +397,6 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     rec_miss[r] = ti.i64(0)
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
-                # A hit restarts a lowered cell from 0: the misses a cell took while it held
-                # no points tested no surface, and those that lowered its Gaussian short of
-                # NDT_RESET passed beside a surface that is still there.
-                lo[at(slot, c)] = max(lo[at(slot, c)], 0.0)
             hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped)
 
     return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),

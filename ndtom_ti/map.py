@@ -35,9 +35,15 @@ from .warmup import warm_up
 # rays of the other rings never pass within the line's millimetre thickness and the
 # Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md). A line
 # spanning the cell (l3 ~ r^2 / 12) then stands for a surface spread evenly over the cell.
-NDT_COV_FLOOR = 1e-3
+# With n points the widening is scaled by min(1, NDT_LINE_POINTS / n): a line that stays a
+# line as points join it (a shelf's edge seen from many poses) is a thin structure, and rays
+# passing beside it are not evidence against it. NDT_COV_FLOOR (2% of the trace: ~1.2 cm
+# across a plane filling a 0.2 m cell) also makes rays that graze a face a few centimetres
+# off count a little, as through the flat top of an object that left.
+NDT_COV_FLOOR = 0.02
 NDT_LINE = 0.5
 NDT_LINE_FLOOR = 1.0
+NDT_LINE_POINTS = 4.0
 # NDT miss model, cells holding fewer than min_points points: their points' mean with this
 # standard deviation (metres) added on every axis, so that sparse floor cells are not erased
 # by rays grazing far above their points, while a ray passing close to them still clears them.
@@ -189,7 +195,7 @@ class NdtOmMap:
         c = self.config
         sigma_s = c.sigma_s_at(self.resolution)
         self._ndt_prm = np.array([c.eta, 0.5 / sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
-                                  NDT_SPARSE_SIGMA**2])  # fmt: skip
+                                  NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS])  # fmt: skip
         # Points a cell needs for the NDT miss model (1: every cell with points, those with
         # fewer than min_points under the prior above); 0: the paper's model (kernel switch).
         self._ndt_minp = 1 if c.ndt_misses else 0

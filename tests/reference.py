@@ -251,31 +251,33 @@ def eq12_logodds(
     return logodds
 
 
-def ndt_cov_floor(cov, floor: float, line: float, line_floor: float) -> float:
-    """Variance the map adds on every axis of a Gaussian's covariance before inverting it:
-    ``floor * trace``, plus ``line_floor * max(0, line * l3 - l2) / line`` for a line-like
-    one (eigenvalues ``l1 <= l2 <= l3``)."""
+def ndt_cov_floor(cov, n: int, floor: float, line: float, line_floor: float, line_points: float) -> float:
+    """Variance the map adds on every axis of the covariance of a Gaussian of ``n`` points
+    before inverting it: ``floor * trace``, plus ``line_floor * min(1, line_points / n) *
+    max(0, line * l3 - l2) / line`` for a line-like one (eigenvalues ``l1 <= l2 <= l3``)."""
     C = np.asarray(cov, np.float64)
     l1, l2, l3 = np.linalg.eigvalsh(C)
-    return floor * np.trace(C) + line_floor * max(0.0, line * l3 - l2) / line + 1e-12
+    widen = line_floor * min(1.0, line_points / n) * max(0.0, line * l3 - l2) / line
+    return floor * np.trace(C) + widen + 1e-12
 
 
-def ndt_miss_term(o, z, hit: bool, mean, cov, eta: float, sigma_s: float, floors=None) -> float:
+def ndt_miss_term(o, z, hit: bool, mean, cov, eta: float, sigma_s: float, n: int, floors=None) -> float:
     """Log-odds change of the NDT miss model (Saarinen et al., IJRR 2013, eqs. 22-24) for
     one ray ``o -> z`` passing a cell whose Gaussian is ``(mean, cov)``.
 
     ``x_ML`` is the point of the ray of highest likelihood under the Gaussian, kept on the
     segment ``[o, z]``; ``p = 0.5 - eta p(x_ML | N) (1 - p(x_ML | z))`` with
     ``p(x_ML | z) = 0`` for a ray without a hit; the change is ``log(p / (1 - p))``. The
-    covariance gets :func:`ndt_cov_floor` added on its diagonal first (the map's choice;
-    ``floors``: (floor, line, line_floor), default the map's constants).
+    covariance (of ``n`` points) gets :func:`ndt_cov_floor` added on its diagonal first (the
+    map's choice; ``floors``: (floor, line, line_floor, line_points), default the map's
+    constants).
     """
     if floors is None:
-        from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR
+        from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS
 
-        floors = (NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR)
+        floors = (NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS)
     o, z, mu = (np.asarray(v, np.float64) for v in (o, z, mean))
-    C = np.asarray(cov, np.float64) + ndt_cov_floor(cov, *floors) * np.eye(3)
+    C = np.asarray(cov, np.float64) + ndt_cov_floor(cov, n, *floors) * np.eye(3)
     inv = np.linalg.inv(C)
     d = z - o
     length = float(np.linalg.norm(d))
@@ -304,6 +306,7 @@ def ndt_om_logodds(
     sigma_s: float = 0.05,
     sparse_sigma: float | None = None,
     reset: float | None = None,
+    restart: float | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -316,7 +319,8 @@ def ndt_om_logodds(
     ``sparse_sigma^2`` added on every axis, default the map's NDT_SPARSE_SIGMA);
     otherwise ``N_e log(p_e / (1 - p_e))``; then the clamp. A free update that leaves
     ``l <= 0`` erases the cell's Gaussian (the NDT miss model's: ``l <= reset``, default
-    the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, 0)``.
+    the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, restart)``
+    (default the kernels' NDT_RESTART).
     The scan's hits then join their cells' Gaussians. Returns ``(logodds, points)``: the
     points of each cell's current Gaussian.
     """
@@ -328,6 +332,10 @@ def ndt_om_logodds(
         from ndtom_ti.kernels.ndt import NDT_RESET
 
         reset = NDT_RESET
+    if restart is None:
+        from ndtom_ti.kernels.ndt import NDT_RESTART
+
+        restart = NDT_RESTART
     ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
@@ -346,7 +354,7 @@ def ndt_om_logodds(
                 C = d.T @ d / max(len(P) - 1, 1)
                 if len(P) < min_points:
                     C = C + sparse_sigma**2 * np.eye(3)
-                gauss[c] = (P.mean(axis=0), C)
+                gauss[c] = (P.mean(axis=0), C, len(P))
         passes: dict[Cell, list] = {}
         for i in range(len(ends)):
             cells = ray_cells(origin, ends[i], r)
@@ -357,10 +365,10 @@ def ndt_om_logodds(
             if n_p.get(c, 0) > 0:
                 inc = n_p[c] * lo_hit
                 if ndt:
-                    logodds[c] = max(logodds.get(c, 0.0), 0.0)
+                    logodds[c] = max(logodds.get(c, 0.0), restart)
             elif ndt and c in gauss:
-                mu, C = gauss[c]
-                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s) for i in passes[c])
+                mu, C, n = gauss[c]
+                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n) for i in passes[c])
                 erase_at = reset
             else:
                 inc = len(passes[c]) * lo_free

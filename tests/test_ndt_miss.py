@@ -6,16 +6,17 @@ import math
 import numpy as np
 import pytest
 from conftest import DATA
-from reference import ndt_miss_term, ndt_om_logodds
+from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import NDT_RESET
-from ndtom_ti.map import NDT_SPARSE_SIGMA
+from ndtom_ti.kernels.ndt import NDT_RESET, NDT_RESTART
+from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
 HAND = dict(miss_model="ndt", sigma_s=3.0)  # hand cases: sigma_s fixed, whatever the cell
 ETA = MapConfig().eta
+FLOORS = (NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS)
 
 
 def sigma_s(res: float) -> float:
@@ -72,7 +73,7 @@ def test_ray_through_the_mean_far_from_its_endpoint(rng):
     g = m.gaussians()
     mu = g["mean"][0]
     before = logodds_of(m)[(4, 0, 0)]
-    assert before == pytest.approx(40 * L_HIT, rel=1e-6)
+    assert before == pytest.approx(NDT_RESTART + 40 * L_HIT, rel=1e-6)
     # From below the cell, through the mean, to an endpoint 30 m past it.
     o = mu - np.array([0.0, 0.0, 3.0])
     insert_world(m, o, [mu + np.array([0.0, 0.0, 30.0])])
@@ -97,13 +98,13 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     g = m.gaussians()
     assert len(g["n"]) == 1
     mu, C = g["mean"][0], g["cov"][0]
-    h = 3.0 * math.sqrt(C[2, 2])
+    h = 3.0 * math.sqrt(C[2, 2] + ndt_cov_floor(C, g["n"][0], *FLOORS))
     before = logodds_of(m)[(10, 0, 0)]
     # Along x through the cell, h above the mean, endpoint far beyond.
     o = mu + np.array([-4.0, 0.0, h])
     insert_world(m, o, [mu + np.array([6.0, 0.0, h])])
     after = logodds_of(m)[(10, 0, 0)]
-    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, ETA, HAND["sigma_s"])
+    expected = ndt_miss_term(o, mu + np.array([6.0, 0.0, h]), True, mu, C, ETA, HAND["sigma_s"], g["n"][0])
     assert after - before == pytest.approx(expected, abs=2e-6)
     # A few sigma above: small evidence, far from the paper's constant rate per ray.
     assert -0.05 < expected < 0.0
@@ -111,7 +112,7 @@ def test_ray_passing_a_flat_gaussian_a_few_sigma_above_its_plane(rng):
     # takes the strong update.
     o2, z2 = mu + np.array([-4.0, 0.0, 0.0]), mu + np.array([16.0, 0.0, 0.0])
     insert_world(m, o2, [z2])
-    strong = ndt_miss_term(o2, z2, True, mu, C, ETA, HAND["sigma_s"])
+    strong = ndt_miss_term(o2, z2, True, mu, C, ETA, HAND["sigma_s"], g["n"][0])
     assert logodds_of(m)[(10, 0, 0)] - after == pytest.approx(strong, abs=2e-6)
     assert strong < 0.95 * math.log((0.5 - ETA) / (0.5 + ETA))  # near the strongest a ray gives
 
@@ -141,18 +142,18 @@ def test_cell_with_fewer_than_min_points_takes_the_model_with_the_prior(rng):
     C = d.T @ d + NDT_SPARSE_SIGMA**2 * np.eye(3)
     o, z = np.array([2.25, 0.25, -3.0]), np.array([2.25, 0.25, 4.0])
     insert_world(m, o, [z] * 3)
-    through = ndt_miss_term(o, z, True, mu, C, ETA, HAND["sigma_s"])
+    through = ndt_miss_term(o, z, True, mu, C, ETA, HAND["sigma_s"], 2)
     assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(3 * through, abs=2e-6)
     assert through < 10 * L_FREE  # far stronger than the count update's -0.04 a ray
-    beside = ndt_miss_term(o + [0.24, 0.0, 0.0], z + [0.24, 0.0, 0.0], True, mu, C, ETA, HAND["sigma_s"])
+    beside = ndt_miss_term(o + [0.24, 0.0, 0.0], z + [0.24, 0.0, 0.0], True, mu, C, ETA, HAND["sigma_s"], 2)
     assert 0.01 * through < beside < 0.0
 
 
-def test_first_points_of_a_cell_restart_from_zero(rng):
+def test_first_points_of_a_cell_restart_from_the_restart_level(rng):
     """Misses that a cell took while it held no points tested no surface: its first points
-    start from log-odds 0 (NDT miss model); the paper's model keeps the sum."""
+    start from NDT_RESTART (NDT miss model); the paper's model keeps the sum."""
     res = 0.5
-    for model, start in (("ndt", 0.0), ("paper", 20 * L_FREE)):
+    for model, start in (("ndt", NDT_RESTART), ("paper", 20 * L_FREE)):
         m = NdtOmMap(res, config=MapConfig(miss_model=model, logodds_min=-100, logodds_max=100))
         insert_world(m, np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]] * 20)  # 20 rays pass (4, 0, 0)
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(20 * L_FREE, abs=1e-5)
@@ -162,23 +163,24 @@ def test_first_points_of_a_cell_restart_from_zero(rng):
 
 def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
     """Rays that lower a Gaussian's cell to <= 0 make it free, but its points stay until
-    the log-odds falls to <= NDT_RESET (logit 0.2); a hit then restarts the cell from 0 and
-    merges into them. Below the threshold they are gone, and a hit starts a new Gaussian."""
+    the log-odds falls to <= NDT_RESET (logit 0.2); a hit then restarts the cell from
+    NDT_RESTART (here past the clamp of 1) and merges into them. Below the threshold they are
+    gone, and a hit starts a new Gaussian."""
     res = 0.5
     step = math.log((0.5 - ETA) / (0.5 + ETA))  # a ray through the mean, far from its endpoint
     for rays, kept in ((1, 4), (2, 0)):
-        m = NdtOmMap(res, config=MapConfig(**HAND))
+        m = NdtOmMap(res, config=MapConfig(**HAND, logodds_max=1.0))
         insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))
         mu = m.gaussians()["mean"][0]
         o = mu - np.array([0.0, 0.0, 3.0])
         insert_world(m, o, [mu + np.array([0.0, 0.0, 30.0])] * rays)
         lo = logodds_of(m)[(4, 0, 0)]
-        assert lo == pytest.approx(4 * L_HIT + rays * step, abs=1e-5)
+        assert lo == pytest.approx(max(1.0 + rays * step, -2.0), abs=1e-5)
         assert lo <= 0.0 and (lo > NDT_RESET) == (kept > 0)
         assert len(m.gaussians()["n"]) == 0 and len(m) == 0  # free either way
         assert points_of(m, (4, 0, 0)) == kept
         insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.3, 0.3, 0.3]])
-        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(L_HIT, abs=1e-6)
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(1.0, abs=1e-6)
         assert points_of(m, (4, 0, 0)) == kept + 1
     # The paper's model erases at 0: one point left after the same two steps.
     m = NdtOmMap(res, config=MapConfig(miss_model="paper", p_empty=0.2))
@@ -193,7 +195,7 @@ def test_coarsening_leaves_out_the_points_of_free_cells(rng):
     """A free cell whose Gaussian keeps its points (above NDT_RESET) adds nothing to the
     coarser cell's Gaussian, in the map and in its snapshot."""
     res = 0.5
-    m = NdtOmMap(res, config=MapConfig(**HAND))
+    m = NdtOmMap(res, config=MapConfig(**HAND, logodds_max=1.0))
     insert_world(m, np.array([0.25, 0.25, 0.25]), blob(rng, (2.25, 0.25, 0.25), n=4))  # cell (4, 0, 0)
     mu = m.gaussians()["mean"][0]
     insert_world(m, mu - np.array([0.0, 0.0, 3.0]), [mu + np.array([0.0, 0.0, 30.0])])
@@ -206,6 +208,28 @@ def test_coarsening_leaves_out_the_points_of_free_cells(rng):
         row = g["index"].tolist().index([2, 0, 0])
         assert g["n"][row] == 6
         np.testing.assert_allclose(g["mean"][row], kept.mean(axis=0), atol=1e-9)
+
+
+def test_a_line_that_stays_a_line_as_points_join_it_is_widened_less(rng):
+    """A line-like Gaussian is widened toward the surface one scan line samples, by
+    min(1, NDT_LINE_POINTS / n) of the amount: a ray passing 12 cm beside a line of 4 points
+    lowers it; beside the same line sampled by 40 points (a shelf's edge) it barely does."""
+    res = 0.5
+    terms = {}
+    for n in (4, 40):
+        m = NdtOmMap(res, config=MapConfig(**HAND))
+        x = np.linspace(2.05, 2.45, n)
+        pts = np.column_stack([x, 0.25 + rng.normal(size=n) * 0.002, 0.25 + rng.normal(size=n) * 0.002])
+        insert_world(m, np.array([2.25, 0.25, 3.0]), pts)
+        g = m.gaussians(min_points=1, min_probability=0.0)
+        mu, C = g["mean"][0], g["cov"][0]
+        before = logodds_of(m)[(4, 0, 0)]
+        o, z = np.array([2.25, -3.0, 0.37]), np.array([2.25, 30.0, 0.37])  # across the line, 12 cm above
+        insert_world(m, o, [z])
+        terms[n] = logodds_of(m)[(4, 0, 0)] - before
+        # (to 1e-4: the kernel takes a line's eigenvalues from an f32 angle)
+        assert terms[n] == pytest.approx(ndt_miss_term(o, z, True, mu, C, ETA, HAND["sigma_s"], n), abs=1e-4)
+    assert terms[4] < -0.5 and -0.05 < terms[40] < 0.0
 
 
 def test_sigma_s_defaults_to_fifteen_cells(rng, tmp_path):
