@@ -7,8 +7,11 @@ import numbers
 from dataclasses import asdict, dataclass, fields
 
 MISS_MODELS = ("ndt", "paper")
-# NDT miss model: sigma_s when the config leaves it to the map, in cells (3 m at 0.2 m).
+# NDT miss model: sigma_s when the config leaves it to the map, in cells (3 m at 0.2 m), and
+# never below SIGMA_S_MIN metres: an indoor depth camera's rays graze the walls they end on
+# over their last metre or two whatever the cell (docs/quality.md).
 SIGMA_S_CELLS = 15.0
+SIGMA_S_MIN = 1.5
 
 
 @dataclass(frozen=True)
@@ -38,7 +41,7 @@ class MapConfig:
     miss_model: str = "paper"
     # NDT miss model: a ray's point of highest likelihood x_ML within sigma_s metres of its
     # own endpoint is no evidence of emptiness; None: SIGMA_S_CELLS cells of the map (3 m
-    # at 0.2 m). ohm uses its range noise, 0.05 m, which erased sparse floor cells: a ray
+    # at 0.2 m), at least SIGMA_S_MIN. ohm uses its range noise, 0.05 m, which erased sparse floor cells: a ray
     # that grazes the surface it ends on passes just above its Gaussians over a last
     # stretch that grows with the cell (docs/quality.md).
     sigma_s: float | None = None
@@ -86,7 +89,10 @@ class MapConfig:
         if self.miss_model not in MISS_MODELS:
             bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
         if self.sigma_s is not None and not (math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
-            bad(f"sigma_s must be a positive number of metres (or None: {SIGMA_S_CELLS:g} cells), got {self.sigma_s!r}")
+            bad(
+                f"sigma_s must be a positive number of metres (or None: {SIGMA_S_CELLS:g} cells, at least {SIGMA_S_MIN:g} m), "
+                f"got {self.sigma_s!r}"
+            )
         if not 0.0 < self.eta < 0.5:
             bad(f"eta must be in (0, 0.5), got {self.eta!r}")
 
@@ -104,7 +110,9 @@ class MapConfig:
 
     def sigma_s_at(self, resolution: float) -> float:
         """The NDT miss model's sigma_s in metres for a map of this resolution."""
-        return SIGMA_S_CELLS * float(resolution) if self.sigma_s is None else float(self.sigma_s)
+        if self.sigma_s is None:
+            return max(SIGMA_S_CELLS * float(resolution), SIGMA_S_MIN)
+        return float(self.sigma_s)
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -233,9 +233,11 @@ def test_a_line_that_stays_a_line_as_points_join_it_is_widened_less(rng):
 
 
 def test_sigma_s_defaults_to_fifteen_cells(rng, tmp_path):
-    """Left to the map, sigma_s is 15 of its cells: the same map as that number of metres
-    given, another with the 0.2 m map's 3 m; it stays unset through a map file."""
+    """Left to the map, sigma_s is 15 of its cells, at least 1.5 m: the same map as that
+    number of metres given, another with the 0.2 m map's 3 m; it stays unset through a map
+    file."""
     assert MapConfig().sigma_s is None and MapConfig(sigma_s=0.05).sigma_s_at(0.1) == 0.05
+    assert [MapConfig().sigma_s_at(r) for r in (0.05, 0.1, 0.2, 0.4)] == pytest.approx([1.5, 1.5, 3.0, 6.0])
     scans = random_scans(rng, n_scans=2)
     logs = {}
     free = dict(max_range=6.0, max_range_mode="free")
@@ -246,6 +248,9 @@ def test_sigma_s_defaults_to_fifteen_cells(rng, tmp_path):
         if name == "default":
             assert NdtOmMap.load(m.save(tmp_path / "m.ndtom")).config.sigma_s is None
     assert np.array_equal(logs["default"], logs["1.5"]) and not np.array_equal(logs["default"], logs["3"])
+    # At 0.05 m the floor: 1.5 m, not 15 cells (0.75 m).
+    fine = {ss: build(scans, 0.05, MapConfig(**NDT, **free, sigma_s=ss)).known_cells()["logodds"] for ss in (None, 1.5, 0.75)}
+    assert np.array_equal(fine[None], fine[1.5]) and not np.array_equal(fine[None], fine[0.75])
     ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), 0.1, eta=ETA, sigma_s=1.5)
     assert_matches(build(scans, 0.1, MapConfig(**NDT, **free)), ref_lo, ref_pts)
     with pytest.raises(ValueError, match="sigma_s must be a positive number of metres"):

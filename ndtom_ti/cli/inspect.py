@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.text import Text
 from rich.tree import Tree
 
-from ..config import SIGMA_S_CELLS
+from ..config import SIGMA_S_CELLS, SIGMA_S_MIN
 from .common import (
     Arch,
     check_writable,
@@ -70,7 +70,7 @@ def _config_value(key: str, value: object) -> object:
     if value is None and key == "max_range":
         return "inf"
     if value is None and key == "sigma_s":
-        return f"{SIGMA_S_CELLS:g} cells"
+        return f"{SIGMA_S_CELLS:g} cells (at least {SIGMA_S_MIN:g} m)"
     return value
 
 
