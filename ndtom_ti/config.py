@@ -41,9 +41,9 @@ class MapConfig:
     miss_model: str = "paper"
     # NDT miss model: a ray's point of highest likelihood x_ML within sigma_s metres of its
     # own endpoint is no evidence of emptiness; None: SIGMA_S_CELLS cells of the map (3 m
-    # at 0.2 m), at least SIGMA_S_MIN. ohm uses its range noise, 0.05 m, which erased sparse floor cells: a ray
-    # that grazes the surface it ends on passes just above its Gaussians over a last
-    # stretch that grows with the cell (docs/quality.md).
+    # at 0.2 m), at least SIGMA_S_MIN. ohm uses its range noise, 0.05 m, which erased
+    # sparse floor cells: a ray that grazes the surface it ends on passes just above its
+    # Gaussians over a last stretch that grows with the cell (docs/quality.md).
     sigma_s: float | None = None
     # NDT miss model: the strongest evidence of one ray, p = 0.5 - eta for a ray through a
     # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.35 clears objects that left, most

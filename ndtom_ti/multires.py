@@ -37,13 +37,12 @@ def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> d
     else:
         out["occ_index"], out["occ_logodds"] = np.zeros((0, 3), np.int32), np.zeros(0, np.float32)
 
-    idx = st["g_index"].astype(np.int64)
     free = _free_gaussians(st)
     if free.any():
         # A free cell's Gaussian (the NDT miss model keeps its points until its log-odds
         # falls to NDT_RESET) is no matter of the coarser cell.
-        st = {k: st[k][~free] for k in ("g_index", "g_n", "g_mean_rel", "g_scatter")}
-        idx = idx[~free]
+        st = {**st, **{k: st[k][~free] for k in ("g_index", "g_n", "g_mean_rel", "g_scatter")}}
+    idx = st["g_index"].astype(np.int64)
     if len(idx) == 0:
         out.update(
             g_index=np.zeros((0, 3), np.int32),
