@@ -298,25 +298,23 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # line that stays a line as points join it is a thin structure, not one look at a face.
         tr = s0 + s3 + s5
         out = prm[2] * tr + 1e-12
-        # l2 < rho l3 needs c2 = l1 l2 + l1 l3 + l2 l3 <= (2 rho + rho^2) tr^2: the
-        # eigenvalues are worked out only then.
-        c2 = s0 * s3 + s0 * s5 + s3 * s5 - s1 * s1 - s2 * s2 - s4 * s4
-        if c2 <= (2.0 * prm[3] + prm[3] * prm[3]) * tr * tr:
-            q = tr / 3.0
-            p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * (s1 * s1 + s2 * s2 + s4 * s4)
-            if p2 > 1e-30 * q * q:
-                p = ti.sqrt(p2 / 6.0)
-                k_p = 1.0 / p
-                b0, b3, b5 = (s0 - q) * k_p, (s3 - q) * k_p, (s5 - q) * k_p
-                b1, b2, b4 = s1 * k_p, s2 * k_p, s4 * k_p
-                hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
-                # The angle in f32 (a regularisation: eigenvalues to ~1e-7 of their
-                # spread), as its inverse cosine and cosines in f64 cost ~3x more.
-                phi = ti.acos(ti.cast(ti.min(ti.max(hdet, -1.0), 1.0), ti.f32)) / 3.0
-                l3 = q + 2.0 * p * ti.cast(ti.cos(phi), ti.f64)
-                l1 = q + 2.0 * p * ti.cast(ti.cos(phi + 2.0943951), ti.f64)
-                l2 = 3.0 * q - l1 - l3
-                out += prm[4] * ti.min(1.0, prm[7] / n) * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
+        # Eigenvalues of every Gaussian: no cheaper invariant tells a line from a plane at
+        # prm[3] = 0.5 (a bound on c2 = l1 l2 + l1 l3 + l2 l3 skips none, as c2 <= tr^2 / 3).
+        q = tr / 3.0
+        p2 = (s0 - q) ** 2 + (s3 - q) ** 2 + (s5 - q) ** 2 + 2.0 * (s1 * s1 + s2 * s2 + s4 * s4)
+        if p2 > 1e-30 * q * q:
+            p = ti.sqrt(p2 / 6.0)
+            k_p = 1.0 / p
+            b0, b3, b5 = (s0 - q) * k_p, (s3 - q) * k_p, (s5 - q) * k_p
+            b1, b2, b4 = s1 * k_p, s2 * k_p, s4 * k_p
+            hdet = 0.5 * (b0 * (b3 * b5 - b4 * b4) - b1 * (b1 * b5 - b4 * b2) + b2 * (b1 * b4 - b3 * b2))
+            # The angle in f32 (a regularisation: eigenvalues to ~1e-7 of their
+            # spread), as its inverse cosine and cosines in f64 cost ~3x more.
+            phi = ti.acos(ti.cast(ti.min(ti.max(hdet, -1.0), 1.0), ti.f32)) / 3.0
+            l3 = q + 2.0 * p * ti.cast(ti.cos(phi), ti.f64)
+            l1 = q + 2.0 * p * ti.cast(ti.cos(phi + 2.0943951), ti.f64)
+            l2 = 3.0 * q - l1 - l3
+            out += prm[4] * ti.min(1.0, prm[7] / n) * ti.max(0.0, prm[3] * l3 - l2) / prm[3]
         return out
 
     @ti.func
