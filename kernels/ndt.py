@@ -98,6 +98,13 @@ NDT_RESET = -1.3862943611198906
 # before the hit update: rays that lowered the cell since its last hit passed beside a
 # surface that the hit says is still there, as between the rings past a shelf's edge.
 NDT_RESTART = 2.0
+# NDT miss model: except a cell's first points in a cell that rays had held at the free
+# clamp (l_min): they start from -1, so that one look at a few points (an object crossing
+# an aisle) leaves it free or barely occupied for the next rays to clear, as OctoMap's hits
+# add to the free evidence before them. A far floor cell grazed by rays above it is lowered
+# by eq. (12) (-0.04 a pass) and seldom reaches the clamp: its first point still restarts
+# from NDT_RESTART (docs/quality.md).
+NDT_RESTART_CLEAR = -1.0
 
 i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
 i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)

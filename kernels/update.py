@@ -31,6 +31,7 @@ from .ndt import (
     HIT_CHUNKS,
     NDT_RESET,
     NDT_RESTART,
+    NDT_RESTART_CLEAR,
     NE_COUNT,
     NE_GAUSS,
     device_funcs,
@@ -262,9 +263,9 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
 
     @ti.func
     def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template()):  # fmt: skip
+                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), first):  # fmt: skip
         # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
-        # the cell has a Gaussian record now.
+        # the cell has a Gaussian record now (first: its first points).
         note_leaf(olm, slot, c, regions, leaves, 0)
         l0 = lo[at(slot, c)]
         if ti.static(ndt):
@@ -272,7 +273,9 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
             # while it held no points tested no surface, and those that lowered its
             # Gaussian short of NDT_RESET passed beside a surface that the hit says is
             # still there.
-            l0 = ti.max(l0, NDT_RESTART)
+            # Except a cell's first points where rays had held it at the free clamp
+            # (NDT_RESTART_CLEAR).
+            l0 = ti.max(l0, NDT_RESTART_CLEAR if first != 0 and l0 <= l_min else NDT_RESTART)
         lo[at(slot, c)] = ti.min(ti.max(l0 + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
         if ti.static(not grouped):
             hn[at(slot, c)] = 0
@@ -397,7 +400,8 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     rec_miss[r] = ti.i64(0)
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
-            hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped)
+            first = 1 if m_i == 0 else 0
+            hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped, first)
 
     return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
                          ("grouped", GroupedHits) if grouped else (None, GroupedHits), "nh", "n_max",

@@ -307,6 +307,7 @@ def ndt_om_logodds(
     sparse_sigma: float | None = None,
     reset: float | None = None,
     restart: float | None = None,
+    restart_clear: float | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -320,7 +321,8 @@ def ndt_om_logodds(
     otherwise ``N_e log(p_e / (1 - p_e))``; then the clamp. A free update that leaves
     ``l <= 0`` erases the cell's Gaussian (the NDT miss model's: ``l <= reset``, default
     the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, restart)``
-    (default the kernels' NDT_RESTART).
+    (default the kernels' NDT_RESTART), or from ``max(l, restart_clear)`` (NDT_RESTART_CLEAR)
+    for its first points (it holds none) if ``l <= l_min``.
     The scan's hits then join their cells' Gaussians. Returns ``(logodds, points)``: the
     points of each cell's current Gaussian.
     """
@@ -336,6 +338,10 @@ def ndt_om_logodds(
         from ndtom_ti.kernels.ndt import NDT_RESTART
 
         restart = NDT_RESTART
+    if restart_clear is None:
+        from ndtom_ti.kernels.ndt import NDT_RESTART_CLEAR
+
+        restart_clear = NDT_RESTART_CLEAR
     ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
@@ -365,7 +371,8 @@ def ndt_om_logodds(
             if n_p.get(c, 0) > 0:
                 inc = n_p[c] * lo_hit
                 if ndt:
-                    logodds[c] = max(logodds.get(c, 0.0), restart)
+                    l0 = logodds.get(c, 0.0)
+                    logodds[c] = max(l0, restart_clear if c not in points and l0 <= l_min else restart)
             elif ndt and c in gauss:
                 mu, C, n = gauss[c]
                 inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n) for i in passes[c])

@@ -10,7 +10,7 @@ from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import NDT_RESET, NDT_RESTART
+from ndtom_ti.kernels.ndt import NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR
 from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -161,11 +161,37 @@ def test_first_points_of_a_cell_restart_from_the_restart_level(rng):
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(start + L_HIT, abs=1e-5)
 
 
+def test_first_points_where_rays_held_the_cell_at_the_free_clamp_restart_lower(rng):
+    """A cell that rays had held at the free clamp (an aisle an object crosses) takes its
+    first points from NDT_RESTART_CLEAR: two points leave it free. A cell that stopped short
+    of the clamp restarts from NDT_RESTART, as does a cell at the clamp that holds points
+    (test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold)."""
+    res = 0.5
+    origin, far = np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]]
+    hit_from = np.array([0.25, 0.25, 0.25])
+    for passes, start in ((60, NDT_RESTART_CLEAR), (20, NDT_RESTART)):
+        m = NdtOmMap(res, config=MapConfig(**NDT))
+        insert_world(m, origin, far * passes)  # 60 x -0.04 reaches the clamp (-2), 20 do not
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(max(passes * L_FREE, -2.0), abs=1e-5)
+        insert_world(m, hit_from, [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(min(start + 2 * L_HIT, 2.0), abs=1e-5)
+        ref, _ = ndt_om_logodds([(origin, np.array(far * passes)),
+                                 (hit_from, np.array([[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]]))], res, miss_model="ndt")
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(ref[(4, 0, 0)], abs=2e-6)
+    # At the clamp, the two points are kept but free (-0.19): not reported as a Gaussian.
+    m = NdtOmMap(res, config=MapConfig(**NDT))
+    insert_world(m, origin, far * 60)
+    insert_world(m, hit_from, [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])
+    assert points_of(m, (4, 0, 0)) == 2
+    assert (4, 0, 0) not in set(map(tuple, m.gaussians(min_points=1)["index"].tolist()))
+
+
 def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
     """Rays that lower a Gaussian's cell to <= 0 make it free, but its points stay until
     the log-odds falls to <= NDT_RESET (logit 0.2); a hit then restarts the cell from
     NDT_RESTART (here past the clamp of 1) and merges into them. Below the threshold they are
-    gone, and a hit starts a new Gaussian."""
+    gone, and a hit starts a new Gaussian (here from NDT_RESTART_CLEAR: the rays took the
+    cell to the free clamp)."""
     res = 0.5
     step = math.log((0.5 - ETA) / (0.5 + ETA))  # a ray through the mean, far from its endpoint
     for rays, kept in ((1, 4), (2, 0)):
@@ -180,7 +206,9 @@ def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
         assert len(m.gaussians()["n"]) == 0 and len(m) == 0  # free either way
         assert points_of(m, (4, 0, 0)) == kept
         insert_world(m, np.array([0.25, 0.25, 0.25]), [[2.3, 0.3, 0.3]])
-        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(1.0, abs=1e-6)
+        assert lo > -2.0 or kept == 0  # (the second case reaches the clamp)
+        want = 1.0 if kept else NDT_RESTART_CLEAR + L_HIT
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(want, abs=1e-6)
         assert points_of(m, (4, 0, 0)) == kept + 1
     # The paper's model erases at 0: one point left after the same two steps.
     m = NdtOmMap(res, config=MapConfig(miss_model="paper", p_empty=0.2))
