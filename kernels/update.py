@@ -272,9 +272,8 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
             # NDT miss model: the cell restarts from NDT_RESTART. The misses a cell took
             # while it held no points tested no surface, and those that lowered its
             # Gaussian short of NDT_RESET passed beside a surface that the hit says is
-            # still there.
-            # Except a cell's first points where rays had held it at the free clamp
-            # (NDT_RESTART_CLEAR).
+            # still there. A cell's first points where rays had held it at the free clamp
+            # restart from NDT_RESTART_CLEAR: the rays had crossed free space there.
             l0 = ti.max(l0, NDT_RESTART_CLEAR if first != 0 and l0 <= l_min else NDT_RESTART)
         lo[at(slot, c)] = ti.min(ti.max(l0 + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
         if ti.static(not grouped):
