@@ -57,6 +57,7 @@ class NdtRecords(Group):
     rec_icov: np.ndarray  # [C, 9] f64: inverse regularised covariance (6) and mean (3) that rays read
     ndt_prm: np.ndarray  # [8] f64: eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor), min_points, prior (ndt_icov), line points (ndt_floor)
     ndt_minp: int  # points a Gaussian needs for the miss model
+    rec_nbr: np.ndarray  # [C] i32: neighbours' Gaussians erased since the record's last points
 
 
 @dataclass(frozen=True)
@@ -141,7 +142,7 @@ def _empty(dtype, ndim: int) -> np.ndarray:
 
 # Stand-ins for groups a compiled variant never reads (one per process, never written).
 EMPTY: dict[type, Group] = {
-    NdtRecords: NdtRecords(_empty(np.int64, 1), _empty(np.float64, 2), np.zeros(5), 0),
+    NdtRecords: NdtRecords(_empty(np.int64, 1), _empty(np.float64, 2), np.zeros(5), 0, _empty(np.int32, 1)),
     TreeSums: TreeSums(_empty(np.float64, 2)),
     GroupedHits: GroupedHits(_empty(np.int32, 1), _empty(np.int32, 1), _empty(np.int32, 1), _empty(np.float64, 2)),
 }

@@ -33,9 +33,10 @@ GIDX_CELL_BYTES = 4 + 4 + 4
 LEAF_MARK_BYTES = 4
 # One Gaussian record: N (i32), cell index (3 x i32), mean (3 x f64), scatter (6 x f64),
 # and its entry of the free stack (i32) that erased records wait on. With the NDT miss
-# model also the scan's miss sum (i64) and what rays read (inverse covariance, mean: 9 x f64).
+# model also the scan's miss sum (i64), what rays read (inverse covariance, mean: 9 x f64)
+# and its count of neighbours erased (i32).
 RECORD_BYTES = 4 + 12 + 24 + 48 + 4
-NDT_RECORD_BYTES = 8 + 72
+NDT_RECORD_BYTES = 8 + 72 + 4
 
 # Taichi 1.7 CPU pool, measured (see README "Memory"): per node type, chunks hold 16384
 # nodes, halved while a chunk would exceed 128 MiB; finalising a tree takes ~17-26 MiB.

@@ -105,6 +105,17 @@ NDT_RESTART = 2.0
 # by eq. (12) (-0.04 a pass) and seldom reaches the clamp: its first point still restarts
 # from NDT_RESTART (docs/quality.md).
 NDT_RESTART_CLEAR = -1.0
+# NDT miss model: a Gaussian of which this many of the 26 neighbouring cells' Gaussians were
+# erased by rays since its own last points stands for its whole cell: its inverse covariance
+# reads NDT_WIDE x I (m^-2), so that every ray through the cell tests as one through its
+# mean, until its next points. An object that left is erased by rays through its points
+# cell by cell; the few cells of it that later rays pass beside the points (a look of 1-2
+# scans at 3-10 points) go with the rest, whereas a thin static structure (a rack's board or
+# post, whose cells rays pass between the lidar's rings) keeps its neighbours, or is hit
+# again before six of them go (docs/quality.md).
+NDT_ERASED_NEIGHBOURS = 6
+NDT_WIDE = 1.0e-9
+WIDE_ROW = (NDT_WIDE, 0.0, 0.0, NDT_WIDE, 0.0, NDT_WIDE)
 
 i32_2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
 i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -219,12 +230,15 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # dl is its log-odds change; reset of its Gaussian (g: NE_GAUSS set) at l <= l_reset
         # (eq. 12: 0; NDT miss model: NDT_RESET): its record goes on the free stack for the
         # next new Gaussian of any cell, so records follow the Gaussians alive, not all ever made.
+        # Returns 1 when it erased a Gaussian.
         l = ti.min(ti.max(lo[at(slot, c)] + dl, l_min), l_max)
         lo[at(slot, c)] = l
+        erased = 0
         if l <= l_reset and g != 0:
             r = gslot[at(slot, c)] - 1
             if r >= 0:
                 if rec_n[r] > 0:
+                    erased = 1
                     # Mean and scatter are overwritten by the next first merge.
                     rec_n[r] = 0
                     ti.atomic_add(ctr[C_ERASED], 1)
@@ -232,6 +246,24 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     rec_free[ti.cast(ti.atomic_add(ctr[C_FREE], 1), ti.i32)] = r
             # Nothing left to erase: later passes skip the index tree until a hit sets it.
             ne[at(slot, c)] = ne[at(slot, c)] & NE_COUNT
+        return erased
+
+    grid_hi = ti.Vector(list(L.hi))
+
+    @ti.func
+    def erased_beside(slot, c, rec_n: ti.template(), rec_nbr: ti.template(), rec_icov: ti.template(), minp):
+        # NDT miss model: rays erased the Gaussian of cell c. Each of its 26 neighbours that
+        # holds one counts it; at NDT_ERASED_NEIGHBOURS since its own last points, the
+        # neighbour's rows read as NDT_WIDE (see there) until its next points.
+        for dx, dy, dz in ti.static(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
+            if ti.static(dx != 0 or dy != 0 or dz != 0):
+                nb = c + ti.Vector([dx, dy, dz], dt=ti.i32)
+                if (nb >= grid_lo).all() and (nb < grid_hi).all():
+                    r = gslot[at(slot, nb)] - 1
+                    if r >= 0 and rec_n[r] >= minp:
+                        if ti.atomic_add(rec_nbr[r], 1) + 1 == NDT_ERASED_NEIGHBOURS:
+                            for a in ti.static(range(6)):  # xx xy xz yy yz zz
+                                rec_icov[r, a] = WIDE_ROW[a]
 
     @ti.func
     def take_miss(r, rec_miss: ti.template()) -> ti.f32:
@@ -242,7 +274,8 @@ def device_funcs(f: Storage) -> SimpleNamespace:
 
     @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                         rec_free: ti.template(), rec_miss: ti.template(), ndt_minp, ndt: ti.template()):  # fmt: skip
+                         rec_free: ti.template(), rec_miss: ti.template(), ndt_minp, ndt: ti.template(),
+                         rec_nbr: ti.template(), rec_icov: ti.template()):  # fmt: skip
         # Hit cells were updated by merge, which cleared their ray count: skipped. With the
         # NDT miss model (ndt) a cell whose Gaussian has >= ndt_minp points takes the rays'
         # summed likelihood terms instead of the count's.
@@ -260,7 +293,10 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     l_reset = NDT_RESET
                     if dl == 0.0:  # not a free-space update (as a marked cell of the block)
                         ti.atomic_add(ctr[C_NDT_STILL], 1)
-            free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n, ctr, rec_free)
+            erased = free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n, ctr, rec_free)
+            if ti.static(ndt):
+                if erased != 0:
+                    erased_beside(slot, c, rec_n, rec_nbr, rec_icov, ndt_minp)
 
     @ti.func
     def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
@@ -403,7 +439,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     f.funcs = SimpleNamespace(
         leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, spread=spread, SEC=SEC,
         row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
-        free_update=free_update, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
+        free_update=free_update, erased_beside=erased_beside, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
         add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,
         ndt_floor=ndt_floor, ndt_icov=ndt_icov, ndt_miss=ndt_miss,
     )  # fmt: skip

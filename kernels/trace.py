@@ -266,7 +266,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                 visits += 1
             tally(ctr, C_VISITS, i >> 5, visits)
 
-    ndt_part = ("ndt", NdtRecords) if ndt else (None, NdtRecords)
+    ndt_fields = ("rec_miss", "rec_icov", "ndt_prm", "ndt_minp")
+    ndt_part = ("ndt", NdtRecords, ndt_fields) if ndt else (None, NdtRecords, ndt_fields)
     return Bound(rays, ("slot", ("rays", Rays), ("sensor", Sensor), ("touched", Touched), "ctr",
                         ("nodes", Nodes, ("occ_regions", "leaves")), ("block", Block), ("records", Records, ("rec_n",)),
                         ndt_part))  # fmt: skip

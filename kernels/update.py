@@ -316,6 +316,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         rec_icov: f64_2d,  # out: ndt_icov of the changed records
         ndt_prm: f64_1d,
         ndt_minp: ti.i32,
+        rec_nbr: i32_1d,  # zeroed for the changed records
     ):
         # One thread per hit cell: the RCU merge of the scan's Gaussian, then eq. (12).
         # Records are not reserved for the worst case (every hit cell new): a cell that
@@ -397,6 +398,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     # The rays' sum, dropped: a hit cell takes the hit update only. (In the
                     # block the rays skipped hit cells, marked before them: no sum there.)
                     rec_miss[r] = ti.i64(0)
+                rec_nbr[r] = 0
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
             first = 1 if m_i == 0 else 0
@@ -418,7 +420,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
     before block_apply (which clears the marks): their sums are the only ones of cells in
     the block left after merge."""
     F = device_funcs(f)
-    row, free_update, take_miss, tally = F.row, F.free_update, F.take_miss, F.tally
+    row, free_update, take_miss, tally, erased_beside = F.row, F.free_update, F.take_miss, F.tally, F.erased_beside
 
     def apply_marked(
         slot: ti.i32,
@@ -432,6 +434,9 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
         shape: i32_1d,  # [3] the block's shape in cells
         base: i32_1d,  # [3] cell index of its first cell
         rec_miss: i64_1d,  # NdtRecords: the rays' sums, those of the block's cells consumed here
+        rec_icov: f64_2d,  # out: erased_beside's (ndt.py), with rec_nbr
+        ndt_minp: ti.i32,
+        rec_nbr: i32_1d,
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([shape[0], shape[1], shape[2]], dt=ti.i32)
@@ -440,14 +445,16 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
                 c = row(rec_cell, r)
                 rel = c - b0
                 if (rel >= 0).all() and (rel < bsize).all():
-                    free_update(
+                    erased = free_update(
                         slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, NDT_RESET, rec_n, ctr, rec_free
                     )
+                    if erased != 0:
+                        erased_beside(slot, c, rec_n, rec_nbr, rec_icov, ndt_minp)
                     tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
 
     return Bound(apply_marked, ("slot", "nrec", ("model", Model, ("l_min", "l_max")),
                                 ("records", Records, ("rec_n", "rec_cell", "rec_free")), "ctr", "shape", "base",
-                                ("ndt", NdtRecords, ("rec_miss",))))  # fmt: skip
+                                ("ndt", NdtRecords, ("rec_miss", "rec_icov", "ndt_minp", "rec_nbr"))))  # fmt: skip
 
 
 def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
@@ -577,13 +584,16 @@ def apply_free(f: Storage, ndt: bool) -> Bound:
         ctr: i64_1d,
         rec_miss: i64_1d,  # NdtRecords (ndt): miss sums, consumed here
         ndt_minp: ti.i32,
+        rec_nbr: i32_1d,  # out: erased_beside's (ndt.py), with rec_icov
+        rec_icov: f64_2d,
     ):
         for t in range(nt):
-            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp, ndt)
+            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp, ndt,
+                             rec_nbr, rec_icov)  # fmt: skip
 
     return Bound(apply_free, ("slot", ("touched", Touched, ("touched",)), "nt", *_FREE_PARTS,
-                              ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
-                              else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
+                              ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")) if ndt
+                              else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))))  # fmt: skip
 
 
 def apply_free_all(f: Storage, ndt: bool) -> Bound:
@@ -601,15 +611,17 @@ def apply_free_all(f: Storage, ndt: bool) -> Bound:
         ctr: i64_1d,
         rec_miss: i64_1d,  # NdtRecords (ndt)
         ndt_minp: ti.i32,
+        rec_nbr: i32_1d,
+        rec_icov: f64_2d,
     ):
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] & NE_COUNT > 0:
                 free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss,
-                                 ndt_minp, ndt)  # fmt: skip
+                                 ndt_minp, ndt, rec_nbr, rec_icov)  # fmt: skip
 
     return Bound(apply_free_all, ("slot", *_FREE_PARTS,
-                                  ("ndt", NdtRecords, ("rec_miss", "ndt_minp")) if ndt
-                                  else (None, NdtRecords, ("rec_miss", "ndt_minp"))))  # fmt: skip
+                                  ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")) if ndt
+                                  else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))))  # fmt: skip
 
 
 def ndt_refresh(f: Storage, _cfg=None) -> Bound:

@@ -46,10 +46,10 @@ class MapConfig:
     # Gaussians over a last stretch that grows with the cell (docs/quality.md).
     sigma_s: float | None = None
     # NDT miss model: the strongest evidence of one ray, p = 0.5 - eta for a ray through a
-    # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.33 clears objects that left, most
+    # Gaussian's mean (ohm: 0.2, from its p_miss 0.4); 0.32 clears objects that left, most
     # seen by a few rays only, while one stray ray still cannot erase a saturated cell
-    # (-1.6 against +2; docs/quality.md).
-    eta: float = 0.33
+    # (-1.5 against +2; docs/quality.md).
+    eta: float = 0.32
 
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:

@@ -25,7 +25,8 @@ class GaussianRecords:
     [C, 3] f64 mean minus the cell centre, ``scat`` [C, 6] f64 scatter (xx xy xz yy yz
     zz), ``free`` [C] i32 the free stack (its first ``nfree`` entries). With the NDT miss
     model also ``miss`` [C] i64, the scan's summed log-odds changes (zero between updates),
-    and ``icov`` [C, 9] f64, what rays read (inverse regularised covariance, mean); a
+    ``icov`` [C, 9] f64, what rays read (inverse regularised covariance, mean), and ``nbr``
+    [C] i32, the neighbouring cells' Gaussians erased since the record's last points; a
     placeholder row each without it. ``count``: records handed out so far (in use or on
     the free stack).
     """
@@ -63,18 +64,22 @@ class GaussianRecords:
         free = np.zeros(capacity, np.int32)
         miss = np.zeros(capacity if self.ndt else 1, np.int64)
         icov = np.zeros((capacity if self.ndt else 1, 9), np.float64)
+        nbr = np.zeros(capacity if self.ndt else 1, np.int32)
         if old is not None:
             n_[:k], cell[:k], mean[:k], scat[:k] = self.n[:k], self.cell[:k], self.mean[:k], self.scat[:k]
             if self.ndt:
                 miss[:k] = self.miss[:k]
                 icov[:k] = self.icov[:k]
+                nbr[:k] = self.nbr[:k]
             free[: self.nfree] = self.free[: self.nfree]
         self.n, self.cell, self.mean, self.scat, self.free = n_, cell, mean, scat, free
-        self.miss, self.icov = miss, icov
+        self.miss, self.icov, self.nbr = miss, icov, nbr
         # The arrays as kernel arguments (rebuilt with them).
         self.group = Records(rec_n=n_, rec_cell=cell, rec_mean=mean, rec_scat=scat, rec_free=free)
         self.ndt_group = (
-            NdtRecords(rec_miss=miss, rec_icov=icov, ndt_prm=self.ndt_prm, ndt_minp=self.ndt_minp) if self.ndt else None
+            NdtRecords(rec_miss=miss, rec_icov=icov, ndt_prm=self.ndt_prm, ndt_minp=self.ndt_minp, rec_nbr=nbr)
+            if self.ndt
+            else None
         )
 
     def grow_for(self, new_cells: int) -> None:

@@ -308,6 +308,7 @@ def ndt_om_logodds(
     reset: float | None = None,
     restart: float | None = None,
     restart_clear: float | None = None,
+    erased_neighbours: int | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -323,8 +324,12 @@ def ndt_om_logodds(
     the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, restart)``
     (default the kernels' NDT_RESTART), or from ``max(l, restart_clear)`` (NDT_RESTART_CLEAR)
     for its first points (it holds none) if ``l <= l_min``.
-    The scan's hits then join their cells' Gaussians. Returns ``(logodds, points)``: the
-    points of each cell's current Gaussian.
+    The scan's hits then join their cells' Gaussians. With ``miss_model="ndt"`` each cell
+    that holds points then counts the Gaussians of its 26 neighbours that the scan's rays
+    erased (a cell with points of this scan starts again from zero first); from
+    ``erased_neighbours`` (default the kernels' NDT_ERASED_NEIGHBOURS) until its next
+    points the rays test it with covariance ``I / NDT_WIDE`` (every ray as if through
+    its mean). Returns ``(logodds, points)``: the points of each cell's current Gaussian.
     """
     if sparse_sigma is None:
         from ndtom_ti.map import NDT_SPARSE_SIGMA
@@ -342,6 +347,14 @@ def ndt_om_logodds(
         from ndtom_ti.kernels.ndt import NDT_RESTART_CLEAR
 
         restart_clear = NDT_RESTART_CLEAR
+    if erased_neighbours is None:
+        from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS
+
+        erased_neighbours = NDT_ERASED_NEIGHBOURS
+    from ndtom_ti.kernels.ndt import NDT_WIDE
+
+    around = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
+    nbr: dict[Cell, int] = {}
     ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
@@ -360,8 +373,9 @@ def ndt_om_logodds(
                 C = d.T @ d / max(len(P) - 1, 1)
                 if len(P) < min_points:
                     C = C + sparse_sigma**2 * np.eye(3)
-                gauss[c] = (P.mean(axis=0), C, len(P))
+                gauss[c] = (P.mean(axis=0), C, len(P), nbr.get(c, 0) >= erased_neighbours)
         passes: dict[Cell, list] = {}
+        erased: list[Cell] = []
         for i in range(len(ends)):
             cells = ray_cells(origin, ends[i], r)
             for c in map(tuple, (cells[:-1] if hit[i] else cells).tolist()):
@@ -374,14 +388,25 @@ def ndt_om_logodds(
                     l0 = logodds.get(c, 0.0)
                     logodds[c] = max(l0, restart_clear if c not in points and l0 <= l_min else restart)
             elif ndt and c in gauss:
-                mu, C, n = gauss[c]
-                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n) for i in passes[c])
+                mu, C, n, wide = gauss[c]
+                if wide:
+                    C, floors = np.eye(3) / NDT_WIDE, (0.0, 1.0, 0.0, 1.0)
+                else:
+                    floors = None
+                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors) for i in passes[c])
                 erase_at = reset
             else:
                 inc = len(passes[c]) * lo_free
             logodds[c] = min(max(logodds.get(c, 0.0) + inc, l_min), l_max)
-            if n_p.get(c, 0) == 0 and logodds[c] <= erase_at:
-                points.pop(c, None)
+            if n_p.get(c, 0) == 0 and logodds[c] <= erase_at and points.pop(c, None) is not None and ndt:
+                erased.append(c)
         for x in ends[hit]:
             points.setdefault(tuple(np.floor(x / r).astype(np.int64).tolist()), []).append(x)
+        for c in n_p:
+            nbr.pop(c, None)
+        for c in erased:
+            for d in around:
+                b = (c[0] + d[0], c[1] + d[1], c[2] + d[2])
+                if b in points:
+                    nbr[b] = nbr.get(b, 0) + 1
     return logodds, {c: np.asarray(v) for c, v in points.items()}

@@ -10,7 +10,7 @@ from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR
+from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS, NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR
 from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -219,6 +219,47 @@ def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
     assert points_of(m, (4, 0, 0)) == 1
 
 
+def test_a_gaussian_whose_neighbours_were_erased_stands_for_its_whole_cell(rng):
+    """Once NDT_ERASED_NEIGHBOURS of the 26 neighbouring cells' Gaussians were erased by
+    rays, a ray through any part of the cell tests as one through its mean; its next points
+    end that. One neighbour fewer leaves the ray 40 cm from the points without effect."""
+    res = 0.5
+    below, far = np.array([0.0, 0.0, -3.0]), np.array([0.0, 0.0, 30.0])
+    corner = (2.05, 0.05, 0.05)  # the points of cell (4, 0, 0), in one corner
+    side = [(2.25 + 0.5 * dx, 0.25 + 0.5 * dy, 0.25) for dx in (-1, 0, 1) for dy in (-1, 1)]
+    step = math.log((0.5 - ETA) / (0.5 + ETA))
+    for erased in (NDT_ERASED_NEIGHBOURS - 1, NDT_ERASED_NEIGHBOURS):
+        m = NdtOmMap(res, config=MapConfig(**HAND))
+        scans = []
+
+        def look(o, world):
+            insert_world(m, o, world)
+            scans.append((np.asarray(o, float), np.asarray(world, float)))
+
+        for centre in [corner, *side]:
+            look(np.asarray(centre) + below, blob(rng, centre, n=5, sd=(0.01, 0.01, 0.01)))
+        g = {tuple(c): mu for c, mu in zip(m.gaussians()["index"].tolist(), m.gaussians()["mean"])}
+        for centre in side[:erased]:
+            mu = g[tuple(np.floor(np.asarray(centre) / res).astype(int).tolist())]
+            look(mu + below, [mu + far] * 3)  # 2 - 3 x 1.5: erased
+        near = m.gaussians()["index"][:, 2] == 0  # (the rays' endpoints far above hold points too)
+        assert points_of(m, (4, 0, 0)) == 5 and near.sum() == 7 - erased
+        through = np.array([2.45, 0.45, 0.25])  # 40 cm from the points, through the cell
+        before = logodds_of(m)[(4, 0, 0)]
+        look(through + below, [through + far])
+        change = logodds_of(m)[(4, 0, 0)] - before
+        if erased < NDT_ERASED_NEIGHBOURS:
+            assert abs(change) < 1e-6
+        else:
+            assert change == pytest.approx(step, abs=1e-5)
+            look(np.asarray(corner) + below, [np.asarray(corner)])  # its next point
+            before = logodds_of(m)[(4, 0, 0)]
+            look(through + below, [through + far])
+            assert abs(logodds_of(m)[(4, 0, 0)] - before) < 1e-6
+        ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=3.0)
+        assert_matches(m, ref_lo, ref_pts)
+
+
 def test_coarsening_leaves_out_the_points_of_free_cells(rng):
     """A free cell whose Gaussian keeps its points (above NDT_RESET) adds nothing to the
     coarser cell's Gaussian, in the map and in its snapshot."""
@@ -393,6 +434,26 @@ def test_synthetic_lidar_scans_match_the_reference(sim_hall_dynamic):
         o = sim.origin(i)
         insert_world(m, o, world)
         scans.append((o, world))
+    ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
+    assert_matches(m, ref_lo, ref_pts, atol=5e-6)
+
+
+def test_synthetic_scans_where_objects_left_match_the_reference(sim_hall_dynamic):
+    """All 24 hall scans at 0.3 m: objects leave, and Gaussians beside the erased ones
+    come to stand for their whole cells (NDT_ERASED_NEIGHBOURS)."""
+    sim = sim_hall_dynamic
+    res = 0.3
+    rng = np.random.default_rng(7)
+    m = NdtOmMap(res, config=MapConfig(**NDT))
+    scans = []
+    for i in range(24):
+        world = sim.scan(i, frame="world")
+        world = world[rng.choice(len(world), 2000, replace=False)]
+        o = sim.origin(i)
+        insert_world(m, o, world)
+        scans.append((o, world))
+    rec = m._records
+    assert (rec.nbr[: rec.count] >= NDT_ERASED_NEIGHBOURS).any()
     ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
