@@ -262,8 +262,13 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     r = gslot[at(slot, nb)] - 1
                     if r >= 0 and rec_n[r] >= minp:
                         if ti.atomic_add(rec_nbr[r], 1) + 1 == NDT_ERASED_NEIGHBOURS:
-                            for a in ti.static(range(6)):  # xx xy xz yy yz zz
-                                rec_icov[r, a] = WIDE_ROW[a]
+                            wide(r, rec_icov)
+
+    @ti.func
+    def wide(r, rec_icov: ti.template()):
+        # Record r's inverse covariance as NDT_WIDE x I (its mean stays).
+        for a in ti.static(range(6)):  # xx xy xz yy yz zz
+            rec_icov[r, a] = WIDE_ROW[a]
 
     @ti.func
     def take_miss(r, rec_miss: ti.template()) -> ti.f32:
@@ -439,7 +444,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     f.funcs = SimpleNamespace(
         leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, spread=spread, SEC=SEC,
         row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
-        free_update=free_update, erased_beside=erased_beside, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
+        free_update=free_update, erased_beside=erased_beside, wide=wide, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
         add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,
         ndt_floor=ndt_floor, ndt_icov=ndt_icov, ndt_miss=ndt_miss,
     )  # fmt: skip

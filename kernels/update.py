@@ -29,6 +29,7 @@ from .ndt import (
     C_NO_RECORD,
     C_RECORDS,
     HIT_CHUNKS,
+    NDT_ERASED_NEIGHBOURS,
     NDT_RESET,
     NDT_RESTART,
     NDT_RESTART_CLEAR,
@@ -625,8 +626,9 @@ def apply_free_all(f: Storage, ndt: bool) -> Bound:
 
 
 def ndt_refresh(f: Storage, _cfg=None) -> Bound:
-    """ndt_icov of every record (after a load: merge keeps them current afterwards)."""
-    ndt_icov = device_funcs(f).ndt_icov
+    """ndt_icov of every record (after a load: merge keeps them current afterwards), or
+    the wide rows of those with NDT_ERASED_NEIGHBOURS neighbours erased."""
+    ndt_icov, wide = device_funcs(f).ndt_icov, device_funcs(f).wide
 
     def ndt_refresh(
         nrec: ti.i32,  # records in use
@@ -635,10 +637,13 @@ def ndt_refresh(f: Storage, _cfg=None) -> Bound:
         rec_scat: f64_2d,
         rec_icov: f64_2d,  # NdtRecords: out
         ndt_prm: f64_1d,
+        rec_nbr: i32_1d,
     ):
         for r in range(nrec):
             if rec_n[r] > 0:
                 ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
+                if rec_nbr[r] >= NDT_ERASED_NEIGHBOURS:
+                    wide(r, rec_icov)
 
     return Bound(ndt_refresh, ("nrec", ("records", Records, ("rec_n", "rec_mean", "rec_scat")),
-                               ("ndt", NdtRecords, ("rec_icov", "ndt_prm"))))  # fmt: skip
+                               ("ndt", NdtRecords, ("rec_icov", "ndt_prm", "rec_nbr"))))  # fmt: skip

@@ -31,7 +31,8 @@ if TYPE_CHECKING:
     from .snapshot import MapSnapshot
 
 MAGIC = b"NDTOMTI\n"
-VERSION = 1
+# 2: g_erased_near (version 1 files lack it: read as zeros).
+VERSION = 2
 _ARRAYS = {
     "occ_index": ("<i4", 2),
     "occ_logodds": ("<f4", 1),
@@ -39,11 +40,16 @@ _ARRAYS = {
     "g_n": ("<i4", 1),
     "g_mean_rel": ("<f8", 2),
     "g_scatter": ("<f8", 2),
+    "g_erased_near": ("<i4", 1),
 }
+# Arrays that files of an older version may lack, by the version that added them.
+_SINCE = {"g_erased_near": 2}
 # Trailing dimensions of each array (the first is its row count).
-_COLUMNS = {"occ_index": (3,), "occ_logodds": (), "g_index": (3,), "g_n": (), "g_mean_rel": (3,), "g_scatter": (6,)}
+_COLUMNS = {"occ_index": (3,), "occ_logodds": (), "g_index": (3,), "g_n": (), "g_mean_rel": (3,), "g_scatter": (6,),
+            "g_erased_near": ()}  # fmt: skip
 # Arrays describing the same cells, by the array of their cell indices.
-_ROWS = {"occ_index": ("occ_index", "occ_logodds"), "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter")}
+_ROWS = {"occ_index": ("occ_index", "occ_logodds"),
+         "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near")}  # fmt: skip
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
 
@@ -151,7 +157,7 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
             raise MapFileError(f"{path} is corrupt: unreadable header (nested too deeply)") from None
         if not isinstance(header, dict) or header.get("format") != "ndtom_ti map":
             raise MapFileError(f"{path} is corrupt: header is not an ndtom_ti map header")
-        _check_header(path, header)
+        _check_header(path, header, version)
         expected = _PREFIX.size + hlen + header["payload_bytes"]
         if size < expected:
             raise MapFileError(f"{path} is truncated: {size} bytes, expected {expected}")
@@ -174,9 +180,8 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
         if isinstance(exc, MapFileError):
             raise
         raise MapFileError(f"{path} is corrupt: bad array table ({exc})") from None
-    missing = set(_ARRAYS) - set(arrays)
-    if missing:
-        raise MapFileError(f"{path} is corrupt: arrays {sorted(missing)} missing")
+    for name in set(_ARRAYS) - set(arrays):  # (_check_header refused missing arrays of its version)
+        arrays[name] = np.zeros((len(arrays["g_index"]), *_COLUMNS[name]), _ARRAYS[name][0])
     return header, arrays
 
 
@@ -237,7 +242,7 @@ def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _check_header(path: Path, header: dict) -> None:
+def _check_header(path: Path, header: dict, version: int) -> None:
     """Every header field the reader and ``ndtom info`` use, by type and range, and the
     array table against itself: all arrays present once, each with its dtype, its number
     of columns and the bytes its shape needs, inside the payload, not overlapping, and
@@ -293,16 +298,16 @@ def _check_header(path: Path, header: dict) -> None:
             bad(f"array {name!r} (offset {offset!r}, {nbytes} bytes) lies outside the {pb}-byte payload")
         rows[name] = shape[0]
         spans.append((offset, offset + nbytes, name))
-    missing = set(_ARRAYS) - set(rows)
+    missing = {name for name in set(_ARRAYS) - set(rows) if _SINCE.get(name, 1) <= version}
     if missing:
         bad(f"arrays {sorted(missing)} missing")
     spans.sort()
     for (_, end, a), (start, _, b) in itertools.pairwise(spans):
         if start < end:
             bad(f"arrays {a!r} and {b!r} overlap in the payload")
-    for first, others in (("occ_index", ("occ_logodds",)), ("g_index", ("g_n", "g_mean_rel", "g_scatter"))):
-        for name in others:
-            if rows[name] != rows[first]:
+    for first, names in _ROWS.items():
+        for name in names:
+            if name in rows and rows[name] != rows[first]:
                 bad(f"array {name!r} has {rows[name]} rows but {first!r} has {rows[first]}")
 
 
@@ -357,4 +362,6 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
         ok &= det >= -1e-6 * scale**3
     if not ok.all():
         bad("g_scatter holds a scatter matrix that is not positive semi-definite or exceeds its cell")
+    if (arrays["g_erased_near"] < 0).any():
+        bad("g_erased_near holds negative counts")
     return unsorted

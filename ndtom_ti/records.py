@@ -103,6 +103,7 @@ class GaussianRecords:
             "n": self.n[:k][keep][order],
             "mean_rel": self.mean[:k][keep][order],
             "scatter": self.scat[:k][keep][order],
+            "erased_near": self.nbr[:k][keep][order] if self.ndt else np.zeros(len(idx), np.int32),
         }
 
     def with_points(self, min_points: int) -> np.ndarray:
@@ -110,7 +111,8 @@ class GaussianRecords:
         cand = np.flatnonzero(self.n[: self.count] >= min_points)
         return np.ascontiguousarray(self.cell[cand])
 
-    def load(self, index: np.ndarray, n: np.ndarray, mean_rel: np.ndarray, scatter: np.ndarray) -> None:
+    def load(self, index: np.ndarray, n: np.ndarray, mean_rel: np.ndarray, scatter: np.ndarray,
+             erased_near: np.ndarray | None = None) -> None:  # fmt: skip
         """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
         k = len(index)
         self.grow(max(START_RECORDS, k))
@@ -118,4 +120,6 @@ class GaussianRecords:
         self.cell[:k] = index
         self.mean[:k] = mean_rel
         self.scat[:k] = scatter
+        if self.ndt and erased_near is not None:
+            self.nbr[:k] = erased_near
         self.count = k

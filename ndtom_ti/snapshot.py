@@ -42,6 +42,7 @@ ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "g_n": ("<i4", ()),
     "g_mean_rel": ("<f8", (3,)),
     "g_scatter": ("<f8", (6,)),
+    "g_erased_near": ("<i4", ()),
 }
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -106,7 +107,9 @@ class MapSnapshot:
     - ``g_mean_rel`` (G, 3) float64: its mean minus the cell's centre (metres);
     - ``g_scatter`` (G, 6) float64: its scatter matrix, the sum of
       ``(x - mean)(x - mean)^T`` over its points, as ``xx xy xz yy yz zz`` (m^2); the
-      sample covariance is ``scatter / (N - 1)``.
+      sample covariance is ``scatter / (N - 1)``;
+    - ``g_erased_near`` (G,) int32: with the NDT miss model, the neighbouring cells'
+      Gaussians that rays erased since its last points (zeros when not given).
 
     :meth:`gaussians`, :meth:`known_cells` and ``len()`` answer as the map's do. Arrays
     given to the constructor are copied, checked for shape and sorted (unless already
@@ -126,6 +129,7 @@ class MapSnapshot:
     g_n: np.ndarray
     g_mean_rel: np.ndarray
     g_scatter: np.ndarray
+    g_erased_near: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "resolution", check_resolution(self.resolution))
@@ -142,6 +146,8 @@ class MapSnapshot:
                 raise ValueError(f"{key} must be an integer >= 0, got {v!r}")
             object.__setattr__(self, key, int(v))
         copied = set()
+        if self.g_erased_near is None:
+            object.__setattr__(self, "g_erased_near", np.zeros(len(self.g_index), np.int32))
         for name, (dtype, cols) in ARRAYS.items():
             a = getattr(self, name)
             if not (isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
@@ -153,7 +159,8 @@ class MapSnapshot:
                 want = "(rows" + "".join(f", {c}" for c in cols) + ")"
                 raise ValueError(f"{name} must have shape {want}, got {a.shape}")
             object.__setattr__(self, name, a)
-        for first, others in (("occ_index", ("occ_logodds",)), ("g_index", ("g_n", "g_mean_rel", "g_scatter"))):
+        for first, others in (("occ_index", ("occ_logodds",)),
+                              ("g_index", ("g_n", "g_mean_rel", "g_scatter", "g_erased_near"))):  # fmt: skip
             for name in others:
                 if len(getattr(self, name)) != len(getattr(self, first)):
                     raise ValueError(f"{name} has {len(getattr(self, name))} rows but {first} has "
@@ -190,6 +197,8 @@ class MapSnapshot:
         """A snapshot of arrays nobody else holds (made read-only in place, not copied)."""
         own = {}
         for name, (dtype, _) in ARRAYS.items():
+            if name not in arrays:  # (coarsened maps: no erasures to carry)
+                continue
             a = np.ascontiguousarray(arrays[name], dtype=dtype)
             a.flags.writeable = False
             own[name] = a

@@ -479,6 +479,29 @@ def test_real_lidar_scans_match_the_reference():
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
 
+def test_a_map_loaded_where_objects_left_continues_as_the_one_saved(sim_hall_dynamic, tmp_path):
+    """The counts of erased neighbours travel in the file (g_erased_near): a loaded map's
+    wide Gaussians test rays as the saved map's do."""
+    sim = sim_hall_dynamic
+    rng = np.random.default_rng(7)
+    scans = []
+    for i in range(24):
+        world = sim.scan(i, frame="world")
+        scans.append((sim.origin(i), world[rng.choice(len(world), 2000, replace=False)]))
+    a = NdtOmMap(0.3, config=MapConfig(**NDT))
+    for o, world in scans[:20]:
+        insert_world(a, o, world)
+    s = a.snapshot()
+    assert (s.g_erased_near >= NDT_ERASED_NEIGHBOURS).any()
+    b = NdtOmMap.load(a.save(tmp_path / "a.ndtom"))
+    assert np.array_equal(b.snapshot().g_erased_near, s.g_erased_near)
+    for m in (a, b):
+        for o, world in scans[20:]:
+            insert_world(m, o, world)
+    ka, kb = a.known_cells(), b.known_cells()
+    assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])
+
+
 def test_a_loaded_map_continues_as_the_one_saved(rng, tmp_path):
     """The inverse covariances the rays read are rebuilt on load: the next scan gives the
     same map whether or not it went through a file."""

@@ -31,7 +31,7 @@ import test_pipeline_bags as pb
 import ndtom_ti
 from ndtom_ti import MapFileError, NdtOmMap
 from ndtom_ti.cli import app
-from ndtom_ti.mapfile import read_header
+from ndtom_ti.mapfile import VERSION, read_header
 from ndtom_ti.pipeline import map_scans
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -476,7 +476,7 @@ def parse(data: bytes) -> tuple[dict, dict]:
     return header, arrays
 
 
-def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None) -> bytes:
+def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None, version: int = VERSION) -> bytes:
     """A map file of ``arrays`` (in header order) with a consistent table and a valid
     checksum, unless ``table`` (a function of the table) or ``header_bytes`` change it."""
     header = json.loads(json.dumps(header))
@@ -492,7 +492,7 @@ def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None 
     header["payload_bytes"] = len(payload)
     header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
     hb = header_bytes if header_bytes is not None else json.dumps(header).encode()
-    return b"NDTOMTI\n" + struct.pack("<IQ", 1, len(hb)) + hb + payload
+    return b"NDTOMTI\n" + struct.pack("<IQ", version, len(hb)) + hb + payload
 
 
 @pytest.fixture(scope="module")
@@ -526,6 +526,7 @@ CRAFTED = {
     "g_mean_rel short": (shorter("g_mean_rel"), None, "rows"),
     "g_scatter short": (shorter("g_scatter", 3), None, "rows"),
     "g_index short": (shorter("g_index"), None, "rows"),
+    "g_erased_near short": (shorter("g_erased_near"), None, "rows"),
     "occ_index 2 columns": (lambda a: {**a, "occ_index": a["occ_index"][:, :2]}, None, "shape"),
     "g_scatter 1-d": (lambda a: {**a, "g_scatter": a["g_scatter"].reshape(-1)}, None, "shape"),
     # table entries that do not describe the payload
@@ -551,6 +552,8 @@ CRAFTED = {
     "inf scatter": (setv("g_scatter", (0, 3), np.inf), None, "g_scatter"),
     "negative variance": (setv("g_scatter", (0, 0), -1.0), None, "g_scatter"),
     "not PSD": (setv("g_scatter", 0, [1e-3, 5e-3, 0, 1e-3, 0, 1e-3]), None, "g_scatter"),
+    "negative erased count": (setv("g_erased_near", 0, -1), None, "g_erased_near"),
+    "erased counts missing (version 2)": (None, lambda t: [e for e in t if e["name"] != "g_erased_near"], "missing"),
 }
 
 
@@ -564,6 +567,19 @@ def test_crafted_arrays_are_map_file_errors(tmp_path, good_file, case):
     path.write_bytes(build(header, arrays, table=table_fn))
     with pytest.raises(MapFileError, match=message):
         NdtOmMap.load(path)
+
+
+def test_version_1_files_load_without_the_counts_of_erased_neighbours(tmp_path, good_file):
+    """Files of format version 1 have no g_erased_near: read as zeros."""
+    header, arrays = parse(good_file)
+    header["arrays"] = [e for e in header["arrays"] if e["name"] != "g_erased_near"]
+    path = tmp_path / "v1.ndtom"
+    path.write_bytes(build(header, arrays, version=1))
+    m = NdtOmMap.load(path)
+    s = m.snapshot()
+    assert len(s.g_index) == len(arrays["g_index"]) > 0
+    assert s.g_erased_near.dtype == np.int32 and not s.g_erased_near.any()
+    assert np.array_equal(s.g_scatter, arrays["g_scatter"])
 
 
 HEADER_CASES = {
