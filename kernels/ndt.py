@@ -268,7 +268,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     def wide(r, rec_icov: ti.template()):
         # Record r's inverse covariance as NDT_WIDE x I (its mean stays).
         for a in ti.static(range(6)):  # xx xy xz yy yz zz
-            rec_icov[r, a] = WIDE_ROW[a]
+            rec_icov[r, a] = ti.f64(WIDE_ROW[a])  # (a bare literal would be f32)
 
     @ti.func
     def take_miss(r, rec_miss: ti.template()) -> ti.f32:

@@ -10,7 +10,7 @@ from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS, NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR
+from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS, NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR, NDT_WIDE
 from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -453,7 +453,8 @@ def test_synthetic_scans_where_objects_left_match_the_reference(sim_hall_dynamic
         insert_world(m, o, world)
         scans.append((o, world))
     rec = m._records
-    assert (rec.nbr[: rec.count] >= NDT_ERASED_NEIGHBOURS).any()
+    wide = (rec.nbr[: rec.count] >= NDT_ERASED_NEIGHBOURS) & (rec.n[: rec.count] > 0)
+    assert wide.any() and (rec.icov[: rec.count][wide][:, [0, 3, 5]] == NDT_WIDE).all()
     ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
