@@ -55,7 +55,7 @@ class NdtRecords(Group):
 
     rec_miss: np.ndarray  # [C] i64: the scan's summed log-odds change per record, fixed point (MISS_SCALE)
     rec_icov: np.ndarray  # [C, 9] f64: inverse regularised covariance (6) and mean (3) that rays read
-    ndt_prm: np.ndarray  # [8] f64: eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor), min_points, prior (ndt_icov), line points (ndt_floor)
+    ndt_prm: np.ndarray  # [9] f64: eta, 1 / (2 sigma_s^2), covariance floors (ndt_floor), min_points, prior (ndt_icov), line points (ndt_floor), near cells (rays)
     ndt_minp: int  # points a Gaussian needs for the miss model
     rec_nbr: np.ndarray  # [C] i32: neighbours' Gaussians erased since the record's last points
 

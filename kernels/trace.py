@@ -113,17 +113,18 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     b1d = ti.types.ndarray(dtype=bt, ndim=1)
 
     @ti.func
-    def block_visit(entry: ti.template(), slot, c, o, z, u, length, hit, res, ndt_prm: ti.template(),
+    def block_visit(entry: ti.template(), near, slot, c, o, z, u, length, hit, res, ndt_prm: ti.template(),
                     rec_icov: ti.template(), rec_miss: ti.template()):  # fmt: skip
         # A ray passing block entry ``entry`` (cell c): counted, or with the NDT miss model
-        # its Gaussian tested (a marked entry) or nothing (a hit cell's entry).
+        # its Gaussian tested (a marked entry, unless near: the last cells of a hit ray, see
+        # config.MapConfig.near_cells_at) or nothing (a hit cell's entry).
         if ti.static(not ndt):
             ti.atomic_add(entry, ti.cast(1, bt))
         else:
             v = entry
             if counts(v):
                 ti.atomic_add(entry, ti.cast(1, bt))
-            elif v == ti.cast(mark, bt):
+            elif v == ti.cast(mark, bt) and near == 0:
                 ndt_visit(slot, c, o, z, u, length, hit, res, ndt_prm, rec_icov, rec_miss)
 
     def rays(
@@ -156,6 +157,9 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
         co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+        near_cells = 0
+        if ti.static(ndt):
+            near_cells = ti.cast(ndt_prm[8], ti.i32)
         q = n // SEC
         inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
         for it in range(n):
@@ -187,15 +191,17 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
             while left > 0:
                 rel = cur - b0
+                near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
                 if ti.static(mode == "dense"):
-                    block_visit(block1[li], slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov, rec_miss)
+                    block_visit(block1[li], near, slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov,
+                                rec_miss)  # fmt: skip
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                 elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                     # Near the sensor every ray passes: count in the dense block,
                     # applied to the tree once per cell by block_apply.
-                    block_visit(block[rel[0], rel[1], rel[2]], slot, cur, o, z, u, length, i < n_hit, res, ndt_prm,
-                                rec_icov, rec_miss)  # fmt: skip
+                    block_visit(block[rel[0], rel[1], rel[2]], near, slot, cur, o, z, u, length, i < n_hit, res,
+                                ndt_prm, rec_icov, rec_miss)  # fmt: skip
                     lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                     if (lb != last_leaf).any():
                         bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
@@ -207,7 +213,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                         last_leaf = lf
                     if ti.static(full):
                         g = visit(slot, cur, touched, cap, ctr)
-                        if ti.static(ndt) and g != 0:
+                        if ti.static(ndt) and g != 0 and near == 0:
                             ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_n, rec_icov,
                                            rec_miss, ndt_minp)  # fmt: skip
                     else:
@@ -254,7 +260,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
             if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
                 if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                    block_visit(block1[li], slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
+                    block_visit(block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
                     if ti.static(flags):
                         bflag1[li >> SHIFT] = ti.i8(1)
                 else:

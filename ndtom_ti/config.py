@@ -114,6 +114,13 @@ class MapConfig:
             return max(SIGMA_S_CELLS * float(resolution), SIGMA_S_MIN)
         return float(self.sigma_s)
 
+    def near_cells_at(self, resolution: float) -> int:
+        """NDT miss model: the cells before a hit ray's endpoint cell (by L1 distance) whose
+        Gaussians it does not test: a quarter of sigma_s, rounded (4 at the default). There
+        x_ML lies within about half of sigma_s of the endpoint, p(x_ML|z) is near 1, and the
+        ray runs along the surface it ends on (docs/quality.md)."""
+        return math.floor(0.25 * self.sigma_s_at(resolution) / float(resolution) + 0.5)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         if math.isinf(d["max_range"]):

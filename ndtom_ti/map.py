@@ -195,7 +195,7 @@ class NdtOmMap:
         c = self.config
         sigma_s = c.sigma_s_at(self.resolution)
         self._ndt_prm = np.array([c.eta, 0.5 / sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
-                                  NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS])  # fmt: skip
+                                  NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS, c.near_cells_at(self.resolution)])  # fmt: skip
         # Points a cell needs for the NDT miss model (1: every cell with points, those with
         # fewer than min_points under the prior above); 0: the paper's model (kernel switch).
         self._ndt_minp = 1 if c.ndt_misses else 0

@@ -34,7 +34,7 @@ class GaussianRecords:
     def __init__(self, ndt: bool, ndt_prm: np.ndarray | None = None, ndt_minp: int = 0,
                  capacity: int = START_RECORDS):  # fmt: skip
         self.ndt = bool(ndt)
-        self.ndt_prm = np.zeros(8) if ndt_prm is None else ndt_prm
+        self.ndt_prm = np.zeros(9) if ndt_prm is None else ndt_prm
         self.ndt_minp = int(ndt_minp)
         self.count = 0
         self.nfree = 0

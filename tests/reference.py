@@ -309,6 +309,7 @@ def ndt_om_logodds(
     restart: float | None = None,
     restart_clear: float | None = None,
     erased_neighbours: int | None = None,
+    near_cells: int | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -329,7 +330,9 @@ def ndt_om_logodds(
     erased (a cell with points of this scan starts again from zero first); from
     ``erased_neighbours`` (default the kernels' NDT_ERASED_NEIGHBOURS) until its next
     points the rays test it with covariance ``I / NDT_WIDE`` (every ray as if through
-    its mean). Returns ``(logodds, points)``: the points of each cell's current Gaussian.
+    its mean). A hit ray tests no Gaussian in the cells within ``near_cells`` (L1, default
+    ``MapConfig(sigma_s=sigma_s).near_cells_at(r)``) of its endpoint's cell. Returns
+    ``(logodds, points)``: the points of each cell's current Gaussian.
     """
     if sparse_sigma is None:
         from ndtom_ti.map import NDT_SPARSE_SIGMA
@@ -355,6 +358,10 @@ def ndt_om_logodds(
 
     around = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
     nbr: dict[Cell, int] = {}
+    if near_cells is None:
+        from ndtom_ti import MapConfig
+
+        near_cells = MapConfig(sigma_s=sigma_s).near_cells_at(r)
     ndt = miss_model == "ndt"
     lo_hit = math.log(p_o / (1.0 - p_o))
     lo_free = math.log(p_e / (1.0 - p_e))
@@ -378,8 +385,9 @@ def ndt_om_logodds(
         erased: list[Cell] = []
         for i in range(len(ends)):
             cells = ray_cells(origin, ends[i], r)
-            for c in map(tuple, (cells[:-1] if hit[i] else cells).tolist()):
-                passes.setdefault(c, []).append(i)
+            near = np.abs(cells - cells[-1]).sum(axis=1) <= near_cells if hit[i] else np.zeros(len(cells), bool)
+            for c, skip in zip(map(tuple, (cells[:-1] if hit[i] else cells).tolist()), near.tolist()):
+                passes.setdefault(c, []).append(-1 if skip else i)
         for c in set(n_p) | set(passes):
             erase_at = 0.0
             if n_p.get(c, 0) > 0:
@@ -393,7 +401,8 @@ def ndt_om_logodds(
                     C, floors = np.eye(3) / NDT_WIDE, (0.0, 1.0, 0.0, 1.0)
                 else:
                     floors = None
-                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors) for i in passes[c])
+                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors)
+                          for i in passes[c] if i >= 0)  # fmt: skip
                 erase_at = reset
             else:
                 inc = len(passes[c]) * lo_free

@@ -260,6 +260,31 @@ def test_a_gaussian_whose_neighbours_were_erased_stands_for_its_whole_cell(rng):
         assert_matches(m, ref_lo, ref_pts)
 
 
+def test_a_hit_ray_tests_no_gaussian_in_its_last_cells(rng):
+    """A hit ray does not test the Gaussians of the cells within near_cells_at (L1) of its
+    endpoint's cell (sigma_s 3 m at 0.5 m: 2 cells): through the mean, ending 2 cells
+    further up, nothing; ending 3 cells up, the model's term."""
+    res = 0.5
+    cfg = MapConfig(**HAND)
+    assert cfg.near_cells_at(res) == 2
+    for up, tested in ((2, False), (3, True)):
+        m = NdtOmMap(res, config=cfg)
+        pts = blob(rng, (2.25, 0.25, 0.25), sd=(0.05, 0.05, 0.05))
+        insert_world(m, np.array([0.25, 0.25, 0.25]), pts)
+        mu = m.gaussians()["mean"][0]
+        o, z = mu - np.array([0.0, 0.0, 3.0]), np.array([mu[0], mu[1], 0.5 * up + 0.25])
+        before = logodds_of(m)[(4, 0, 0)]
+        insert_world(m, o, [z])
+        change = logodds_of(m)[(4, 0, 0)] - before
+        g = m.gaussians(min_points=1, min_probability=0.0)
+        term = ndt_miss_term(o, z, True, mu, g["cov"][0], ETA, 3.0, int(g["n"][0]))
+        assert change == pytest.approx(term if tested else 0.0, abs=1e-6)
+        assert term < -0.03 and (abs(change) > 0.03) == tested  # (the skipped term is not negligible)
+        ref_lo, ref_pts = ndt_om_logodds([(np.array([0.25, 0.25, 0.25]), pts), (o, np.array([z]))], res, eta=ETA,
+                                         sigma_s=3.0)  # fmt: skip
+        assert_matches(m, ref_lo, ref_pts)
+
+
 def test_coarsening_leaves_out_the_points_of_free_cells(rng):
     """A free cell whose Gaussian keeps its points (above NDT_RESET) adds nothing to the
     coarser cell's Gaussian, in the map and in its snapshot."""
