@@ -25,6 +25,7 @@ import numpy as np
 
 from .atomic import atomic_write, check_target
 from .config import MapConfig, check_resolution
+from .snapshot import ARRAYS, ROWS
 
 if TYPE_CHECKING:
     from .map import NdtOmMap
@@ -33,23 +34,11 @@ if TYPE_CHECKING:
 MAGIC = b"NDTOMTI\n"
 # 2: g_erased_near (version 1 files lack it: read as zeros).
 VERSION = 2
-_ARRAYS = {
-    "occ_index": ("<i4", 2),
-    "occ_logodds": ("<f4", 1),
-    "g_index": ("<i4", 2),
-    "g_n": ("<i4", 1),
-    "g_mean_rel": ("<f8", 2),
-    "g_scatter": ("<f8", 2),
-    "g_erased_near": ("<i4", 1),
-}
+# The file's arrays are the snapshot's (ARRAYS: dtype and trailing dimensions, in file
+# order; ROWS: those describing the same cells).
+_COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
 # Arrays that files of an older version may lack, by the version that added them.
 _SINCE = {"g_erased_near": 2}
-# Trailing dimensions of each array (the first is its row count).
-_COLUMNS = {"occ_index": (3,), "occ_logodds": (), "g_index": (3,), "g_n": (), "g_mean_rel": (3,), "g_scatter": (6,),
-            "g_erased_near": ()}  # fmt: skip
-# Arrays describing the same cells, by the array of their cell indices.
-_ROWS = {"occ_index": ("occ_index", "occ_logodds"),
-         "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near")}  # fmt: skip
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
 
@@ -83,7 +72,7 @@ def _encode(s: MapSnapshot) -> tuple[bytes, list]:
     """The header bytes and the arrays of a map file."""
     table, offset = [], 0
     blobs = []
-    for name, (dtype, _) in _ARRAYS.items():
+    for name, (dtype, _) in ARRAYS.items():
         a = np.ascontiguousarray(getattr(s, name), dtype=dtype)
         table.append({"name": name, "dtype": dtype, "shape": list(a.shape), "offset": offset, "nbytes": a.nbytes})
         blobs.append(a)
@@ -172,7 +161,7 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
     try:
         for entry in header["arrays"]:
             name = entry["name"]
-            if name not in _ARRAYS or entry["dtype"] != _ARRAYS[name][0]:
+            if name not in ARRAYS or entry["dtype"] != ARRAYS[name][0]:
                 raise MapFileError(f"{path} is corrupt: unexpected array {name!r}")
             a = np.frombuffer(payload, dtype=entry["dtype"], count=int(np.prod(entry["shape"])), offset=entry["offset"])
             arrays[name] = a.reshape(entry["shape"]).copy()
@@ -180,8 +169,8 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
         if isinstance(exc, MapFileError):
             raise
         raise MapFileError(f"{path} is corrupt: bad array table ({exc})") from None
-    for name in set(_ARRAYS) - set(arrays):  # (_check_header refused missing arrays of its version)
-        arrays[name] = np.zeros((len(arrays["g_index"]), *_COLUMNS[name]), _ARRAYS[name][0])
+    for name in set(ARRAYS) - set(arrays):  # (_check_header refused missing arrays of its version)
+        arrays[name] = np.zeros((len(arrays["g_index"]), *_COLUMNS[name]), ARRAYS[name][0])
     return header, arrays
 
 
@@ -200,7 +189,7 @@ def read_snapshot(path: str | Path) -> MapSnapshot:
         layout.validate()
         # files need not list cells sorted; snapshots do
         for first, order in _check_values(path, arrays, layout, config, header["resolution"]).items():
-            for name in _ROWS[first]:
+            for name in ROWS[first]:
                 arrays[name] = arrays[name][order]
         settings = {"resolution": float(header["resolution"]), "occupancy_enabled": bool(header["occupancy"]),
                         "config": config, "layout": layout, "metadata": header.get("metadata") or {},
@@ -280,11 +269,11 @@ def _check_header(path: Path, header: dict, version: int) -> None:
     rows, spans = {}, []
     for entry in table:
         name = entry.get("name") if isinstance(entry, dict) else None
-        if not isinstance(name, str) or name not in _ARRAYS:
+        if not isinstance(name, str) or name not in ARRAYS:
             bad(f"unexpected array {name!r}")
         if name in rows:
             bad(f"array {name!r} appears twice")
-        dtype = _ARRAYS[name][0]
+        dtype = ARRAYS[name][0]
         if entry.get("dtype") != dtype:
             bad(f"array {name!r} has dtype {entry.get('dtype')!r}, expected {dtype!r}")
         shape, cols = entry.get("shape"), _COLUMNS[name]
@@ -298,14 +287,14 @@ def _check_header(path: Path, header: dict, version: int) -> None:
             bad(f"array {name!r} (offset {offset!r}, {nbytes} bytes) lies outside the {pb}-byte payload")
         rows[name] = shape[0]
         spans.append((offset, offset + nbytes, name))
-    missing = {name for name in set(_ARRAYS) - set(rows) if _SINCE.get(name, 1) <= version}
+    missing = {name for name in set(ARRAYS) - set(rows) if _SINCE.get(name, 1) <= version}
     if missing:
         bad(f"arrays {sorted(missing)} missing")
     spans.sort()
     for (_, end, a), (start, _, b) in itertools.pairwise(spans):
         if start < end:
             bad(f"arrays {a!r} and {b!r} overlap in the payload")
-    for first, names in _ROWS.items():
+    for first, names in ROWS.items():
         for name in names:
             if name in rows and rows[name] != rows[first]:
                 bad(f"array {name!r} has {rows[name]} rows but {first!r} has {rows[first]}")

@@ -44,6 +44,11 @@ ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "g_scatter": ("<f8", (6,)),
     "g_erased_near": ("<i4", ()),
 }
+# The arrays that describe the same cells, by the array of their cell indices.
+ROWS: dict[str, tuple[str, ...]] = {
+    "occ_index": ("occ_index", "occ_logodds"),
+    "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near"),
+}
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
@@ -159,8 +164,7 @@ class MapSnapshot:
                 want = "(rows" + "".join(f", {c}" for c in cols) + ")"
                 raise ValueError(f"{name} must have shape {want}, got {a.shape}")
             object.__setattr__(self, name, a)
-        for first, others in (("occ_index", ("occ_logodds",)),
-                              ("g_index", ("g_n", "g_mean_rel", "g_scatter", "g_erased_near"))):  # fmt: skip
+        for first, (_, *others) in ROWS.items():
             for name in others:
                 if len(getattr(self, name)) != len(getattr(self, first)):
                     raise ValueError(f"{name} has {len(getattr(self, name))} rows but {first} has "
