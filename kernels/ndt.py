@@ -105,6 +105,22 @@ NDT_RESTART = 2.0
 # by eq. (12) (-0.04 a pass) and seldom reaches the clamp: its first point still restarts
 # from NDT_RESTART (docs/quality.md).
 NDT_RESTART_CLEAR = -1.0
+# NDT miss model: what a record remembers of its cell's past, in the bits of rec_nbr above
+# its count of erased neighbours (NBR_COUNT).
+# NBR_FRESH: its points came since rays had held the cell at the free clamp, and the cell has
+# not reached the occupied clamp since. A hit then adds to max(l, NDT_FRESH_FLOOR) instead of
+# restarting from NDT_RESTART: an object seen in two or three looks as it crossed an aisle
+# stays as weakly occupied as its points make it, as the first look left it (OctoMap adds its
+# hits to such a free past); a surface there reaches the clamp as its points come.
+# NBR_BACK: a hit brought the Gaussian back after rays had made its cell free (l <= 0): a
+# surface seen by some looks and passed between the lidar's rings by others, as a rack's
+# board or post is. Its misses count NDT_BACK_MISS of their sum, and rays keep its points at
+# any log-odds, so that its next look brings it back with them (docs/quality.md).
+NBR_FRESH = 1 << 20
+NBR_BACK = 1 << 21
+NBR_COUNT = NBR_FRESH - 1
+NDT_FRESH_FLOOR = 0.0
+NDT_BACK_MISS = 0.5
 # NDT miss model: a Gaussian of which this many of the 26 neighbouring cells' Gaussians were
 # erased by rays since its own last points stands for its whole cell: its inverse covariance
 # reads NDT_WIDE x I (m^-2), so that every ray through the cell tests as one through its
@@ -260,8 +276,9 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                 nb = c + ti.Vector([dx, dy, dz], dt=ti.i32)
                 if (nb >= grid_lo).all() and (nb < grid_hi).all():
                     r = gslot[at(slot, nb)] - 1
-                    if r >= 0 and rec_n[r] >= minp:
-                        if ti.atomic_add(rec_nbr[r], 1) + 1 == NDT_ERASED_NEIGHBOURS:
+                    # (a count already past the threshold stays there: the state bits above it)
+                    if r >= 0 and rec_n[r] >= minp and rec_nbr[r] & NBR_COUNT < NDT_ERASED_NEIGHBOURS:
+                        if (ti.atomic_add(rec_nbr[r], 1) & NBR_COUNT) + 1 == NDT_ERASED_NEIGHBOURS:
                             wide(r, rec_icov)
 
     @ti.func
@@ -271,11 +288,19 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             rec_icov[r, a] = ti.f64(WIDE_ROW[a])  # (a bare literal would be f32)
 
     @ti.func
-    def take_miss(r, rec_miss: ti.template()) -> ti.f32:
-        # The NDT miss model's summed change of record r's cell, consumed.
+    def take_miss(r, rec_miss: ti.template(), rec_nbr: ti.template()) -> ti.f32:
+        # The NDT miss model's summed change of record r's cell, consumed (NBR_BACK: a share).
         v = rec_miss[r]
         rec_miss[r] = ti.i64(0)
-        return ti.cast(ti.cast(v, ti.f64) * (1.0 / MISS_SCALE), ti.f32)
+        k = 1.0 / MISS_SCALE
+        if rec_nbr[r] & NBR_BACK != 0:
+            k *= NDT_BACK_MISS
+        return ti.cast(ti.cast(v, ti.f64) * k, ti.f32)
+
+    @ti.func
+    def ndt_reset(r, rec_nbr: ti.template()) -> ti.f32:
+        # Log-odds at which rays erase record r's points: never for NBR_BACK.
+        return NDT_RESET if rec_nbr[r] & NBR_BACK == 0 else -BIG
 
     @ti.func
     def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
@@ -294,8 +319,8 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             if ti.static(ndt) and g != 0:
                 r = gslot[at(slot, c)] - 1
                 if r >= 0 and rec_n[r] >= ndt_minp:
-                    dl = take_miss(r, rec_miss)
-                    l_reset = NDT_RESET
+                    dl = take_miss(r, rec_miss, rec_nbr)
+                    l_reset = ndt_reset(r, rec_nbr)
                     if dl == 0.0:  # not a free-space update (as a marked cell of the block)
                         ti.atomic_add(ctr[C_NDT_STILL], 1)
             erased = free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n, ctr, rec_free)
@@ -444,7 +469,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     f.funcs = SimpleNamespace(
         leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, spread=spread, SEC=SEC,
         row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
-        free_update=free_update, erased_beside=erased_beside, wide=wide, take_miss=take_miss, free_update_tree=free_update_tree, block_cell=block_cell,
+        free_update=free_update, erased_beside=erased_beside, wide=wide, take_miss=take_miss, ndt_reset=ndt_reset, free_update_tree=free_update_tree, block_cell=block_cell,
         add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,
         ndt_floor=ndt_floor, ndt_icov=ndt_icov, ndt_miss=ndt_miss,
     )  # fmt: skip

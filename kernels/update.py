@@ -29,8 +29,11 @@ from .ndt import (
     C_NO_RECORD,
     C_RECORDS,
     HIT_CHUNKS,
+    NBR_BACK,
+    NBR_COUNT,
+    NBR_FRESH,
     NDT_ERASED_NEIGHBOURS,
-    NDT_RESET,
+    NDT_FRESH_FLOOR,
     NDT_RESTART,
     NDT_RESTART_CLEAR,
     NE_COUNT,
@@ -264,19 +267,37 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
 
     @ti.func
     def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), first):  # fmt: skip
+                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), first,
+                   state):  # fmt: skip
         # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
-        # the cell has a Gaussian record now (first: its first points).
+        # the cell has a Gaussian record now (first: its first points). NDT miss model:
+        # state is the record's NBR_FRESH / NBR_BACK bits before the hit; returns them after.
         note_leaf(olm, slot, c, regions, leaves, 0)
         l0 = lo[at(slot, c)]
+        out = 0
         if ti.static(ndt):
             # NDT miss model: the cell restarts from NDT_RESTART. The misses a cell took
             # while it held no points tested no surface, and those that lowered its
-            # Gaussian short of NDT_RESET passed beside a surface that the hit says is
+            # Gaussian short of its reset passed beside a surface that the hit says is
             # still there. A cell's first points where rays had held it at the free clamp
-            # restart from NDT_RESTART_CLEAR: the rays had crossed free space there.
-            l0 = ti.max(l0, NDT_RESTART_CLEAR if first != 0 and l0 <= l_min else NDT_RESTART)
-        lo[at(slot, c)] = ti.min(ti.max(l0 + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
+            # restart from NDT_RESTART_CLEAR: the rays had crossed free space there; its
+            # next hits add to max(l, NDT_FRESH_FLOOR) until it reaches the clamp.
+            if first != 0 and l0 <= l_min:
+                l0 = ti.max(l0, NDT_RESTART_CLEAR)
+                out = NBR_FRESH
+            elif state & NBR_FRESH != 0:
+                l0 = ti.max(l0, NDT_FRESH_FLOOR)
+                out = state
+            else:
+                out = state & NBR_BACK
+                if first == 0 and l0 <= 0.0:
+                    out = NBR_BACK
+                l0 = ti.max(l0, NDT_RESTART)
+        l1 = ti.min(ti.max(l0 + ti.cast(cnt * l_hit, ti.f32), l_min), l_max)
+        lo[at(slot, c)] = l1
+        if ti.static(ndt):
+            if l1 >= l_max:
+                out = out & NBR_BACK
         if ti.static(not grouped):
             hn[at(slot, c)] = 0
         v = ne[at(slot, c)]
@@ -286,6 +307,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
             block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
         elif v & NE_COUNT != 0:
             ti.atomic_add(ctr[C_HIT_PASSED], 1)
+        return out
 
     def merge(
         slot: ti.i32,
@@ -393,17 +415,22 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     rec_scat[r, a] = rec_scat[r, a] * k
                 tot_i = n_max
             rec_n[r] = tot_i
+            state = 0
             if ti.static(ndt):  # (the paper's model reads no NDT arrays)
                 rel = c - b0
                 if not ((rel >= 0).all() and (rel < bsize).all()):
                     # The rays' sum, dropped: a hit cell takes the hit update only. (In the
                     # block the rays skipped hit cells, marked before them: no sum there.)
                     rec_miss[r] = ti.i64(0)
-                rec_nbr[r] = 0
+                if m_i > 0:
+                    state = rec_nbr[r] & (NBR_FRESH | NBR_BACK)
                 if tot_i >= ndt_minp:  # what rays read of the cell's points
                     ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
             first = 1 if m_i == 0 else 0
-            hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped, first)
+            state = hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped,
+                               first, state)  # fmt: skip
+            if ti.static(ndt):
+                rec_nbr[r] = state  # (its count of erased neighbours starts again)
 
     return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
                          ("grouped", GroupedHits) if grouped else (None, GroupedHits), "nh", "n_max",
@@ -422,6 +449,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
     the block left after merge."""
     F = device_funcs(f)
     row, free_update, take_miss, tally, erased_beside = F.row, F.free_update, F.take_miss, F.tally, F.erased_beside
+    ndt_reset = F.ndt_reset
 
     def apply_marked(
         slot: ti.i32,
@@ -446,9 +474,8 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
                 c = row(rec_cell, r)
                 rel = c - b0
                 if (rel >= 0).all() and (rel < bsize).all():
-                    erased = free_update(
-                        slot, c, take_miss(r, rec_miss), NE_GAUSS, l_min, l_max, NDT_RESET, rec_n, ctr, rec_free
-                    )
+                    erased = free_update(slot, c, take_miss(r, rec_miss, rec_nbr), NE_GAUSS, l_min, l_max,
+                                         ndt_reset(r, rec_nbr), rec_n, ctr, rec_free)  # fmt: skip
                     if erased != 0:
                         erased_beside(slot, c, rec_n, rec_nbr, rec_icov, ndt_minp)
                     tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
@@ -642,7 +669,7 @@ def ndt_refresh(f: Storage, _cfg=None) -> Bound:
         for r in range(nrec):
             if rec_n[r] > 0:
                 ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
-                if rec_nbr[r] >= NDT_ERASED_NEIGHBOURS:
+                if rec_nbr[r] & NBR_COUNT >= NDT_ERASED_NEIGHBOURS:
                     wide(r, rec_icov)
 
     return Bound(ndt_refresh, ("nrec", ("records", Records, ("rec_n", "rec_mean", "rec_scat")),

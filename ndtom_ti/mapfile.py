@@ -33,12 +33,13 @@ if TYPE_CHECKING:
 
 MAGIC = b"NDTOMTI\n"
 # 2: g_erased_near (version 1 files lack it: read as zeros).
-VERSION = 2
+# 3: g_ndt_state (earlier files lack it: read as zeros).
+VERSION = 3
 # The file's arrays are the snapshot's (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
 # Arrays that files of an older version may lack, by the version that added them.
-_SINCE = {"g_erased_near": 2}
+_SINCE = {"g_erased_near": 2, "g_ndt_state": 3}
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
 
@@ -353,4 +354,6 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
         bad("g_scatter holds a scatter matrix that is not positive semi-definite or exceeds its cell")
     if (arrays["g_erased_near"] < 0).any():
         bad("g_erased_near holds negative counts")
+    if (arrays["g_ndt_state"] > 3).any():
+        bad("g_ndt_state holds values other than 0-3")
     return unsorted

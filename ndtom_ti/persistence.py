@@ -18,6 +18,7 @@ def state_of(m) -> dict:
         "g_mean_rel": g["mean_rel"],
         "g_scatter": g["scatter"],
         "g_erased_near": g["erased_near"],
+        "g_ndt_state": g["ndt_state"],
     }
 
 
@@ -38,7 +39,7 @@ def load_into(m, st: dict) -> None:
         io.load_known(slot, occ_idx, occ_lo, len(occ_idx), fs.occ_regions, fs.leaf_count)
     if len(g_idx):
         recs = m._records
-        recs.load(g_idx, st["g_n"], st["g_mean_rel"], st["g_scatter"], st.get("g_erased_near"))
+        recs.load(g_idx, st["g_n"], st["g_mean_rel"], st["g_scatter"], st.get("g_erased_near"), st.get("g_ndt_state"))
         if recs.ndt:
             m._k.ndt_refresh()(nrec=recs.count, records=recs.group, ndt=recs.ndt_group)
         io.load_slots(slot, g_idx, len(g_idx), fs.gidx_regions, fs.occ_regions, fs.leaf_count)

@@ -14,8 +14,12 @@ import numpy as np
 from .cellkeys import lex_order
 from .kernels.args import NdtRecords, Records
 from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
+from .kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
 
 START_RECORDS = 1024
+# The NDT miss model's record state bits (kernels/ndt.py), as the two low bits of ndt_state.
+STATE_SHIFT = NBR_FRESH.bit_length() - 1
+assert NBR_BACK == NBR_FRESH << 1
 
 
 class GaussianRecords:
@@ -26,7 +30,8 @@ class GaussianRecords:
     zz), ``free`` [C] i32 the free stack (its first ``nfree`` entries). With the NDT miss
     model also ``miss`` [C] i64, the scan's summed log-odds changes (zero between updates),
     ``icov`` [C, 9] f64, what rays read (inverse regularised covariance, mean), and ``nbr``
-    [C] i32, the neighbouring cells' Gaussians erased since the record's last points; a
+    [C] i32, the neighbouring cells' Gaussians erased since the record's last points and,
+    above them, its NBR_FRESH and NBR_BACK bits (kernels/ndt.py); a
     placeholder row each without it. ``count``: records handed out so far (in use or on
     the free stack).
     """
@@ -93,17 +98,20 @@ class GaussianRecords:
 
     def holding_points(self) -> dict:
         """Every record that holds points, sorted by cell index: ``index`` (K, 3) i32,
-        ``n``, ``mean_rel``, ``scatter``."""
+        ``n``, ``mean_rel``, ``scatter``, and the NDT miss model's ``erased_near`` (i32) and
+        ``ndt_state`` (u8: 1 NBR_FRESH, 2 NBR_BACK; zeros without the model)."""
         k = self.count
         keep = self.n[:k] > 0
         idx = self.cell[:k][keep]
         order = lex_order(idx)
+        nbr = self.nbr[:k][keep][order] if self.ndt else np.zeros(len(idx), np.int32)
         return {
             "index": np.ascontiguousarray(idx[order]),
             "n": self.n[:k][keep][order],
             "mean_rel": self.mean[:k][keep][order],
             "scatter": self.scat[:k][keep][order],
-            "erased_near": self.nbr[:k][keep][order] if self.ndt else np.zeros(len(idx), np.int32),
+            "erased_near": (nbr & NBR_COUNT).astype(np.int32),
+            "ndt_state": ((nbr >> STATE_SHIFT) & 3).astype(np.uint8),
         }
 
     def with_points(self, min_points: int) -> np.ndarray:
@@ -112,7 +120,7 @@ class GaussianRecords:
         return np.ascontiguousarray(self.cell[cand])
 
     def load(self, index: np.ndarray, n: np.ndarray, mean_rel: np.ndarray, scatter: np.ndarray,
-             erased_near: np.ndarray | None = None) -> None:  # fmt: skip
+             erased_near: np.ndarray | None = None, ndt_state: np.ndarray | None = None) -> None:  # fmt: skip
         """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
         k = len(index)
         self.grow(max(START_RECORDS, k))
@@ -120,6 +128,9 @@ class GaussianRecords:
         self.cell[:k] = index
         self.mean[:k] = mean_rel
         self.scat[:k] = scatter
-        if self.ndt and erased_near is not None:
-            self.nbr[:k] = erased_near
+        if self.ndt:
+            if erased_near is not None:
+                self.nbr[:k] = np.minimum(erased_near, NBR_COUNT)
+            if ndt_state is not None:
+                self.nbr[:k] |= (np.asarray(ndt_state, np.int32) & 3) << STATE_SHIFT
         self.count = k

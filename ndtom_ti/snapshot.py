@@ -43,11 +43,12 @@ ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "g_mean_rel": ("<f8", (3,)),
     "g_scatter": ("<f8", (6,)),
     "g_erased_near": ("<i4", ()),
+    "g_ndt_state": ("|u1", ()),
 }
 # The arrays that describe the same cells, by the array of their cell indices.
 ROWS: dict[str, tuple[str, ...]] = {
     "occ_index": ("occ_index", "occ_logodds"),
-    "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near"),
+    "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near", "g_ndt_state"),
 }
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -114,7 +115,11 @@ class MapSnapshot:
       ``(x - mean)(x - mean)^T`` over its points, as ``xx xy xz yy yz zz`` (m^2); the
       sample covariance is ``scatter / (N - 1)``;
     - ``g_erased_near`` (G,) int32: with the NDT miss model, the neighbouring cells'
-      Gaussians that rays erased since its last points (zeros when not given).
+      Gaussians that rays erased since its last points (zeros when not given);
+    - ``g_ndt_state`` (G,) uint8: with the NDT miss model, what the Gaussian remembers of
+      its cell's past: 1 its points came since rays had held the cell free, 2 a hit
+      brought it back after rays had made the cell free (kernels/ndt.py NBR_FRESH,
+      NBR_BACK; zeros when not given).
 
     :meth:`gaussians`, :meth:`known_cells` and ``len()`` answer as the map's do. Arrays
     given to the constructor are copied, checked for shape and sorted (unless already
@@ -135,6 +140,7 @@ class MapSnapshot:
     g_mean_rel: np.ndarray
     g_scatter: np.ndarray
     g_erased_near: np.ndarray | None = None
+    g_ndt_state: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "resolution", check_resolution(self.resolution))
@@ -151,8 +157,9 @@ class MapSnapshot:
                 raise ValueError(f"{key} must be an integer >= 0, got {v!r}")
             object.__setattr__(self, key, int(v))
         copied = set()
-        if self.g_erased_near is None:
-            object.__setattr__(self, "g_erased_near", np.zeros(len(self.g_index), np.int32))
+        for name in ("g_erased_near", "g_ndt_state"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(len(self.g_index), ARRAYS[name][0]))
         for name, (dtype, cols) in ARRAYS.items():
             a = getattr(self, name)
             if not (isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and a.flags.c_contiguous

@@ -310,6 +310,8 @@ def ndt_om_logodds(
     restart_clear: float | None = None,
     erased_neighbours: int | None = None,
     near_cells: int | None = None,
+    fresh_floor: float | None = None,
+    back_miss: float | None = None,
 ) -> tuple[dict[Cell, float], dict[Cell, np.ndarray]]:
     """Per-cell log-odds and Gaussian points of an NDT-OM after a sequence of scans, in
     float64, ray by ray and cell by cell (no grouping, no fixed point).
@@ -324,7 +326,11 @@ def ndt_om_logodds(
     ``l <= 0`` erases the cell's Gaussian (the NDT miss model's: ``l <= reset``, default
     the kernels' NDT_RESET). With ``miss_model="ndt"`` a hit cell starts from ``max(l, restart)``
     (default the kernels' NDT_RESTART), or from ``max(l, restart_clear)`` (NDT_RESTART_CLEAR)
-    for its first points (it holds none) if ``l <= l_min``.
+    for its first points (it holds none) if ``l <= l_min``: such a cell is *fresh* until its
+    log-odds reaches ``l_max``, and its next hits start from ``max(l, fresh_floor)``
+    (NDT_FRESH_FLOOR) instead. A hit on a cell that is not fresh and holds points at
+    ``l <= 0`` makes its Gaussian *back*: the sum of the rays' terms on it is taken times
+    ``back_miss`` (NDT_BACK_MISS), and rays never erase its points.
     The scan's hits then join their cells' Gaussians. With ``miss_model="ndt"`` each cell
     that holds points then counts the Gaussians of its 26 neighbours that the scan's rays
     erased (a cell with points of this scan starts again from zero first); from
@@ -354,7 +360,12 @@ def ndt_om_logodds(
         from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS
 
         erased_neighbours = NDT_ERASED_NEIGHBOURS
-    from ndtom_ti.kernels.ndt import NDT_WIDE
+    from ndtom_ti.kernels.ndt import NDT_BACK_MISS, NDT_FRESH_FLOOR, NDT_WIDE
+
+    fresh_floor = NDT_FRESH_FLOOR if fresh_floor is None else fresh_floor
+    back_miss = NDT_BACK_MISS if back_miss is None else back_miss
+    fresh: set[Cell] = set()
+    back: set[Cell] = set()
 
     around = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
     nbr: dict[Cell, int] = {}
@@ -394,7 +405,20 @@ def ndt_om_logodds(
                 inc = n_p[c] * lo_hit
                 if ndt:
                     l0 = logodds.get(c, 0.0)
-                    logodds[c] = max(l0, restart_clear if c not in points and l0 <= l_min else restart)
+                    if c not in points:  # its first points (a new record: no state)
+                        fresh.discard(c)
+                        back.discard(c)
+                    if c not in points and l0 <= l_min:
+                        logodds[c] = max(l0, restart_clear)
+                        fresh.add(c)
+                    elif c in fresh:
+                        logodds[c] = max(l0, fresh_floor)
+                    else:
+                        if c in points and l0 <= 0.0:
+                            back.add(c)
+                        logodds[c] = max(l0, restart)
+                    if min(max(logodds[c] + inc, l_min), l_max) >= l_max:
+                        fresh.discard(c)
             elif ndt and c in gauss:
                 mu, C, n, wide = gauss[c]
                 if wide:
@@ -404,6 +428,9 @@ def ndt_om_logodds(
                 inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors)
                           for i in passes[c] if i >= 0)  # fmt: skip
                 erase_at = reset
+                if c in back:
+                    inc *= back_miss
+                    erase_at = -math.inf
             else:
                 inc = len(passes[c]) * lo_free
             logodds[c] = min(max(logodds.get(c, 0.0) + inc, l_min), l_max)

@@ -10,7 +10,18 @@ from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
 from test_core import BLOCKS, set_block
 
 from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import NDT_ERASED_NEIGHBOURS, NDT_RESET, NDT_RESTART, NDT_RESTART_CLEAR, NDT_WIDE
+from ndtom_ti.kernels.ndt import (
+    NBR_BACK,
+    NBR_COUNT,
+    NBR_FRESH,
+    NDT_BACK_MISS,
+    NDT_ERASED_NEIGHBOURS,
+    NDT_FRESH_FLOOR,
+    NDT_RESET,
+    NDT_RESTART,
+    NDT_RESTART_CLEAR,
+    NDT_WIDE,
+)
 from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
 
 NDT = dict(miss_model="ndt")
@@ -49,6 +60,12 @@ def assert_matches(m, ref_lo, ref_pts, atol=2e-6):
     assert worst <= atol, f"worst log-odds difference {worst:.2e}"
     g = m.gaussians(min_points=1, min_probability=0.0)
     assert {tuple(c): int(n) for c, n in zip(g["index"].tolist(), g["n"])} == {c: len(p) for c, p in ref_pts.items()}
+
+
+def ndt_state(m, cell) -> int:
+    """The cell's Gaussian record state as a snapshot holds it: 1 fresh, 2 back (0: none)."""
+    s = m.snapshot()
+    return dict(zip(map(tuple, s.g_index.tolist()), s.g_ndt_state.tolist())).get(cell, 0)
 
 
 def points_of(m, cell) -> int:
@@ -184,6 +201,76 @@ def test_first_points_where_rays_held_the_cell_at_the_free_clamp_restart_lower(r
     insert_world(m, hit_from, [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])
     assert points_of(m, (4, 0, 0)) == 2
     assert (4, 0, 0) not in set(map(tuple, m.gaussians(min_points=1)["index"].tolist()))
+
+
+def test_a_fresh_cell_adds_its_next_hits_to_its_free_past(rng):
+    """A cell whose first points came where rays had held it at the free clamp is fresh:
+    its next hits add to max(l, NDT_FRESH_FLOOR) instead of restarting from NDT_RESTART (an
+    object seen in two looks as it crossed an aisle stays weakly occupied), until it reaches
+    the clamp. A later hit after rays made it free brings it back from NDT_RESTART."""
+    res = 0.5
+    origin, far = np.array([2.25, 0.25, -3.0]), [[2.25, 0.25, 4.0]]
+    hit_from = np.array([0.25, 0.25, 0.25])
+    m = NdtOmMap(res, config=MapConfig(**HAND))
+    scans = [(origin, np.array(far * 60))]  # the free clamp
+    want = [NDT_RESTART_CLEAR + L_HIT, NDT_FRESH_FLOOR + 2 * L_HIT, 2.0]
+    looks = [blob(rng, (2.25, 0.25, 0.25), n=k, sd=(0.05, 0.05, 0.05)) for k in (1, 2, 4)]
+    insert_world(m, *scans[0])
+    for pts, lo, fresh in zip(looks, want, (True, True, False)):  # at the clamp: fresh no more
+        insert_world(m, hit_from, pts)
+        scans.append((hit_from, pts))
+        assert logodds_of(m)[(4, 0, 0)] == pytest.approx(lo, abs=1e-5)
+        assert ndt_state(m, (4, 0, 0)) == (1 if fresh else 0)
+    # Two rays through the mean make the cell free; the next hit restarts it from NDT_RESTART.
+    mu = m.gaussians()["mean"][0]
+    for pts in ([mu + [0.0, 0.0, 30.0]] * 2, [[2.3, 0.3, 0.3]]):
+        o = mu - [0.0, 0.0, 3.0] if len(pts) == 2 else hit_from
+        insert_world(m, o, pts)
+        scans.append((o, np.asarray(pts)))
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0, abs=1e-6) and ndt_state(m, (4, 0, 0)) == 2
+    ref, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=3.0)
+    assert_matches(m, ref, ref_pts, atol=2e-6)
+    # Without the free past the same looks restart from NDT_RESTART at once.
+    m = NdtOmMap(res, config=MapConfig(**HAND))
+    insert_world(m, hit_from, looks[0])
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_a_gaussian_brought_back_counts_its_misses_half_and_keeps_its_points(rng):
+    """A hit on a Gaussian whose cell rays had made free (a board seen between the rings)
+    marks it as back: from then on its misses count NDT_BACK_MISS of their sum, and rays no
+    longer erase its points (past NDT_RESET, down to the clamp), so its next hit brings it
+    back with them."""
+    res = 0.5
+    step = math.log((0.5 - ETA) / (0.5 + ETA))  # a ray through the mean, far from its endpoint
+    hit_from = np.array([0.25, 0.25, 0.25])
+    m = NdtOmMap(res, config=MapConfig(**HAND))
+    scans = []
+
+    def look(o, pts):
+        insert_world(m, o, pts)
+        scans.append((np.asarray(o, np.float64), np.asarray(pts, np.float64)))
+
+    def through_mean(k):
+        mu = m.gaussians(min_probability=0.0)["mean"][0]
+        look(mu - [0.0, 0.0, 3.0], [mu + [0.0, 0.0, 30.0]] * k)
+
+    look(hit_from, blob(rng, (2.25, 0.25, 0.25), n=4))
+    through_mean(2)
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0 + 2 * step, abs=1e-5)  # free, points kept
+    assert ndt_state(m, (4, 0, 0)) == 0
+    look(hit_from, [[2.3, 0.3, 0.3]])
+    assert ndt_state(m, (4, 0, 0)) == 2 and logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0, abs=1e-6)
+    through_mean(2)
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0 + NDT_BACK_MISS * 2 * step, abs=1e-4)
+    through_mean(6)
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(-2.0, abs=1e-6)  # past NDT_RESET ...
+    assert points_of(m, (4, 0, 0)) == 5  # ... its points stay
+    look(hit_from, [[2.2, 0.2, 0.3]])
+    assert logodds_of(m)[(4, 0, 0)] == pytest.approx(2.0, abs=1e-6)
+    assert points_of(m, (4, 0, 0)) == 6
+    ref, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=3.0)
+    assert_matches(m, ref, ref_pts, atol=2e-5)
 
 
 def test_a_lowered_gaussian_keeps_its_points_until_the_reset_threshold(rng):
@@ -464,8 +551,9 @@ def test_synthetic_lidar_scans_match_the_reference(sim_hall_dynamic):
 
 
 def test_synthetic_scans_where_objects_left_match_the_reference(sim_hall_dynamic):
-    """All 24 hall scans at 0.3 m: objects leave, and Gaussians beside the erased ones
-    come to stand for their whole cells (NDT_ERASED_NEIGHBOURS)."""
+    """All 24 hall scans at 0.3 m: objects leave, Gaussians beside the erased ones come to
+    stand for their whole cells (NDT_ERASED_NEIGHBOURS), and records turn fresh and back
+    (NBR_FRESH, NBR_BACK)."""
     sim = sim_hall_dynamic
     res = 0.3
     rng = np.random.default_rng(7)
@@ -478,8 +566,11 @@ def test_synthetic_scans_where_objects_left_match_the_reference(sim_hall_dynamic
         insert_world(m, o, world)
         scans.append((o, world))
     rec = m._records
-    wide = (rec.nbr[: rec.count] >= NDT_ERASED_NEIGHBOURS) & (rec.n[: rec.count] > 0)
+    state, alive = rec.nbr[: rec.count], rec.n[: rec.count] > 0
+    wide = ((state & NBR_COUNT) >= NDT_ERASED_NEIGHBOURS) & alive
     assert wide.any() and (rec.icov[: rec.count][wide][:, [0, 3, 5]] == NDT_WIDE).all()
+    # Both record states occur here (fresh Gaussians and ones brought back), and match too.
+    assert ((state & NBR_FRESH) != 0).any() and ((state & NBR_BACK) != 0).any()
     ref_lo, ref_pts = ndt_om_logodds(scans, res, eta=ETA, sigma_s=sigma_s(res))
     assert_matches(m, ref_lo, ref_pts, atol=5e-6)
 
@@ -506,8 +597,9 @@ def test_real_lidar_scans_match_the_reference():
 
 
 def test_a_map_loaded_where_objects_left_continues_as_the_one_saved(sim_hall_dynamic, tmp_path):
-    """The counts of erased neighbours travel in the file (g_erased_near): a loaded map's
-    wide Gaussians test rays as the saved map's do."""
+    """The counts of erased neighbours and the record states travel in the file
+    (g_erased_near, g_ndt_state): a loaded map's wide, fresh and brought-back Gaussians
+    take rays and hits as the saved map's do."""
     sim = sim_hall_dynamic
     rng = np.random.default_rng(7)
     scans = []
@@ -519,8 +611,10 @@ def test_a_map_loaded_where_objects_left_continues_as_the_one_saved(sim_hall_dyn
         insert_world(a, o, world)
     s = a.snapshot()
     assert (s.g_erased_near >= NDT_ERASED_NEIGHBOURS).any()
+    assert (s.g_ndt_state == 1).any() and (s.g_ndt_state == 2).any()
     b = NdtOmMap.load(a.save(tmp_path / "a.ndtom"))
     assert np.array_equal(b.snapshot().g_erased_near, s.g_erased_near)
+    assert np.array_equal(b.snapshot().g_ndt_state, s.g_ndt_state)
     for m in (a, b):
         for o, world in scans[20:]:
             insert_world(m, o, world)

@@ -554,6 +554,9 @@ CRAFTED = {
     "not PSD": (setv("g_scatter", 0, [1e-3, 5e-3, 0, 1e-3, 0, 1e-3]), None, "g_scatter"),
     "negative erased count": (setv("g_erased_near", 0, -1), None, "g_erased_near"),
     "erased counts missing (version 2)": (None, lambda t: [e for e in t if e["name"] != "g_erased_near"], "missing"),
+    "g_ndt_state short": (shorter("g_ndt_state"), None, "rows"),
+    "unknown record state": (setv("g_ndt_state", 0, 7), None, "g_ndt_state"),
+    "record states missing (version 3)": (None, lambda t: [e for e in t if e["name"] != "g_ndt_state"], "missing"),
 }
 
 
@@ -569,16 +572,22 @@ def test_crafted_arrays_are_map_file_errors(tmp_path, good_file, case):
         NdtOmMap.load(path)
 
 
-def test_version_1_files_load_without_the_counts_of_erased_neighbours(tmp_path, good_file):
-    """Files of format version 1 have no g_erased_near: read as zeros."""
+@pytest.mark.parametrize("version", [1, 2])
+def test_older_files_load_without_the_arrays_added_since(tmp_path, good_file, version):
+    """Files of format version 1 have no g_erased_near, those of versions 1 and 2 no
+    g_ndt_state: read as zeros."""
     header, arrays = parse(good_file)
-    header["arrays"] = [e for e in header["arrays"] if e["name"] != "g_erased_near"]
-    path = tmp_path / "v1.ndtom"
-    path.write_bytes(build(header, arrays, version=1))
+    lacks = {"g_erased_near", "g_ndt_state"} if version == 1 else {"g_ndt_state"}
+    header["arrays"] = [e for e in header["arrays"] if e["name"] not in lacks]
+    path = tmp_path / f"v{version}.ndtom"
+    path.write_bytes(build(header, arrays, version=version))
     m = NdtOmMap.load(path)
     s = m.snapshot()
     assert len(s.g_index) == len(arrays["g_index"]) > 0
-    assert s.g_erased_near.dtype == np.int32 and not s.g_erased_near.any()
+    for name, dtype in (("g_erased_near", np.int32), ("g_ndt_state", np.uint8)):
+        got = getattr(s, name)
+        assert got.dtype == dtype
+        assert np.array_equal(got, arrays[name]) if name not in lacks else not got.any()
     assert np.array_equal(s.g_scatter, arrays["g_scatter"])
 
 
