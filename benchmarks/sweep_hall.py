@@ -5,6 +5,7 @@ NDT-OM, its floor mode and OctoMap (pyoctomap) on the same points in the same ru
 
     python benchmarks/sweep_hall.py --scans 20 --out out/bench_hall
     python benchmarks/sweep_hall.py --bag ../shared/data/balm_hall_every4 --scans 20 --out out/bench_balm
+    python benchmarks/sweep_hall.py --scans 20 --miss-model paper   # the paper's eq. (12)
 """
 
 import argparse
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--resolutions", default="0.1,0.2,0.4,0.8")
     ap.add_argument("--no-octomap", action="store_true")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--miss-model", choices=["ndt", "paper"], help="NDT-OM's miss model (default: MapConfig's)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     a = ap.parse_args()
 
@@ -55,7 +57,10 @@ def main() -> None:
     scans = bag_scans(a.bag, a.scans) if a.bag else hall_scans(a.scans)
     res = [float(x) for x in a.resolutions.split(",")]
     baseline = None if a.no_octomap or not sweep.octomap_available() else "octomap"
-    rows = sweep.run_sweep(scans, res, baseline=baseline, progress=lambda s: print(s, file=sys.stderr))
+    config = ndtom_ti.MapConfig(miss_model=a.miss_model) if a.miss_model else None
+    rows = sweep.run_sweep(
+        scans, res, baseline=baseline, progress=lambda s: print(s, file=sys.stderr), config=config
+    )
     a.out.mkdir(parents=True, exist_ok=True)
     name = Path(a.bag).stem if a.bag else "hall"
     tags = {**sweep.machine_tags(arch), "data": name}  # the rows hold the number of scans

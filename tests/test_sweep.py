@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from ndtom_ti import MapConfig, NdtOmMap
 from ndtom_ti.evaluation import sweep
 from ndtom_ti.cli import app
 
@@ -26,6 +27,19 @@ def test_run_sweep_rows_and_floor(rng):
     full, fl = rows[0], rows[1]
     assert full.gaussians > 0 and full.memory_bytes > 0
     assert fl.ratio_to_ndtom == pytest.approx(fl.ms_median / full.ms_median)
+
+
+def test_run_sweep_maps_with_the_config_given(rng):
+    d = rng.normal(size=(3000, 3))
+    scans = [(d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0, np.eye(4))]
+    counts = {}
+    for cfg in (MapConfig(), MapConfig(miss_model="paper", min_points=40)):
+        (row,) = sweep.run_sweep(scans, [0.5], floor=False, warmup=0, config=cfg)
+        with NdtOmMap(0.5, config=cfg) as m:
+            m.insert_scan(*scans[0])
+            assert row.gaussians == len(m)
+        counts[cfg.min_points] = row.gaussians
+    assert counts[40] < counts[MapConfig().min_points]
 
 
 def test_run_sweep_rejects_bad_input():

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .. import runtime
-from ..config import check_resolution
+from ..config import MapConfig, check_resolution
 from ..map import NdtOmMap, as_pose
 from ..scan import scan_parts
 
@@ -101,11 +101,14 @@ def run_sweep(
     warmup: int = 2,
     max_range: float = -1.0,
     progress: Callable[[str], None] | None = None,
+    config: MapConfig | None = None,
 ) -> list[SweepRow]:
     """Time every resolution on the same scans (:class:`~ndtom_ti.scan.Scan` objects or
     (points, T_world_sensor) pairs). Before timing, ``warmup`` scans go into
-    a throwaway map so that kernels are compiled. Returns one row per mapper and
-    resolution; ``ratio_to_ndtom`` compares medians within this run."""
+    a throwaway map so that kernels are compiled. NDT-OM maps with ``config`` (default:
+    ``MapConfig()``; e.g. ``MapConfig(miss_model="paper")`` to time the paper's eq. (12)).
+    Returns one row per mapper and resolution; ``ratio_to_ndtom`` compares medians within
+    this run."""
     if not scans:
         raise ValueError("a sweep needs at least one scan")
     if baseline not in (None, "octomap"):
@@ -119,13 +122,13 @@ def run_sweep(
     rows: list[SweepRow] = []
     for res in [check_resolution(r) for r in resolutions]:
         say(f"{res:g} m: warm-up")
-        with NdtOmMap(res) as w:  # each map gives its slot back at once
+        with NdtOmMap(res, config=config) as w:  # each map gives its slot back at once
             for pts, T in scans[:warmup]:
                 w.insert_scan(pts, T)
                 w.traverse_only(pts, T)
 
         say(f"{res:g} m: NDT-OM")
-        with NdtOmMap(res) as m:
+        with NdtOmMap(res, config=config) as m:
             times, reps = _time_scans(m.insert_scan, scans)
             visits = sum(r.ray_cell_visits for r in reps)
             full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
