@@ -9,7 +9,8 @@ from reference import batch_stats, eq12_logodds, ray_cells, ray_pass_counts
 
 from ndtom_ti import MapConfig, NdtOmMap
 
-WIDE = dict(logodds_min=-1e6, logodds_max=1e6)  # clamps out of the way
+WIDE = dict(miss_model="paper", logodds_min=-1e6, logodds_max=1e6)  # eq. (12), clamps out of the way
+EQ12 = MapConfig(miss_model="paper")  # the paper's eq. (12) for every cell (these tests check it)
 
 
 def random_pose(rng, t):
@@ -44,7 +45,7 @@ def rcu_map(res, occupancy):
     whose free-space updates are too weak to erase any Gaussian."""
     if not occupancy:
         return NdtOmMap(res, occupancy=False)
-    return NdtOmMap(res, config=MapConfig(p_empty=0.4999999))
+    return NdtOmMap(res, config=MapConfig(miss_model="paper", p_empty=0.4999999))
 
 
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1000.0, -1000.0, 20.0)])
@@ -239,7 +240,7 @@ def test_dda_free_rays_count_their_last_cell():
 def test_occupancy_hand_computed_with_clamps():
     lo = math.log(0.6 / 0.4)
     le = math.log(0.49 / 0.51)
-    m = NdtOmMap(1.0)  # clamp [-2, 2]
+    m = NdtOmMap(1.0, config=EQ12)  # clamp [-2, 2]
     origin = np.array([0.5, 0.5, 0.5])
     T = np.eye(4)
     T[:3, 3] = origin
@@ -260,7 +261,7 @@ def test_occupancy_hand_computed_with_clamps():
 def test_cell_both_hit_and_passed_takes_the_hit_update(block_cells):
     lo = math.log(0.6 / 0.4)
     le = math.log(0.49 / 0.51)
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     set_block(m, block_cells)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
@@ -276,7 +277,7 @@ def test_cell_both_hit_and_passed_takes_the_hit_update(block_cells):
 
 def test_scan_of_more_rays_than_u16_counts_hold():
     # Every ray passes the sensor's cell: 65546 passes would wrap to 10 in 16 bits.
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     T = m_pose([0.5, 0.5, 0.5])
     d = np.random.default_rng(3).normal(size=(65546, 3))
     m.insert_scan(d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0, T)
@@ -284,7 +285,7 @@ def test_scan_of_more_rays_than_u16_counts_hold():
 
 
 def test_occupancy_of_unknown_cells_is_prior_and_flagged():
-    m = NdtOmMap(0.5)
+    m = NdtOmMap(0.5, config=EQ12)
     m.insert_scan(np.array([[3.0, 0.2, 0.2]]), np.eye(4))
     p, known = m.occupancy(np.array([[3.1, 0.1, 0.1], [1.0, 0.1, 0.1], [50.0, 50.0, 50.0], [np.nan, 0, 0]]), return_known=True)
     assert known.tolist() == [True, True, False, False]
@@ -296,7 +297,7 @@ def test_multi_scan_logodds_match_reference(rng, block_cells):
     """Several scans from different origins, clamps active: eq. (12) per scan exactly."""
     res = 0.3
     scans = []
-    cfg = MapConfig(logodds_min=-0.5, logodds_max=1.0)
+    cfg = MapConfig(miss_model="paper", logodds_min=-0.5, logodds_max=1.0)
     m = NdtOmMap(res, config=cfg)
     for k in range(5):
         set_block(m, block_cells)  # the block's density is measured anew each scan
@@ -318,7 +319,7 @@ def test_multi_scan_logodds_match_reference(rng, block_cells):
 @pytest.mark.parametrize("block_cells", [None, 0])
 @pytest.mark.parametrize("reload", [False, True])
 def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path):
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
     wall = np.array([[5.5, 0.5, 0.5], [5.2, 0.6, 0.4], [5.7, 0.3, 0.6], [5.4, 0.4, 0.5]]) - T[:3, 3]
@@ -357,7 +358,7 @@ def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path
 def test_records_of_erased_gaussians_are_reused(block_cells):
     """Objects that come and go do not grow the records: a new Gaussian takes an erased
     one's record, also when a scan brings more new cells than there are free records."""
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     set_block(m, block_cells)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
@@ -390,7 +391,7 @@ def test_records_grow_only_for_cells_that_need_one(block_cells):
     """The records held follow the Gaussians: a scan that hits many known cells and a few
     new ones grows them only when the new ones do not fit (by an eighth, or by the scan's
     hit cells); the cells that found no record are merged after the growth."""
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     set_block(m, block_cells)
     cap0 = m.memory_report()["records_held"]
     blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]]) - 0.1
@@ -417,7 +418,7 @@ def test_records_grow_only_for_cells_that_need_one(block_cells):
 def test_interrupt_after_merge_does_not_hand_out_a_record_twice(monkeypatch):
     """A record merge took from the free stack stays taken when the update is cut short
     after merge (Ctrl-C between kernels)."""
-    m = NdtOmMap(1.0)
+    m = NdtOmMap(1.0, config=EQ12)
     T = np.eye(4)
     T[:3, 3] = [0.5, 0.5, 0.5]
     blob = np.array([[0.1, 0.0, 0.0], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
@@ -450,7 +451,7 @@ def test_dynamic_object_erased_static_surfaces_kept(sim_hall_dynamic):
     assert 0 < gone < d.n_scans - 6
     lo_b, hi_b = d.dyn_lo[0][j], d.dyn_hi[0][j]
     res = 0.2
-    m = NdtOmMap(res)
+    m = NdtOmMap(res, config=EQ12)
     counts = []
     for i in range(d.n_scans):
         m.insert_scan(d.scan(i), d.poses[i])

@@ -447,6 +447,15 @@ def test_paper_model_keeps_eq12_for_gaussian_cells(rng):
     assert logodds_of(m)[(4, 0, 0)] - before == pytest.approx(5 * L_FREE, abs=1e-6)
 
 
+def test_the_ndt_miss_model_is_the_default(rng):
+    assert MapConfig().miss_model == "ndt"
+    scans = random_scans(rng, n_scans=3)
+    kw = dict(max_range=6.0)
+    default = logodds_of(build(scans, 0.5, MapConfig(**kw)))
+    assert default == logodds_of(build(scans, 0.5, MapConfig(miss_model="ndt", **kw)))
+    assert default != logodds_of(build(scans, 0.5, MapConfig(miss_model="paper", **kw)))
+
+
 # --------------------------------------------------------------------------- references
 
 

@@ -82,7 +82,7 @@ def test_score_and_conflicting_on_known_maps(rng):
 
 
 def test_logodds_at_reads_cells_and_rejects_bad_indices():
-    m = NdtOmMap(0.5)
+    m = NdtOmMap(0.5, config=MapConfig(miss_model="paper"))  # eq. (12): a first hit is logit(0.6)
     m.insert_scan(np.array([[2.1, 0.1, 0.1]]), np.eye(4))
     lo = m.logodds_at(np.array([[4, 0, 0], [2, 0, 0], [50, 50, 50], [10**9, 0, 0]]))
     assert lo[0] == pytest.approx(np.log(0.6 / 0.4)) and lo[1] < 0 and lo[2] == 0.0 and lo[3] == 0.0

@@ -306,7 +306,7 @@ def map_(
         typer.Option(
             "--miss-model",
             help="How rays lower cells holding a Gaussian: ndt (by how squarely they pass it, "
-            "IJRR 2013) or paper (a constant per ray, eq. 12). Default: the config's.",
+            "IJRR 2013) or paper (a constant per ray, eq. 12). Default: the config's, else ndt.",
         ),
     ] = None,
     arch: Annotated[Arch, typer.Option(help="Taichi backend.")] = Arch.auto,

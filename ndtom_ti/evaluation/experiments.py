@@ -5,8 +5,9 @@ rerunnable on any recording or on synthetic halls (simworld ``.npz`` files).
 
 - ``rcu``: Recursive NDT, ``NdtOmMap(r, occupancy=False)`` (exact RCU, no ray tracing);
   its Gaussians are ``gaussians(min_points=3, min_probability=0)``;
-- ``ndtom``: NDT-OM, ``NdtOmMap(r)``; its Gaussians are the default ``gaussians()``
-  (``n >= 3`` and occupied, ``l > 0``);
+- ``ndtom``: NDT-OM as the paper has it, ``NdtOmMap(r, miss_model="paper")`` (eq. 12); its
+  Gaussians are the default ``gaussians()`` (``n >= 3`` and occupied, ``l > 0``); beside it
+  ``ndtom_ndt``, the same with the NDT miss model (the library's default);
 - ``er``: the online error-refinement baseline of :mod:`ndtom_ti.evaluation.er_baseline` (numpy),
   which stands in for Yguel and Aycard's method (the paper prints no formula for it);
   update rule: :data:`ndtom_ti.evaluation.er_baseline.UPDATE_RULE`.
