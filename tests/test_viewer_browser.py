@@ -197,7 +197,7 @@ def test_map_fills_a_640x480_page_in_height_colours(small_page, room, viewers):
 
     v = _viewer(viewers, room)
     page.goto(v.url)
-    c = _canvas(page, lambda c: c["drawn"] > 5000)
+    c = _canvas(page, lambda c: c["drawn"] > 5000, settled=True)
     # the map, framed at once, fills most of the scene's width beside the panel and a good
     # part of the page (with no camera moved by the test)
     assert c["box_w"] > 0.75 * c["width"], c
@@ -222,7 +222,7 @@ def test_controls_a_person_uses(small_page, room, viewers):
     page = small_page
     v = _viewer(viewers, room)
     page.goto(v.url)
-    full = _canvas(page, lambda c: c["drawn"] > 5000)
+    full = _canvas(page, lambda c: c["drawn"] > 5000, settled=True)
     # a map file has no trajectory, latest scan or comparison map: not offered; free cells off
     sync_api.expect(page.get_by_label("Gaussians", exact=True)).to_be_checked()
     assert page.get_by_label("Trajectory", exact=True).count() == 0
@@ -239,14 +239,22 @@ def test_controls_a_person_uses(small_page, room, viewers):
     back = _canvas(page, lambda c: c["box_w"] > 0.75 * c["width"] and c["drawn"] > 0.5 * full["drawn"])
     assert back["box_w"] > 0.75 * back["width"] and back["drawn"] > 0.5 * full["drawn"], (full, back)
 
-    # the height clip keeps the floor only: the walls go, far fewer pixels (each count once the
-    # canvas has settled: on a loaded machine the camera and the clipped cloud arrive late)
+    # the height clip keeps the floor only: the walls go, so the drawn box loses their height
+    # and fewer pixels are drawn (each count once the canvas has settled). Pixel counts alone
+    # vary: when frames come slowly the page may render at a lower pixel ratio, and the
+    # upscaled floor's blurred edges then cover ~45% more pixels
     whole = _canvas(page, lambda c: c["drawn"] > 0.5 * full["drawn"], settled=True)
+    n_whole = v.drawn["gaussians"]
     lo, _ = v._zlimits
     v.controls.zclip.value = (lo, 0.3)
+
+    def floor_only(c):
+        return 0 < c["drawn"] < 0.95 * whole["drawn"] and c["box"] < 0.85 * whole["box"]
+
     # (the clip redraws the cloud: a frame between the old cloud and the new one may be blank)
-    clipped = _canvas(page, lambda c: 0 < c["drawn"] < 0.7 * whole["drawn"], settled=True, timeout=60.0)
-    assert 0 < clipped["drawn"] < 0.7 * whole["drawn"], (whole, clipped, v.drawn)
+    clipped = _canvas(page, floor_only, settled=True, timeout=60.0)
+    assert floor_only(clipped), (whole, clipped, v.drawn)
+    assert v.drawn["clip"] == (lo, 0.3) and v.drawn["gaussians"] < 0.6 * n_whole, (n_whole, v.drawn)
     sync_api.expect(page.get_by_text(re.compile(r"Height clip: .* to 0\.30 m"))).to_be_visible()
 
 
