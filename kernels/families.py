@@ -8,6 +8,7 @@ are shared by every KernelSet of a storage; a KernelSet decides how they are lau
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import SimpleNamespace
 
 from . import launch, trace, update
@@ -17,7 +18,24 @@ from .update import FreeConfig, MergeConfig
 
 # Kernels of every scan get the lighter call (launch.py); the rest keep Taichi's.
 _PER_SCAN = {"prepare", "hits_count", "hits_sum", "hits_dense", "merge", "rays", "mark_gaussians", "block_apply",
-             "block_apply_all", "apply_marked", "apply_free", "apply_free_all", "reset_rays"}  # fmt: skip
+             "apply_marked", "apply_free", "apply_free_all", "reset_rays"}  # fmt: skip
+
+
+# Told the name of each kernel variant just before its first call in this process (the call
+# that compiles it, or loads it from Taichi's offline cache): the command line says so.
+_listeners: list[Callable[[str], None]] = []
+
+
+def on_compile(fn: Callable[[str], None]) -> Callable[[], None]:
+    """Call ``fn(kernel_name)`` before each kernel variant's first call; returns a function
+    that stops it."""
+    _listeners.append(fn)
+
+    def stop() -> None:
+        if fn in _listeners:
+            _listeners.remove(fn)
+
+    return stop
 
 
 class KernelSet:
@@ -37,6 +55,8 @@ class KernelSet:
             cache = self.storage.__dict__.setdefault("kernel_cache", {})
             raw = cache.get(key)
             if raw is None:
+                for fn in _listeners:
+                    fn(build.__name__)
                 raw = cache[key] = build(self.storage, cfg)
             b = raw.launched(launch.Launcher) if self.fast and build.__name__ in _PER_SCAN else raw
             self._bound[key] = b
@@ -76,9 +96,6 @@ class KernelSet:
 
     def block_apply(self, cfg: FreeConfig):
         return self._get(update.block_apply, cfg)
-
-    def block_apply_all(self, cfg: FreeConfig):
-        return self._get(update.block_apply_all, cfg)
 
     def apply_marked(self):
         return self._get(update.apply_marked, None)

@@ -14,7 +14,7 @@ Per scan, in this order:
 4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
                      record with the RCU (a new record for a cell's first points), then
                      applies eq. (12) to the cell and clears its ray count.
-5. ``block_apply(_all)`` / ``apply_free``: eq. (12) once per cell that rays passed and no
+5. ``block_apply`` / ``apply_free``: eq. (12) once per cell that rays passed and no
                      endpoint hit, clamp, and reset of the Gaussian of a cell whose
                      log-odds fell to <= 0 (``apply_marked`` first, with the NDT miss
                      model: the summed terms of the block's marked cells).
@@ -47,9 +47,14 @@ C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
 C_NO_RECORD = 9  # hit cells merge left for want of a record (see merge's ``left``)
 C_NDT_STILL = 10  # tree cells rays passed whose NDT miss terms all rounded to zero: not updated
+# Work queues of the queued loops (see make_queue): the next chunk to take, zero before the loop.
+Q_RAYS = 11
+Q_MERGE = 12
+Q_APPLY = 13
 COUNTERS = 16
 HIT_CHUNKS = 1024  # chunks of points of hits_dense's prefix sum (Taichi runs <= 512 iterations on one thread)
-SPREAD_K = 4  # sectors per CPU thread and per scan in the rays kernels (see spread)
+# Taichi 1.7 gives each CPU thread at least this many iterations of a range-for, in one run.
+TASK_ITERS = 512
 # Sums that every thread adds to (visits, block cells) go to STRIPES copies of the
 # counters, two 64-byte lines each, picked by the work item: one atomic counter shared by
 # all threads costs ~15 ns per add on the CPU. ``total`` adds the copies up.
@@ -153,36 +158,80 @@ def cpu_threads() -> int:
     return max(1, int(cfg.cpu_max_num_threads)) if cfg.arch in (ti.x64, ti.arm64) else 1
 
 
-def make_spread(threads: int):
-    """The ray order for ``threads`` CPU threads: ``spread(i, q, inv_q)`` is the ray that
-    iteration i of n traces, with q = n // sectors and inv_q = 1 / max(q, 1).
+def make_queue(threads: int, cpu: bool = True):
+    """The work queue of a loop over n items in chunks of ``chunk`` (a SimpleNamespace of
+    ti.funcs). Taichi 1.7 splits a CPU range-for into one fixed, contiguous run per thread
+    (its pass make_cpu_multithreaded_range_for), so a thread the OS starts late, or one
+    whose run holds the longer rays, leaves the others idle at the loop's end. Here every
+    thread instead takes the next chunk from a shared counter until none is left::
 
-    Taichi 1.7 splits a CPU range-for into one contiguous run of iterations per thread,
-    and scans come in azimuth order, so each thread traced one side of the scan: the side
-    with the longer rays kept its thread busy after the other had finished (~11% more
-    visits on the hall; twice the work beside a wall). Here each thread's run covers
-    SPREAD_K sectors spread all around the scan, and at any moment the threads trace
-    sectors 360/threads degrees apart, so they rarely count into the same cells. A
-    permutation: the counts are the same in any order.
+        for w in range(q.span(n, chunk)):
+            j = q.first(w, ctr, Q_X)
+            while j < q.end(n, chunk):
+                for i in range(q.begin(j, n, chunk), q.stop(j, n, chunk)):
+                    ...  # item i
+                j = q.next(ctr, Q_X)
+
+    Chunks are taken alternately from the first and the second half of the items, so that
+    threads working at the same moment are half a scan apart (scans come in azimuth order)
+    and rarely count into the same cells. On a GPU (cpu False) it is the plain loop: one
+    thread per item. The counter slot must be zero before the loop. Every item is taken
+    exactly once, in any order: what the loops sum is order-free.
     """
-    TH = threads
-    KS = SPREAD_K * TH  # sectors per thread; a multiple of TH keeps KS + 1 prime to TH
-    SEC = TH * KS
+    TH = max(1, threads)
 
     @ti.func
-    def spread(i, q, inv_q):
-        # The last n % SEC rays keep their place. j = i // q by a multiply and a
-        # correction: an integer division costs ~40 cycles a ray.
-        r = i
-        if ti.static(TH > 1) and i < q * SEC:
-            j = ti.cast(ti.cast(i, ti.f64) * inv_q, ti.i32)
-            j += ti.select((j + 1) * q <= i, 1, 0) - ti.select(j * q > i, 1, 0)
-            c = j // KS  # the thread whose run holds iteration i
-            m = j - c * KS  # and how far along its run
-            r = ((m * TH + c * (KS + 1)) % SEC) * q + (i - j * q)
-        return r
+    def span(n, chunk):
+        # Iterations of the outer loop: one run of TASK_ITERS per thread, whose first starts the queue.
+        out = n
+        if ti.static(cpu):
+            out = TASK_ITERS * TH
+        return out
 
-    return spread, SEC
+    @ti.func
+    def end(n, chunk):
+        # Chunk numbers run to an even count (the halves' order), past the last chunk on CPU.
+        out = n
+        if ti.static(cpu):
+            out = 2 * ((n + 2 * chunk - 1) // (2 * chunk))
+        return out
+
+    @ti.func
+    def first(w, ctr: ti.template(), q: ti.template()):
+        out = w
+        if ti.static(cpu):
+            out = 1 << 30
+            if w % TASK_ITERS == 0:
+                out = ti.cast(ti.atomic_add(ctr[q], 1), ti.i32)
+        return out
+
+    @ti.func
+    def next(ctr: ti.template(), q: ti.template()):
+        out = 1 << 30
+        if ti.static(cpu):
+            out = ti.cast(ti.atomic_add(ctr[q], 1), ti.i32)
+        return out
+
+    @ti.func
+    def begin(j, n, chunk):
+        out = j
+        if ti.static(cpu):
+            half = (n + 2 * chunk - 1) // (2 * chunk)  # chunks in the first half
+            out = ((j >> 1) + (j & 1) * half) * chunk
+        return out
+
+    @ti.func
+    def stop(j, n, chunk):
+        out = j + 1
+        if ti.static(cpu):
+            out = ti.min(n, begin(j, n, chunk) + chunk)
+        return out
+
+    return SimpleNamespace(span=span, end=end, first=first, next=next, begin=begin, stop=stop)
+
+
+def on_cpu() -> bool:
+    return impl.current_cfg().arch in (ti.x64, ti.arm64)
 
 
 def device_funcs(f: Storage) -> SimpleNamespace:
@@ -237,7 +286,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
 
     SHIFT = leaf.bit_length() - 1  # leaf is a power of two
 
-    spread, SEC = make_spread(cpu_threads())
+    queue = make_queue(cpu_threads(), on_cpu())
 
     @ti.func
     def free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n: ti.template(), ctr: ti.template(),
@@ -271,9 +320,11 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # NDT miss model: rays erased the Gaussian of cell c. Each of its 26 neighbours that
         # holds one counts it; at NDT_ERASED_NEIGHBOURS since its own last points, the
         # neighbour's rows read as NDT_WIDE (see there) until its next points.
-        for dx, dy, dz in ti.static(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
-            if ti.static(dx != 0 or dy != 0 or dz != 0):
-                nb = c + ti.Vector([dx, dy, dz], dt=ti.i32)
+        # A loop, not unrolled: 26 inlined copies of the tree lookups made every kernel that
+        # erases compile for seconds, and erasing is rare.
+        for q in range(27):
+            nb = c + ti.Vector([q // 9 - 1, (q // 3) % 3 - 1, q % 3 - 1], dt=ti.i32)
+            if q != 13:
                 if (nb >= grid_lo).all() and (nb < grid_hi).all():
                     r = gslot[at(slot, nb)] - 1
                     # (a count already past the threshold stays there: the state bits above it)
@@ -467,7 +518,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return out
 
     f.funcs = SimpleNamespace(
-        leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, spread=spread, SEC=SEC,
+        leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, queue=queue,
         row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
         free_update=free_update, erased_beside=erased_beside, wide=wide, take_miss=take_miss, ndt_reset=ndt_reset, free_update_tree=free_update_tree, block_cell=block_cell,
         add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,

@@ -17,6 +17,7 @@ from .ndt import (
     MARK_I32,
     MARK_U16,
     NE_GAUSS,
+    Q_RAYS,
     TIE_MARGIN,
     device_funcs,
     f64_1d,
@@ -32,6 +33,7 @@ from .ndt import (
 )
 
 BLOCK_DTYPES = ("u16", "i32")
+RAY_CHUNK = 64  # rays a thread takes from the queue at a time (~4k cell visits at 0.2 m)
 
 
 def block_type(bt: str):
@@ -74,8 +76,6 @@ class RaysConfig:
     "dense": the block covers every cell of the scan: no bounds checks, no tree;
     "floor": the benchmark floor: the same traversal through the tree, one integer atomic
     per visited cell and nothing else.
-    flags: ("dense") set row flags (a second cache line per visit); without them
-    block_apply_all reads every cell, for blocks that rays fill densely.
     ndt: the NDT miss model: a visit to a cell holding a usable Gaussian (its block entry
     marked, or NE_GAUSS in the tree and enough points) adds the ray's likelihood term to
     the Gaussian's record; other visits only count.
@@ -83,7 +83,6 @@ class RaysConfig:
 
     bt: str = "u16"
     mode: str = "full"
-    flags: bool = True
     ndt: bool = False
 
     def __post_init__(self):
@@ -96,15 +95,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     F = device_funcs(f)
     ne, olm = f.ne, f.olm
     row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
-    ndt_visit, ndt_tree_visit, spread, SEC, SHIFT, leaf = (
-        F.ndt_visit,
-        F.ndt_tree_visit,
-        F.spread,
-        F.SEC,
-        F.SHIFT,
-        F.leaf,
-    )
-    mode, flags, ndt = cfg.mode, cfg.flags, cfg.ndt
+    ndt_visit, ndt_tree_visit, Q, SHIFT, leaf = F.ndt_visit, F.ndt_tree_visit, F.queue, F.SHIFT, F.leaf
+    mode, ndt = cfg.mode, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
     counts = block_counts(cfg.bt)
@@ -151,6 +143,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         rec_icov: f64_2d,
         ndt_prm: f64_1d,
         ndt_minp: ti.i32,
+        flags: ti.i32,  # ("dense") set row flags (a second cache line a visit); else block_apply reads every row
     ):
         o = ti.Vector([origin[0], origin[1], origin[2]])
         strides = ti.Vector([block.shape[1] * block.shape[2], block.shape[2], 1], dt=ti.i32)
@@ -160,123 +153,126 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         near_cells = 0
         if ti.static(ndt):
             near_cells = ti.cast(ndt_prm[8], ti.i32)
-        q = n // SEC
-        inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
-        for it in range(n):
-            i = spread(it, q, inv_q)
-            ce = row(cells, i)
-            z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
-            d = z - o
-            length = d.norm()  # the NDT miss model's (dead code without it)
-            u = d / length
-            cur = co
-            step = ti.Vector([0, 0, 0], dt=ti.i32)
-            rem = ti.Vector([0, 0, 0], dt=ti.i32)
-            tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
-            tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
-            for a in ti.static(range(3)):
-                diff = ce[a] - co[a]
-                if diff != 0:
-                    step[a] = 1 if diff > 0 else -1
-                    rem[a] = ti.abs(diff)
-                    face = co[a] + 1 if diff > 0 else co[a]
-                    tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
-                    tdel[a] = res / ti.abs(d[a])
-            visits = 0
-            last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
-            li = (co - b0).dot(strides)  # flat index of the current cell in the block
-            dli = step * strides
-            left = rem[0] + rem[1] + rem[2]
-            # Each pass steps at least one axis towards the endpoint cell, so the loop
-            # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
-            while left > 0:
-                rel = cur - b0
-                near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
-                if ti.static(mode == "dense"):
-                    block_visit(block1[li], near, slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov,
-                                rec_miss)  # fmt: skip
-                    if ti.static(flags):
-                        bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
-                elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
-                    # Near the sensor every ray passes: count in the dense block,
-                    # applied to the tree once per cell by block_apply.
-                    block_visit(block[rel[0], rel[1], rel[2]], near, slot, cur, o, z, u, length, i < n_hit, res,
-                                ndt_prm, rec_icov, rec_miss)  # fmt: skip
-                    lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
-                    if (lb != last_leaf).any():
-                        bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
-                        last_leaf = lb
-                else:
-                    lf = cur // leaf
-                    if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
-                        note_leaf(olm, slot, cur, occ_regions, leaves, 0)
-                        last_leaf = lf
-                    if ti.static(full):
-                        g = visit(slot, cur, touched, cap, ctr)
-                        if ti.static(ndt) and g != 0 and near == 0:
-                            ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_n, rec_icov,
-                                           rec_miss, ndt_minp)  # fmt: skip
-                    else:
-                        ti.atomic_add(ne[at(slot, cur)], 1)
-                visits += 1
-                # One axis crosses first by a clear margin (the common case): step it,
-                # advancing its crossing parameter by addition.
-                first = -1
-                if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
-                    first = 0
-                elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
-                    first = 1
-                elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
-                    first = 2
-                if first >= 0:
+        for wq in range(Q.span(n, RAY_CHUNK)):
+            jq = Q.first(wq, ctr, Q_RAYS)
+            while jq < Q.end(n, RAY_CHUNK):
+                for i in range(Q.begin(jq, n, RAY_CHUNK), Q.stop(jq, n, RAY_CHUNK)):
+                    ce = row(cells, i)
+                    z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
+                    d = z - o
+                    length = d.norm()  # the NDT miss model's (dead code without it)
+                    u = d / length
+                    cur = co
+                    step = ti.Vector([0, 0, 0], dt=ti.i32)
+                    rem = ti.Vector([0, 0, 0], dt=ti.i32)
+                    tmax = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
+                    tdel = ti.Vector([BIG, BIG, BIG], dt=ti.f64)
                     for a in ti.static(range(3)):
-                        if a == first:
-                            cur[a] += step[a]
-                            rem[a] -= 1
-                            left -= 1
-                            li += dli[a]
-                            tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
-                else:
-                    # Near a tie: the crossings recomputed by division, as the decision
-                    # the margin stands in for (the sums stray far less than it).
-                    for a in ti.static(range(3)):
-                        tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-                    tmin = ti.min(tmax[0], tmax[1], tmax[2])
-                    ties = 0
-                    up = False
-                    for a in ti.static(range(3)):
-                        if tmax[a] == tmin:
-                            ties += 1
-                            if step[a] > 0:
-                                up = True
-                    # An exact tie (the segment crosses an edge or corner): axes stepping
-                    # up move first, so the cell holding the crossing point is visited.
-                    for a in ti.static(range(3)):
-                        if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
-                            cur[a] += step[a]
-                            rem[a] -= 1
-                            left -= 1
-                            li += dli[a]
-                            tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-            if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
-                if ti.static(mode == "dense"):  # li is the endpoint cell's now
-                    block_visit(block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss)
-                    if ti.static(flags):
-                        bflag1[li >> SHIFT] = ti.i8(1)
-                else:
-                    note_leaf(olm, slot, ce, occ_regions, leaves, 0)
-                    g = visit(slot, ce, touched, cap, ctr)
-                    if ti.static(ndt) and g != 0:
-                        ndt_tree_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss,
-                                       ndt_minp)  # fmt: skip
-                visits += 1
-            tally(ctr, C_VISITS, i >> 5, visits)
+                        diff = ce[a] - co[a]
+                        if diff != 0:
+                            step[a] = 1 if diff > 0 else -1
+                            rem[a] = ti.abs(diff)
+                            face = co[a] + 1 if diff > 0 else co[a]
+                            tmax[a] = (ti.cast(face, ti.f64) * res - o[a]) / d[a]
+                            tdel[a] = res / ti.abs(d[a])
+                    visits = 0
+                    last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
+                    li = (co - b0).dot(strides)  # flat index of the current cell in the block
+                    dli = step * strides
+                    left = rem[0] + rem[1] + rem[2]
+                    # Each pass steps at least one axis towards the endpoint cell, so the loop
+                    # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+                    while left > 0:
+                        rel = cur - b0
+                        near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
+                        if ti.static(mode == "dense"):
+                            block_visit(block1[li], near, slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov,
+                                        rec_miss)  # fmt: skip
+                            if flags != 0:
+                                bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
+                        elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
+                            # Near the sensor every ray passes: count in the dense block,
+                            # applied to the tree once per cell by block_apply.
+                            block_visit(block[rel[0], rel[1], rel[2]], near, slot, cur, o, z, u, length, i < n_hit, res,
+                                        ndt_prm, rec_icov, rec_miss)  # fmt: skip
+                            lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
+                            if (lb != last_leaf).any():
+                                bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
+                                last_leaf = lb
+                        else:
+                            lf = cur // leaf
+                            if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
+                                note_leaf(olm, slot, cur, occ_regions, leaves, 0)
+                                last_leaf = lf
+                            if ti.static(full):
+                                g = visit(slot, cur, touched, cap, ctr)
+                                if ti.static(ndt) and g != 0 and near == 0:
+                                    ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_n, rec_icov,
+                                                   rec_miss, ndt_minp)  # fmt: skip
+                            else:
+                                ti.atomic_add(ne[at(slot, cur)], 1)
+                        visits += 1
+                        # One axis crosses first by a clear margin (the common case): step it,
+                        # advancing its crossing parameter by addition.
+                        first = -1
+                        if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
+                            first = 0
+                        elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
+                            first = 1
+                        elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
+                            first = 2
+                        if first >= 0:
+                            for a in ti.static(range(3)):
+                                if a == first:
+                                    cur[a] += step[a]
+                                    rem[a] -= 1
+                                    left -= 1
+                                    li += dli[a]
+                                    tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
+                        else:
+                            # Near a tie: the crossings recomputed by division, as the decision
+                            # the margin stands in for (the sums stray far less than it).
+                            for a in ti.static(range(3)):
+                                tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                            tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                            ties = 0
+                            up = False
+                            for a in ti.static(range(3)):
+                                if tmax[a] == tmin:
+                                    ties += 1
+                                    if step[a] > 0:
+                                        up = True
+                            # An exact tie (the segment crosses an edge or corner): axes stepping
+                            # up move first, so the cell holding the crossing point is visited.
+                            for a in ti.static(range(3)):
+                                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                                    cur[a] += step[a]
+                                    rem[a] -= 1
+                                    left -= 1
+                                    li += dli[a]
+                                    tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                    if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
+                        if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                            block_visit(
+                                block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss
+                            )
+                            if flags != 0:
+                                bflag1[li >> SHIFT] = ti.i8(1)
+                        else:
+                            note_leaf(olm, slot, ce, occ_regions, leaves, 0)
+                            g = visit(slot, ce, touched, cap, ctr)
+                            if ti.static(ndt) and g != 0:
+                                ndt_tree_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss,
+                                               ndt_minp)  # fmt: skip
+                        visits += 1
+                    tally(ctr, C_VISITS, i >> 5, visits)
+                jq = Q.next(ctr, Q_RAYS)
 
     ndt_fields = ("rec_miss", "rec_icov", "ndt_prm", "ndt_minp")
     ndt_part = ("ndt", NdtRecords, ndt_fields) if ndt else (None, NdtRecords, ndt_fields)
     return Bound(rays, ("slot", ("rays", Rays), ("sensor", Sensor), ("touched", Touched), "ctr",
                         ("nodes", Nodes, ("occ_regions", "leaves")), ("block", Block), ("records", Records, ("rec_n",)),
-                        ndt_part))  # fmt: skip
+                        ndt_part, "flags"))  # fmt: skip
 
 
 def mark_gaussians(f: Storage, bt: str) -> Bound:

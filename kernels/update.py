@@ -1,7 +1,7 @@
 """The occupancy-update family (method.md section 3): a scan's points to world cells,
 hits counted and summed per cell, the RCU merge of each hit cell's Gaussian with eq. (12)
 for it (``merge``), then eq. (12) once per cell that rays passed and no endpoint hit
-(``block_apply(_all)`` over the dense block, ``apply_free(_all)`` over the tree), with the
+(``block_apply`` over the dense block, ``apply_free(_all)`` over the tree), with the
 reset of the Gaussian of a cell whose log-odds fell to <= 0 (<= NDT_RESET under the NDT
 miss model)."""
 
@@ -38,6 +38,8 @@ from .ndt import (
     NDT_RESTART_CLEAR,
     NE_COUNT,
     NE_GAUSS,
+    Q_APPLY,
+    Q_MERGE,
     device_funcs,
     f64_1d,
     f64_2d,
@@ -50,7 +52,10 @@ from .ndt import (
     i64_2d,
     u64_1d,
 )
-from .trace import block_counts, block_type
+from .trace import block_type
+
+HIT_CHUNK = 64  # hit cells a thread takes from merge's queue at a time
+COLUMN_CHUNK = 32  # block columns a thread takes from block_apply's queue at a time
 
 
 @dataclass(frozen=True)
@@ -260,7 +265,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
     record (a new record for a cell's first points), then eq. (12) for the cell."""
     F = device_funcs(f)
     lo, ne, hn, gslot, glm, olm = f.lo, f.ne, f.hn, f.gslot, f.glm, f.olm
-    row, at, note_leaf, ndt_icov = F.row, F.at, F.note_leaf, F.ndt_icov
+    row, at, note_leaf, ndt_icov, Q = F.row, F.at, F.note_leaf, F.ndt_icov, F.queue
     grouped, ndt = cfg.grouped, cfg.ndt
     bt = block_type(cfg.bt)
     b3d = ti.types.ndarray(dtype=bt, ndim=3)
@@ -346,91 +351,99 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         # finds none is left as it was, for the caller to grow the records and merge it.
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
-        for s in range(nh):
-            c = row(hitlist, s)
-            r = gslot[at(slot, c)] - 1
-            if r < 0:
-                # A record from the free stack, else a new one. Pops only here (pushes
-                # only in eq. 12's kernels): a pop that finds it empty puts its count back.
-                k = ti.atomic_sub(ctr[C_FREE], 1) - 1
-                if k >= 0:
-                    r = rec_free[ti.cast(k, ti.i32)]
-                else:
-                    ti.atomic_add(ctr[C_FREE], 1)
-                    r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
-                if r >= rec_n.shape[0]:
-                    left[ti.atomic_add(ctr[C_NO_RECORD], 1)] = s
-                    continue
-                if ti.static(grouped):  # hits_count did not touch the index tree
-                    note_leaf(glm, slot, c, gidx_regions, leaves, 1)
-                gslot[at(slot, c)] = r + 1
-                for a in ti.static(range(3)):
-                    rec_cell[r, a] = c[a]
-            cnt = 0
-            if ti.static(grouped):
-                cnt = hcnt[s]
-            else:
-                cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
-            n = ti.cast(cnt, ti.f64)
-            sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-            ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
-            if ti.static(grouped):  # sums relative to the cell centre, as hits_sum's
-                centre = (c.cast(ti.f64) + 0.5) * res
-                for j in range(off[s], off[s] + cnt):
-                    i = order[j]
-                    x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
-                    sv += x
-                    ss += ti.Vector([x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]])
-            else:
-                sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
-                ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
-            mu_y = sv / n
-            s_y = (
-                ss
-                - ti.Vector([sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]])
-                / n
-            )
-            m_i = rec_n[r]
-            tot_i = m_i + cnt
-            if m_i == 0:
-                for a in ti.static(range(3)):
-                    rec_mean[r, a] = mu_y[a]
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = s_y[a]
-            else:
-                m = ti.cast(m_i, ti.f64)
-                tot = m + n
-                mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
-                d = mu_x - mu_y
-                w = m * n / tot
-                dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
-                mu = (m * mu_x + n * mu_y) / tot
-                for a in ti.static(range(3)):
-                    rec_mean[r, a] = mu[a]
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
-            if n_max > 0 and tot_i > n_max:
-                k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
-                for a in ti.static(range(6)):
-                    rec_scat[r, a] = rec_scat[r, a] * k
-                tot_i = n_max
-            rec_n[r] = tot_i
-            state = 0
-            if ti.static(ndt):  # (the paper's model reads no NDT arrays)
-                rel = c - b0
-                if not ((rel >= 0).all() and (rel < bsize).all()):
-                    # The rays' sum, dropped: a hit cell takes the hit update only. (In the
-                    # block the rays skipped hit cells, marked before them: no sum there.)
-                    rec_miss[r] = ti.i64(0)
-                if m_i > 0:
-                    state = rec_nbr[r] & (NBR_FRESH | NBR_BACK)
-                if tot_i >= ndt_minp:  # what rays read of the cell's points
-                    ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
-            first = 1 if m_i == 0 else 0
-            state = hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped,
-                               first, state)  # fmt: skip
-            if ti.static(ndt):
-                rec_nbr[r] = state  # (its count of erased neighbours starts again)
+        for wq in range(Q.span(nh, HIT_CHUNK)):
+            jq = Q.first(wq, ctr, Q_MERGE)
+            while jq < Q.end(nh, HIT_CHUNK):
+                for s in range(Q.begin(jq, nh, HIT_CHUNK), Q.stop(jq, nh, HIT_CHUNK)):
+                    c = row(hitlist, s)
+                    r = gslot[at(slot, c)] - 1
+                    if r < 0:
+                        # A record from the free stack, else a new one. Pops only here (pushes
+                        # only in eq. 12's kernels): a pop that finds it empty puts its count back.
+                        k = ti.atomic_sub(ctr[C_FREE], 1) - 1
+                        if k >= 0:
+                            r = rec_free[ti.cast(k, ti.i32)]
+                        else:
+                            ti.atomic_add(ctr[C_FREE], 1)
+                            r = ti.i32(ti.atomic_add(ctr[C_RECORDS], 1))
+                        if r >= rec_n.shape[0]:
+                            left[ti.atomic_add(ctr[C_NO_RECORD], 1)] = s
+                            continue
+                        if ti.static(grouped):  # hits_count did not touch the index tree
+                            note_leaf(glm, slot, c, gidx_regions, leaves, 1)
+                        gslot[at(slot, c)] = r + 1
+                        for a in ti.static(range(3)):
+                            rec_cell[r, a] = c[a]
+                    cnt = 0
+                    if ti.static(grouped):
+                        cnt = hcnt[s]
+                    else:
+                        cnt = hn[at(slot, c)]  # read once: each tree access walks both pointer levels
+                    n = ti.cast(cnt, ti.f64)
+                    sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+                    ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
+                    if ti.static(grouped):  # sums relative to the cell centre, as hits_sum's
+                        centre = (c.cast(ti.f64) + 0.5) * res
+                        for j in range(off[s], off[s] + cnt):
+                            i = order[j]
+                            x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
+                            sv += x
+                            ss += ti.Vector(
+                                [x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]]
+                            )
+                    else:
+                        sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
+                        ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
+                    mu_y = sv / n
+                    s_y = (
+                        ss
+                        - ti.Vector(
+                            [sv[0] * sv[0], sv[0] * sv[1], sv[0] * sv[2], sv[1] * sv[1], sv[1] * sv[2], sv[2] * sv[2]]
+                        )
+                        / n
+                    )
+                    m_i = rec_n[r]
+                    tot_i = m_i + cnt
+                    if m_i == 0:
+                        for a in ti.static(range(3)):
+                            rec_mean[r, a] = mu_y[a]
+                        for a in ti.static(range(6)):
+                            rec_scat[r, a] = s_y[a]
+                    else:
+                        m = ti.cast(m_i, ti.f64)
+                        tot = m + n
+                        mu_x = ti.Vector([rec_mean[r, 0], rec_mean[r, 1], rec_mean[r, 2]])
+                        d = mu_x - mu_y
+                        w = m * n / tot
+                        dd = ti.Vector([d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2]])
+                        mu = (m * mu_x + n * mu_y) / tot
+                        for a in ti.static(range(3)):
+                            rec_mean[r, a] = mu[a]
+                        for a in ti.static(range(6)):
+                            rec_scat[r, a] = rec_scat[r, a] + s_y[a] + w * dd[a]
+                    if n_max > 0 and tot_i > n_max:
+                        k = ti.cast(n_max - 1, ti.f64) / ti.cast(tot_i - 1, ti.f64)
+                        for a in ti.static(range(6)):
+                            rec_scat[r, a] = rec_scat[r, a] * k
+                        tot_i = n_max
+                    rec_n[r] = tot_i
+                    state = 0
+                    if ti.static(ndt):  # (the paper's model reads no NDT arrays)
+                        rel = c - b0
+                        if not ((rel >= 0).all() and (rel < bsize).all()):
+                            # The rays' sum, dropped: a hit cell takes the hit update only. (In the
+                            # block the rays skipped hit cells, marked before them: no sum there.)
+                            rec_miss[r] = ti.i64(0)
+                        if m_i > 0:
+                            state = rec_nbr[r] & (NBR_FRESH | NBR_BACK)
+                        if tot_i >= ndt_minp:  # what rays read of the cell's points
+                            ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
+                    first = 1 if m_i == 0 else 0
+                    state = hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped,
+                                       first, state)  # fmt: skip
+                    if ti.static(ndt):
+                        rec_nbr[r] = state  # (its count of erased neighbours starts again)
+                jq = Q.next(ctr, Q_MERGE)
 
     return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
                          ("grouped", GroupedHits) if grouped else (None, GroupedHits), "nh", "n_max",
@@ -486,70 +499,29 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
 
 
 def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
-    """eq. (12) for the cells of the dense block, straight from their counts (hit cells
-    were zeroed by merge; marked cells took their sums in apply_marked), visiting only the
-    rows that rays (or marks) flagged; block and flags are zero afterwards."""
+    """eq. (12) for the cells of the dense block, straight from their counts (hit cells were
+    zeroed by merge; marked cells took their sums in apply_marked); block and row flags are
+    zero afterwards. ``flagged``: the rays flagged the rows they entered (a block they left
+    mostly empty) and only those are read; else every row is, a word of cells at a time.
+    One kernel for both, so a recording whose scans fill the block more or less densely
+    compiles it once."""
     F = device_funcs(f)
-    block_cell, tally, leaf = F.block_cell, F.tally, F.leaf
-    bt, ndt, counts = block_type(cfg.bt), cfg.ndt, block_counts(cfg.bt)
-    b3d = ti.types.ndarray(dtype=bt, ndim=3)
-
-    def block_apply(
-        slot: ti.i32,
-        block: b3d,  # Block: ray counts, zeroed here
-        bflag: i8_3d,  # rows entered, zeroed here
-        base: i32_1d,
-        l_free: ti.f64,  # Model
-        l_min: ti.f32,
-        l_max: ti.f32,
-        rec_n: i32_1d,  # Records
-        rec_free: i32_1d,
-        ctr: i64_1d,
-        occ_regions: i8_4d,  # Nodes
-        leaves: i64_2d,
-    ):
-        # eq. (12) for the cells of the dense block, straight from their counts (hit cells
-        # were zeroed by merge). One leaf of the tree per iteration, so its cells are
-        # updated together (the block is leaf-aligned).
-        b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        for bi, bj, kb in ti.ndrange(block.shape[0] // leaf, block.shape[1] // leaf, block.shape[2] // leaf):
-            cells = 0
-            for ii, jj in ti.ndrange(leaf, leaf):
-                i, j = bi * leaf + ii, bj * leaf + jj
-                if bflag[i, j, kb] != 0:
-                    bflag[i, j, kb] = ti.i8(0)
-                    for kk in range(leaf):
-                        k = kb * leaf + kk
-                        v = ti.cast(block[i, j, k], ti.i32)
-                        if v != 0:
-                            block[i, j, k] = ti.cast(0, bt)
-                            if not ti.static(ndt) or counts(v):
-                                block_cell(slot, b0 + ti.Vector([i, j, k]), v, cells == 0, l_free, l_min, l_max,
-                                           rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
-                                cells += 1
-            if cells > 0:
-                tally(ctr, C_BLOCK_CELLS, bi * (block.shape[1] // leaf) + bj, cells)
-
-    return Bound(block_apply, ("slot", ("block", Block, ("block", "bflag", "base")), *_FREE_PARTS,
-                               ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
-
-
-def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
-    """block_apply for a block the rays filled densely (no row flags): every cell read."""
-    F = device_funcs(f)
-    block_cell, tally, SHIFT = F.block_cell, F.tally, F.SHIFT
+    block_cell, tally, SHIFT, Q, leaf = F.block_cell, F.tally, F.SHIFT, F.queue, F.leaf
     ndt = cfg.ndt
     bits = 16 if cfg.bt == "u16" else 32
     lanes = 64 // bits  # block entries per 64-bit word
+    row_words = leaf // lanes  # words per row of `leaf` cells along z (one row flag)
     mask = (1 << bits) - 1
     ones = sum(1 << (bits * i) for i in range(lanes))  # lowest bit of every lane
     highs = ones << (bits - 1)  # highest bit of every lane
 
-    def block_apply_all(
+    def block_apply(
         slot: ti.i32,
         words: u64_1d,  # the block, flat, as 64-bit words: ray counts, zeroed here
+        bflag: i8_3d,  # rows entered (read when flagged), zeroed here
         shape: i32_1d,  # [3] its shape in cells
         base: i32_1d,  # [3] cell index of its first cell
+        flagged: ti.i32,
         l_free: ti.f64,  # Model
         l_min: ti.f32,
         l_max: ti.f32,
@@ -559,40 +531,55 @@ def block_apply_all(f: Storage, cfg: FreeConfig) -> Bound:
         occ_regions: i8_4d,  # Nodes
         leaves: i64_2d,
     ):
-        # block_apply for a block the rays filled densely (no row flags): every column
-        # of cells along z read in memory order, a word of `lanes` cells at a time, so
-        # the empty cells (most of them) cost one test per word. Little-endian: lane 0
-        # is the word's first cell.
+        # Every column of cells along z in memory order, a row of `leaf` cells at a time (skipped
+        # unless flagged when the rays flagged rows), a word of `lanes` cells at a time, so the
+        # empty cells (most of them) cost one test per word. Little-endian: lane 0 is the word's
+        # first cell.
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
-        wz = shape[2] // lanes  # a multiple of the leaf size: whole words
-        for i, j in ti.ndrange(shape[0], shape[1]):
-            cells = 0
-            last = -1
-            col = (i * shape[1] + j) * wz
-            for kw in range(wz):
-                w = words[col + kw]
-                if w != 0:
-                    words[col + kw] = ti.u64(0)
-                    if ti.static(ndt):
-                        # The marks (all bits set; hit marks were cleared by merge) dropped
-                        # from the whole word at once: t has a zero lane exactly there, and
-                        # no count makes t - ones borrow into a lane's top bit.
-                        t = ~w
-                        top = (t - ti.u64(ones)) & ~t & ti.u64(highs)
-                        w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
-                    for lane in ti.static(range(lanes)):
-                        v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                        if v != 0:
-                            k = kw * lanes + lane
-                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free, l_min, l_max,
-                                       rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
-                            cells += 1
-                            last = k >> SHIFT
-            if cells > 0:
-                tally(ctr, C_BLOCK_CELLS, (i * shape[1] + j) >> 3, cells)
+        wz = shape[2] // lanes  # a multiple of the leaf size: whole rows
+        ncol = shape[0] * shape[1]
+        for wq in range(Q.span(ncol, COLUMN_CHUNK)):
+            jq = Q.first(wq, ctr, Q_APPLY)
+            while jq < Q.end(ncol, COLUMN_CHUNK):
+                for ij in range(Q.begin(jq, ncol, COLUMN_CHUNK), Q.stop(jq, ncol, COLUMN_CHUNK)):
+                    i, j = ij // shape[1], ij % shape[1]
+                    cells = 0
+                    last = -1
+                    col = ij * wz
+                    for kb in range(wz // row_words):
+                        read = True
+                        if flagged != 0:
+                            read = bflag[i, j, kb] != 0
+                            if read:
+                                bflag[i, j, kb] = ti.i8(0)
+                        if read:
+                            for kr in ti.static(range(row_words)):
+                                kw = kb * row_words + kr
+                                w = words[col + kw]
+                                if w != 0:
+                                    words[col + kw] = ti.u64(0)
+                                    if ti.static(ndt):
+                                        # The marks (all bits set; hit marks were cleared by merge)
+                                        # dropped from the whole word at once: t has a zero lane
+                                        # exactly there, and no count makes t - ones borrow into a
+                                        # lane's top bit.
+                                        t = ~w
+                                        top = (t - ti.u64(ones)) & ~t & ti.u64(highs)
+                                        w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
+                                    for lane in ti.static(range(lanes)):
+                                        v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
+                                        if v != 0:
+                                            k = kw * lanes + lane
+                                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free,
+                                                       l_min, l_max, rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
+                                            cells += 1
+                                            last = k >> SHIFT
+                    if cells > 0:
+                        tally(ctr, C_BLOCK_CELLS, ij >> 3, cells)
+                jq = Q.next(ctr, Q_APPLY)
 
-    return Bound(block_apply_all, ("slot", "words", "shape", "base", *_FREE_PARTS,
-                                   ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
+    return Bound(block_apply, ("slot", "words", "bflag", "shape", "base", "flagged", *_FREE_PARTS,
+                               ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
 
 
 def apply_free(f: Storage, ndt: bool) -> Bound:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import time
 import weakref
 from pathlib import Path
 from typing import Any
@@ -25,7 +24,6 @@ from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
 from .scaninput import as_pose, cell_box  # noqa: F401 - part of this module's interface
 from .snapshot import MapSnapshot, probability, select_gaussians
-from .warmup import warm_up
 
 # NDT miss model: variance added on every axis of a Gaussian's covariance before it is
 # inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * trace keeps
@@ -191,7 +189,6 @@ class NdtOmMap:
         self._ctr = np.zeros(CTR_SIZE, np.int64)  # export's counters
         self._glo = np.array(self.layout.lo, np.int64)
         self._ghi = np.array(self.layout.hi, np.int64)
-        self._warm = False  # warmup.warm_up done for this map (at its first scan)
         c = self.config
         sigma_s = c.sigma_s_at(self.resolution)
         self._ndt_prm = np.array([c.eta, 0.5 / sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
@@ -293,16 +290,11 @@ class NdtOmMap:
         """
         with self._st.lock:  # the dense block is shared by the maps of the process
             self._check_open()
-            warm = 0.0
-            if not self._warm:
-                self._warm = True
-                t0 = time.perf_counter()
-                warm_up(self)
-                warm = time.perf_counter() - t0
+            # Kernels compile (or load from Taichi's offline cache) at their first call in
+            # the process: a scan's time includes those its update needed first.
             rep = self._update.insert_guarded(points, T_world_sensor)
             self.scans_inserted += 1
             self.points_inserted += rep.points_used
-            rep.seconds += warm  # the first scan's time includes compiling its kernels
             return rep
 
     @_locked

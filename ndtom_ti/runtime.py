@@ -157,6 +157,9 @@ def init(
         if _state.arch == "cuda":
             _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
             _state.pool_max = 1 << 62
+        from .compiling import fast_frontend
+
+        fast_frontend()
         return _state.arch
 
 
@@ -332,7 +335,15 @@ def acquire_slot(layout):
 def release_slot(st, slot: int) -> None:
     """Empty a dead map's slot (its nodes go back to Taichi's free lists) and free it."""
     try:
-        st.kernels.clear_slot(slot)
+        import taichi as ti
+
+        # Taichi 1.7.4's type check warns that every index of ti.deactivate is "not int32"
+        # (they are i32; 14 multi-line warnings at its compile): not for the user's terminal.
+        ti.set_logging_level(ti.ERROR)
+        try:
+            st.kernels.clear_slot(slot)
+        finally:
+            ti.set_logging_level(ti.WARN)
     except Exception:  # noqa: BLE001 - interpreter shutdown: nothing to keep
         return
     st.leaf_count[slot] = 0

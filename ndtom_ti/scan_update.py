@@ -26,6 +26,8 @@ from .kernels.ndt import (
     C_VISITS,
     CTR_SIZE,
     HIT_CHUNKS,
+    Q_MERGE,
+    Q_RAYS,
     U16_MAX_RAYS,
     total,
 )
@@ -70,7 +72,9 @@ class UpdatePlan:
         every ray visit in the sparse tree).
     u16_rays: scans of at most this many rays count in 16 bits on the CPU (a ray passes
         a cell once; 65534 and 65535 are the NDT miss model's marks), at most 65533; larger
-        scans, or 0, in 32 bits.
+        scans, or 0 (the default), in 32 bits. 16-bit counts measured no faster on the
+        hall (paired, 0.999x), and one block type means one set of kernels to compile
+        where a recording's scans straddle 65533 points.
     row_flags: for a block that holds the whole scan: "auto" flags the rows rays enter
         when the last scan made few visits per block cell, "always", or "never" (every
         row is read).
@@ -81,7 +85,7 @@ class UpdatePlan:
     """
 
     block_cells: int = BLOCK_CELLS
-    u16_rays: int = U16_MAX_RAYS
+    u16_rays: int = 0
     row_flags: str = "auto"
     one_pass: bool = True
     touched_rows: int = TOUCHED_START
@@ -127,7 +131,6 @@ class ScanUpdate:
         self.ghi = np.array(self.layout.hi, np.int64)
         self.ctr = np.zeros(CTR_SIZE, np.int64)
         self.chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
-        self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
         self.model = Model(l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min),
                            l_max=float(config.logodds_max))  # fmt: skip
@@ -253,21 +256,26 @@ class ScanUpdate:
             if dense and (base <= lo).all() and (base + np.array(blk.block.shape) > hi).all():
                 whole = True
                 # The block covers every cell of the scan. Row flags pay off only where
-                # rays leave most rows empty: the last scan made few visits per block cell
-                # (measured on the hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15).
+                # rays leave most rows empty: few visits per block cell (measured on the
+                # hall: flags lose by 6% at 0.37 visits/cell, 15% at 1.15). A ray visits
+                # exactly |endpoint cell - sensor cell|_1 cells, and a free ray its last too.
                 rf = self.plan.row_flags
-                flagged = self.block_density < 0.2 if rf == "auto" else rf == "always"
-                cfg = RaysConfig(bt=bt, mode="dense", flags=flagged, ndt=ndt)
+                if rf == "auto":
+                    steps = int(np.abs(cells - p.ocell.astype(np.int32)).sum()) + n - n_hit
+                    flagged = steps < 0.2 * blk.block.size
+                else:
+                    flagged = rf == "always"
+                cfg = RaysConfig(bt=bt, mode="dense", ndt=ndt)
             scan_rays = Rays(pts=world, cells=cells, n_hit=n_hit, n=n)
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
                 k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
                                      block=blk, rays=scan_rays, flags=int(flagged))  # fmt: skip
-            k.rays(cfg)(rays=scan_rays, **common)
+            ctr[Q_RAYS] = 0
+            k.rays(cfg)(rays=scan_rays, flags=int(flagged), **common)
             st.note_usage()
             if not (dense and blk.block.size):
                 return None
-            self.block_density = total(ctr, C_VISITS) / blk.block.size  # the only rays kernel of the update
             return blk, flagged, whole
         # Hits first, then free rays, each by azimuth: batches stay spatially compact.
         d = world - p.origin
@@ -290,7 +298,8 @@ class ScanUpdate:
                 fits = budget.fits(bound + hits)
             if fits:
                 # No dense block here: its cells would reach the tree outside this batch's bound.
-                rays(rays=Rays(pts=np.ascontiguousarray(ws[a:b]), cells=np.ascontiguousarray(cs[a:b]),
+                ctr[Q_RAYS] = 0
+                rays(flags=1, rays=Rays(pts=np.ascontiguousarray(ws[a:b]), cells=np.ascontiguousarray(cs[a:b]),
                                n_hit=max(0, min(n_hit - a, b - a)), n=b - a), **common)  # fmt: skip
                 st.note_usage()
                 self.batches += 1
@@ -409,7 +418,7 @@ class ScanUpdate:
             merge = k.merge(MergeConfig(bt=bt, grouped=grouped, ndt=self.ndt))
             while True:
                 cap = recs.capacity
-                ctr[C_RECORDS], ctr[C_NO_RECORD] = recs.count, 0
+                ctr[C_RECORDS], ctr[C_NO_RECORD], ctr[Q_MERGE] = recs.count, 0, 0
                 hits = {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world)} if grouped else {
                     "sums": TreeSums(acc=acc)}  # fmt: skip
                 merge(slot=slot, hitlist=hitlist, **hits, nh=todo, n_max=int(cfg.n_max), records=recs.group, ctr=ctr,
@@ -433,12 +442,9 @@ class ScanUpdate:
             if marked:  # the sums of the marked cells (block_apply clears their marks)
                 k.apply_marked()(slot=slot, nrec=recs.count, model=model, records=recs.group, ctr=ctr, shape=shape,
                                  base=blk.base, ndt=recs.ndt_group)  # fmt: skip
-            fc = FreeConfig(bt=bt, ndt=marked)
-            if flagged:
-                k.block_apply(fc)(slot=slot, block=blk, model=model, records=recs.group, ctr=ctr, nodes=nodes)
-            else:
-                k.block_apply_all(fc)(slot=slot, words=block.reshape(-1).view(np.uint64), shape=shape, base=blk.base,
-                                      model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
+            k.block_apply(FreeConfig(bt=bt, ndt=marked))(
+                slot=slot, words=block.reshape(-1).view(np.uint64), bflag=blk.bflag, shape=shape, base=blk.base,
+                flagged=int(flagged), model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
         if self.occupancy and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self.touched):

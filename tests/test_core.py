@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 from ndtom_ti.kernels.args import Bound
+from ndtom_ti.kernels.ndt import U16_MAX_RAYS
 from reference import batch_stats, eq12_logodds, ray_cells, ray_pass_counts
 
 from ndtom_ti import MapConfig, NdtOmMap
@@ -117,17 +118,17 @@ def assert_logodds_equal(got, ref):
 
 # Ray counts go to a dense block over the scan's cells, trimmed to ``block_cells`` around
 # the sensor, and to the sparse tree past it: whole block (rows flagged as rays enter
-# them, or all rows read as after a dense scan; u16 counts, or i32 as for scans of more
-# than 65535 rays), split, tree only.
-BLOCKS = [None, "unflagged", "i32", "i32 unflagged", 8**3 * 27, 0]
+# them, or all rows read as after a dense scan; i32 counts, or u16 as UpdatePlan.u16_rays
+# allows), split, tree only.
+BLOCKS = [None, "unflagged", "u16", "u16 unflagged", 8**3 * 27, 0]
 
 
 def set_block(m, block_cells):
     if isinstance(block_cells, str):
         if "unflagged" in block_cells:
             m.plan.row_flags = "never"
-        if "i32" in block_cells:
-            m.plan.u16_rays = 0
+        if "u16" in block_cells:
+            m.plan.u16_rays = U16_MAX_RAYS
     elif block_cells is not None:
         m.plan.block_cells = block_cells
 

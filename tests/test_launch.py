@@ -1,4 +1,4 @@
-"""The lighter kernel call (kernels/launch.py) and the CPU ray order (make_spread)."""
+"""The lighter kernel call (kernels/launch.py) and the CPU loops' work queue (make_queue)."""
 
 import collections
 
@@ -9,7 +9,7 @@ import taichi as ti
 from ndtom_ti import NdtOmMap, runtime
 from ndtom_ti.kernels import launch
 from ndtom_ti.kernels.families import kernel_set
-from ndtom_ti.kernels.ndt import make_spread
+from ndtom_ti.kernels.ndt import make_queue
 from ndtom_ti.kernels.update import MergeConfig
 
 F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -115,30 +115,32 @@ def test_maps_through_both_calls_are_identical(sim_hall_dynamic, monkeypatch):
     np.testing.assert_allclose(ga["cov"], gb["cov"], rtol=1e-9, atol=1e-15)
 
 
-@pytest.mark.parametrize("threads", [1, 2, 3, 4, 6, 16])
-def test_ray_order_is_a_permutation_spread_over_the_scan(threads):
-    spread, sec = make_spread(threads)
+def _queue_kernel(threads, chunk):
+    q = make_queue(threads, cpu=True)
 
     @ti.kernel
-    def order(out: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32):
-        q = n // sec
-        inv_q = 1.0 / ti.cast(ti.max(q, 1), ti.f64)
-        for it in range(n):
-            out[it] = spread(it, q, inv_q)
+    def take(taken: ti.types.ndarray(dtype=ti.i32, ndim=1), seq: ti.types.ndarray(dtype=ti.i32, ndim=1),
+             ctr: ti.types.ndarray(dtype=ti.i64, ndim=1), n: ti.i32):  # fmt: skip
+        for wq in range(q.span(n, chunk)):
+            j = q.first(wq, ctr, 0)
+            while j < q.end(n, chunk):
+                for i in range(q.begin(j, n, chunk), q.stop(j, n, chunk)):
+                    ti.atomic_add(taken[i], 1)
+                    seq[i] = j
+                j = q.next(ctr, 0)
 
-    for n in (0, 1, sec - 1, sec, sec + 5, 1000, 57455):
-        out = np.full(n, -1, np.int32)
-        order(out, n)
-        np.testing.assert_array_equal(np.sort(out), np.arange(n))
-    # Each thread's contiguous run of iterations covers sectors all around the scan, and
-    # the threads start in different places.
-    n = 57455
-    out = np.empty(n, np.int32)
-    order(out, n)
-    runs = np.array_split(out[: (n // sec) * sec], threads)
-    for run in runs:
-        sectors = np.unique(run * threads // n)
-        assert len(sectors) == threads, sectors
-    if threads > 1:
-        starts = [run[0] for run in runs]
-        assert len({s * threads // n for s in starts}) == threads
+    return take
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 4, 16])
+@pytest.mark.parametrize("chunk", [1, 7, 64])
+def test_queue_takes_every_item_once(threads, chunk):
+    take = _queue_kernel(threads, chunk)
+    for n in (0, 1, chunk - 1, chunk, chunk + 1, 2 * chunk + 3, 1000, 57455):
+        taken, seq, ctr = np.zeros(n, np.int32), np.full(n, -1, np.int32), np.zeros(1, np.int64)
+        take(taken, seq, ctr, n)
+        np.testing.assert_array_equal(taken, np.ones(n, np.int32))
+        # Chunks alternate between the two halves: the chunk taken second starts half way.
+        if n >= 4 * chunk:
+            half = -(-n // (2 * chunk)) * chunk
+            assert seq[0] == 0 and seq[half] == 1 and seq[chunk] == 2

@@ -93,10 +93,24 @@ class _Bar:
         self.progress: Progress | None = None
         self.task: Any = None
         self.arch_used = ""
+        self.compiled = 0  # kernels compiled (or loaded from Taichi's cache) during the run
+        self._unlisten: Any = None
+
+    def _compiling(self, name: str) -> None:
+        # Taichi compiles each kernel at its first call: the first scans wait for it, so say
+        # so (the bar is redrawn now: the compile holds the interpreter until it is done).
+        self.compiled += 1
+        if self.progress is not None:
+            self.progress.update(
+                self.task, description=f"compiling kernels, once per process ({self.compiled}: {name})", refresh=True
+            )
 
     def __call__(self, summary: Any, report: Any) -> None:
         if report is None:  # the recording is fine: start Taichi and the bar
             self.arch_used = init_taichi(self.arch, self.memory_limit)
+            from ..compiling import on_compile
+
+            self._unlisten = on_compile(self._compiling)
             err = console_err()
             err.print(
                 Text(
@@ -124,9 +138,12 @@ class _Bar:
             total = summary.scans_expected
             if total is not None and summary.scans_used > total:
                 total = summary.scans_used
-            self.progress.update(self.task, completed=summary.scans_used, total=total, rate=rate)
+            self.progress.update(self.task, completed=summary.scans_used, total=total, rate=rate, description="mapping")
 
     def stop(self, summary: Any | None = None) -> None:
+        if self._unlisten is not None:
+            self._unlisten()
+            self._unlisten = None
         if self.progress is not None:
             if summary is not None:
                 self.progress.update(

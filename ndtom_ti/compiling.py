@@ -1,0 +1,59 @@
+"""Kernel compiles: a cheaper Taichi front end, and who is told when a kernel compiles.
+
+Taichi compiles a kernel at its first call in a process; with its offline cache warm it
+still rebuilds the kernel's IR from the Python source to find the cached code. In Taichi
+1.7.4 about half of that time went to source positions for error messages: every AST
+node's text wrapped to 80 columns with a caret line (``get_pos_info``, 9.7 of 19.6 s of
+the front end's time in a first scan, profiled). ``fast_frontend`` gives each node its
+file, line and source line instead, which is what a compile error or warning needs.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from .kernels import families
+
+# The Taichi release whose front end fast_frontend was written against.
+WRITTEN_FOR = (1, 7, 4)
+
+_done = False
+_lock = threading.Lock()
+
+
+def _pos_info(self, node) -> str:
+    line = node.lineno + self.lineno_offset
+    text = self.src[node.lineno - 1] if 0 < node.lineno <= len(self.src) else ""
+    return f'File "{self.file}", line {line}, in {self.func.func.__name__}:\n{text}\n'
+
+
+def fast_frontend() -> bool:
+    """Use the cheaper source positions in Taichi's front end (once per process). Only on
+    the Taichi release it was written for, and not with NDTOM_PLAIN_COMPILE=1. Returns
+    whether it is in use."""
+    global _done
+    with _lock:
+        if _done:
+            return True
+        if os.environ.get("NDTOM_PLAIN_COMPILE", "") not in ("", "0"):
+            return False
+        import taichi
+
+        if tuple(getattr(taichi, "__version__", ())) != WRITTEN_FOR:
+            return False
+        try:
+            from taichi.lang.ast import ast_transformer_utils as utils
+
+            ctx = utils.ASTTransformerContext
+        except (ImportError, AttributeError):
+            return False
+        if not callable(getattr(ctx, "get_pos_info", None)):
+            return False
+        ctx.get_pos_info = _pos_info
+        _done = True
+        return True
+
+
+# Who is told of each kernel variant's first call (kernels/families.py calls them).
+on_compile = families.on_compile
