@@ -82,10 +82,12 @@ MISS_SCALE = float(2**32)
 # a usable Gaussian (MARK), and a cell that endpoints of the scan hit (HIT: it takes the hit
 # update only, so rays passing it neither count nor test its Gaussian). Ray counts never
 # reach them: u16 blocks take scans of at most U16_MAX_RAYS rays, i32 counts are >= 0.
+# An i32 block's mark holds the Gaussian's record r as MARK_I32 - r, so that a ray visit
+# reads the record without walking the index tree (u16 entries have no room for it).
 MARK_U16 = 0xFFFF
 HIT_U16 = 0xFFFE
 U16_MAX_RAYS = 0xFFFD
-MARK_I32 = -1
+MARK_I32 = -3
 HIT_I32 = -2
 
 # Finite in f32 too: kernel float literals are f32, and 1e300 would become inf, which

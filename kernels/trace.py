@@ -95,7 +95,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     F = device_funcs(f)
     ne, olm = f.ne, f.olm
     row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
-    ndt_visit, ndt_tree_visit, Q, SHIFT, leaf = F.ndt_visit, F.ndt_tree_visit, F.queue, F.SHIFT, F.leaf
+    ndt_visit, ndt_tree_visit, add_miss = F.ndt_visit, F.ndt_tree_visit, F.add_miss
+    Q, SHIFT, leaf = F.queue, F.SHIFT, F.leaf
     mode, ndt = cfg.mode, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
@@ -116,6 +117,9 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             v = entry
             if counts(v):
                 ti.atomic_add(entry, ti.cast(1, bt))
+            elif ti.static(cfg.bt == "i32"):
+                if v <= MARK_I32 and near == 0:  # the record is in the mark
+                    add_miss(MARK_I32 - v, c, o, z, u, length, hit, res, ndt_prm, rec_icov, rec_miss)
             elif v == ti.cast(mark, bt) and near == 0:
                 ndt_visit(slot, c, o, z, u, length, hit, res, ndt_prm, rec_icov, rec_miss)
 
@@ -304,7 +308,10 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
             if rec_n[r] >= ndt_minp:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
-                    block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
+                    if ti.static(bt == "i32"):
+                        block[rel[0], rel[1], rel[2]] = MARK_I32 - r
+                    else:
+                        block[rel[0], rel[1], rel[2]] = ti.cast(mark, bt_)
                     if flags != 0:
                         bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
         for i in range(n_hit):

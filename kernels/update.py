@@ -558,7 +558,12 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                 w = words[col + kw]
                                 if w != 0:
                                     words[col + kw] = ti.u64(0)
-                                    if ti.static(ndt):
+                                    if ti.static(ndt and bits == 32):
+                                        # The marks (negative; hit marks were cleared by merge)
+                                        # dropped from the whole word at once: their lanes' sign bits.
+                                        top = w & ti.u64(highs)
+                                        w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
+                                    elif ti.static(ndt):
                                         # The marks (all bits set; hit marks were cleared by merge)
                                         # dropped from the whole word at once: t has a zero lane
                                         # exactly there, and no count makes t - ones borrow into a
