@@ -66,7 +66,7 @@ def main() -> None:
             med = {k: statistics.median(t) for k, t in times.items()}
             known = len(s.occ_index)
             rows.append((path.name, known, len(s.g_index), size, med))
-            print(f"{path.name}: {known:,} known cells, {len(s.g_index):,} Gaussians")
+            print(f"{path.name}: {known:,} known cells, {len(s.g_index):,} Gaussian records")
             for v in files:
                 print(f"  format {v}: {size[v] / 2**20:.1f} MiB, {size[v] / max(known, 1):.2f} bytes a known cell")
             for what in ("save", "load", "map save", "map load"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -96,6 +97,10 @@ def test_info_of_a_map_file_and_of_nothing(bags, tmp_path: Path) -> None:
     r = run("info", out)
     assert r.exit_code == 0 and "Map file" in r.output and "0.25 m" in r.output
     assert "scans inserted" in r.output and "/points" in r.output
+    # "Gaussians" is the summary's count; the records (all cells with points) are named and told apart
+    gaussians = NdtOmMap.load(out).metadata["summary"]["gaussians"]
+    assert re.search(rf"Gaussians\W+{gaussians:,} \(cells of >= 3 points, occupied\)", r.output), r.output
+    assert "Gaussian records" in r.output and "fewer points or in free cells" in r.output
     assert_user_error(run("info", tmp_path / "nothing.bag"), "does not exist")
 
 
