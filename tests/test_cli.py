@@ -91,6 +91,21 @@ def test_info_shows_topics_frames_and_pose_sources(bags) -> None:
     assert r.exit_code == 0 and "TF frames: none" in r.output and "no usable poses" in r.output
 
 
+def test_usage_errors_are_one_error_line_and_a_hint(bags, tmp_path: Path) -> None:
+    """A missing -r or an option out of its range: the Error:/Hint: form of every other
+    bad option (exit 2), not Click's usage text."""
+    for args, texts in (
+        (("map", bags["ros1"]), ("Missing option '-r' / '--resolution'", "Hint: give the cell size in metres")),
+        (("map", bags["ros1"], "-r", "0.5", "--every", "0"), ("'--every'", "greater than or equal to 1",
+                                                              "Hint: `ndtom map --help`")),
+        (("bogus",), ("No such command 'bogus'", "Hint: `ndtom --help` lists the commands")),
+    ):
+        r = run(*args)
+        assert_user_error(r, *texts)
+        assert "Usage:" not in r.output and "Try '" not in r.output, r.output
+    assert not list(tmp_path.iterdir())
+
+
 def test_info_of_a_map_file_and_of_nothing(bags, tmp_path: Path) -> None:
     out = tmp_path / "m.ndtom"
     assert run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--no-progress").exit_code == 0
