@@ -407,3 +407,19 @@ def test_real_ndtom_map_exit_codes(bags, tmp_path: Path) -> None:
     p = subprocess.run([*_ndtom(), "map", str(bags["notf"]), "-r", "0.25", "-o", str(tmp_path / "bad.ndtom")],
                        capture_output=True, text=True, timeout=300, env=env)
     assert p.returncode == 2 and "Error: no usable poses" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_tables_written_to_a_file_are_not_folded_at_80_columns(tmp_path: Path) -> None:
+    """Output to a file or CI log (no terminal, no COLUMNS): table cells keep their words
+    whole on one line, not folded at Rich's default 80 columns."""
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(500, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+    path = m.save(tmp_path / "m.ndtom")
+    del m
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    with open(tmp_path / "log.txt", "w") as log:
+        subprocess.run([sys.executable, "-m", "ndtom_ti", "info", str(path)], stdout=log, env=env, check=True,
+                       timeout=120)
+    text = (tmp_path / "log.txt").read_text()
+    assert "(every cell with points: the Gaussians, and those of fewer points or in free cells)" in text, text
+    assert max(len(line) for line in text.splitlines()) <= 160

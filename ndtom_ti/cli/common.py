@@ -40,8 +40,16 @@ class MissModel(str, Enum):
 
 
 # ---------------------------------------------------------------------------- output helpers
+# Output to a file, pipe or CI log has no width: Rich would assume 80 columns and fold
+# table cells mid-word ("octoma/p"). Tables there take the width they need, up to this.
+LOG_WIDTH = 160
+
+
 def console_out() -> Console:
-    return Console(highlight=False)
+    c = Console(highlight=False)
+    if not c.is_terminal and not os.environ.get("COLUMNS"):
+        c.width = LOG_WIDTH
+    return c
 
 
 def console_err() -> Console:
