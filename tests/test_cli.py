@@ -271,6 +271,30 @@ def test_bad_recordings_exit_2_without_a_map(bags, tmp_path: Path, make, extra: 
     assert not out.exists() and not list(tmp_path.glob(".out.ndtom*"))
 
 
+def test_no_poses_error_lists_each_source_on_a_line_of_its_own(bags, tmp_path: Path) -> None:
+    r = run("map", bags["notf"], "-r", pb.RES, "-o", tmp_path / "out.ndtom")
+    assert_user_error(r, "no usable poses for /points (frame 'lidar')")
+    lines = r.output.splitlines()
+    assert any(line.startswith("  - TF:") for line in lines), r.output
+    assert any(line.startswith("Map in the sensor frame") for line in lines), r.output
+    assert max(len(line) for line in lines) < 200, r.output
+
+
+def test_info_failures_speak_of_what_was_given(tmp_path: Path) -> None:
+    """A corrupt or missing .ndtom is a map file's fault, not a bag's; and after `ndtom
+    info` fails its hint does not suggest `ndtom info` again."""
+    (tmp_path / "bad.ndtom").write_bytes(b"garbage here")
+    r = run("info", tmp_path / "bad.ndtom")
+    assert_user_error(r, "not an ndtom_ti map file")
+    assert "ROS bag" not in r.output and "ndtom info BAG" not in r.output, r.output
+    r = run("info", tmp_path / "missing.ndtom")
+    assert_user_error(r, "no map file at")
+    assert "bag" not in r.output.lower().replace("also takes recordings", ""), r.output
+    r = run("info", tmp_path / "missing.bag")
+    assert_user_error(r, "missing.bag does not exist", "Hint: `ndtom info` takes a ROS1 .bag file")
+    assert "ndtom info BAG" not in r.output, r.output
+
+
 def test_clouds_before_the_first_transform_are_skipped_and_counted(bags, tmp_path: Path) -> None:
     out = tmp_path / "early.ndtom"
     r = run("map", bags["early"], "-r", pb.RES, "-o", out)

@@ -191,13 +191,17 @@ def info(
 ) -> None:
     """Show what is in a recording: topics, types, counts, duration, the TF tree, which
     topics can be mapped and which pose sources exist. Given a map file, show its header."""
-    with user_errors():
-        if path.is_file():
+    # (this command's own hint must not suggest this command again)
+    with user_errors(recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml) "
+                     "or an .ndtom map file", map_file="give a map file written by `ndtom map` or `ndtom demo` "
+                     "(`ndtom info` also takes recordings)"):  # fmt: skip
+        is_map = path.suffix.lower() == ".ndtom"  # named a map file: its faults are a map file's, not a bag's
+        if path.is_file() and not is_map:
             with path.open("rb") as fh:
                 is_map = fh.read(len(_MAGIC)) == _MAGIC
-            if is_map:
-                _info_map(path)
-                return
+        if is_map:
+            _info_map(path)
+            return
         _info_recording(path)
 
 
