@@ -244,7 +244,8 @@ class StopSignals:
 
     ``phase`` is "idle" (no map yet: the first signal raises :class:`Interrupted`),
     "mapping" (the first signal lets the scan in hand finish, then the loop stops;
-    another one stops a read that is under way, never an insert), "saving" (signals
+    another one stops a read that is under way, never an insert), "finished" (every scan
+    is mapped: signals are only told that the complete map is being saved), "saving" (signals
     are counted and only told to wait until the map is on disk) or "done" (ignored). ``count`` and
     ``signum`` (the first signal) say what arrived.
     """
@@ -278,7 +279,9 @@ class StopSignals:
             raise Interrupted(signum)
         if self.phase == "done":  # the map is on disk and the command is ending
             return
-        if self.phase == "saving":
+        if self.phase == "finished":  # every scan is in the map: nothing is cut short
+            self.say(f"{name}: every scan is mapped; saving the complete map.")
+        elif self.phase == "saving":
             self.say(f"{name}: saving the map; wait, it is on disk in a moment.")
         elif self.count == 1:
             self.say(f"{name}: stopping after the scan in hand; what was mapped will be saved.")
@@ -383,6 +386,7 @@ def _run(
                     sig.reading = False
                 if scan is end:
                     ran_out = True
+                    sig.phase = "finished"
                     break
                 if sig.count:
                     break

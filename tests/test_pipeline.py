@@ -130,6 +130,28 @@ def test_ctrl_c_stops_after_the_current_scan(tmp_path: Path) -> None:
     del m
 
 
+def test_ctrl_c_after_the_last_scan_says_the_map_is_complete(monkeypatch) -> None:
+    """Ctrl-C once every scan is mapped (while the summary is made, before the save):
+    nothing is cut short, so the map is complete (exit 0) and the message says so, not
+    "stopping after the scan in hand"."""
+    import ndtom_ti.pipeline as P
+
+    finish = P._finish
+
+    def finish_after_ctrl_c(m, summary):
+        os.kill(os.getpid(), signal.SIGINT)
+        finish(m, summary)
+
+    monkeypatch.setattr(P, "_finish", finish_after_ctrl_c)
+    said: list[str] = []
+    scans = [(pb.sensor_points(k, np.random.default_rng(k)), pb.T_map_lidar(k)) for k in range(2)]
+    with P.stop_signals((signal.SIGINT,), phase="idle", say=said.append) as sig:
+        m, s = map_scans(scans, pb.RES)
+    assert sig.count == 1 and s.complete and s.stopped is None and s.scans_used == 2
+    assert said == ["Ctrl-C: every scan is mapped; saving the complete map."], said
+    del m
+
+
 def test_keyboard_interrupt_while_reading_keeps_the_map(tmp_path: Path) -> None:
     def scans():
         for k in range(3):
