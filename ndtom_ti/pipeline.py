@@ -102,6 +102,8 @@ class MappingSummary:
     pool_budget_bytes: int = 0
     scan_seconds: list = field(default_factory=list, repr=False)  # insert_scan time per scan
     wall_seconds: float = 0.0  # the whole loop: reading, decoding, inserting
+    wall_first_scan: float = 0.0  # the loop until the first scan was in (it compiles the kernels)
+    points_first_scan: int = 0
     stopped: str | None = None  # None (ran to the end), 'interrupted', 'memory' or 'error' (a bad scan)
     error: str | None = None  # why it stopped early
 
@@ -113,6 +115,8 @@ class MappingSummary:
     def add(self, rep: Any) -> None:
         """Count one inserted scan's ScanReport."""
         self.scans_used += 1
+        if self.scans_used == 1:
+            self.points_first_scan = rep.points_in
         self.points_in += rep.points_in
         self.points_used += rep.points_used
         self.free_rays += rep.free_rays
@@ -148,6 +152,11 @@ class MappingSummary:
 
     @property
     def points_per_second(self) -> float:
+        """Points read and mapped a second, the first scan (which compiles the kernels: its
+        time is ``ms_first_scan``) apart unless it is the only one."""
+        later = self.wall_seconds - self.wall_first_scan
+        if self.scans_used > 1 and later > 0:
+            return (self.points_in - self.points_first_scan) / later
         return self.points_in / self.wall_seconds if self.wall_seconds > 0 else 0.0
 
     def to_dict(self) -> dict:
@@ -403,6 +412,8 @@ def _run(
                     break
                 summary.add(rep)
                 summary.wall_seconds = time.perf_counter() - t0
+                if summary.scans_used == 1:
+                    summary.wall_first_scan = summary.wall_seconds
                 if progress is not None:
                     progress(summary, rep)
         except KeyboardInterrupt:

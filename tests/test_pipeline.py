@@ -248,6 +248,23 @@ def test_demo_map_matches_the_ground_truth() -> None:
     assert s.scans_used == 20 and s.gaussians > 5000
 
 
+def test_points_per_second_leaves_the_first_scan_out() -> None:
+    from types import SimpleNamespace
+
+    from ndtom_ti.pipeline import MappingSummary
+
+    s = MappingSummary()
+    rep = SimpleNamespace(points_in=10**6, points_used=10**6, free_rays=0, dropped_nonfinite=0, dropped_range=0,
+                          dropped_outside_grid=0, seconds=0.5)
+    s.add(rep)
+    s.wall_first_scan = s.wall_seconds = 10.0  # the first scan compiled the kernels
+    assert s.points_per_second == pytest.approx(1e5)  # alone: all there is
+    s.add(rep)
+    s.add(rep)
+    s.wall_seconds = 11.0
+    assert s.points_per_second == pytest.approx(2e6)  # 2 M points in the 1 s after the first scan
+
+
 def test_summary_gives_the_first_scan_apart():
     """The first scan compiles the kernels: the median and p95 are of the scans after it."""
     from ndtom_ti.pipeline import MappingSummary
