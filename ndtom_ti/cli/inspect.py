@@ -56,9 +56,10 @@ def _info_map(path: Path) -> None:
     arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
     if "g_index" in arrays:  # one word for one thing: "Gaussians" as `ndtom map` and export count them
         min_points = (h.get("config") or {}).get("min_points", 3)
-        summary = md.get("summary") if isinstance(md.get("summary"), dict) else {}
-        if isinstance(summary.get("gaussians"), int):
-            t.add_row("Gaussians", f"{fmt_count(summary['gaussians'])} (cells of >= {min_points} points, occupied)")
+        summary = md.get("summary")
+        gaussians = summary.get("gaussians") if isinstance(summary, dict) else None
+        if isinstance(gaussians, int):
+            t.add_row("Gaussians", f"{fmt_count(gaussians)} (cells of >= {min_points} points, occupied)")
         t.add_row("Gaussian records", f"{fmt_count(arrays['g_index'][0])} (every cell with points: the Gaussians, and "
                   f"those of fewer points or in free cells)")  # fmt: skip
     if "occ_index" in arrays:

@@ -40,12 +40,13 @@ class _Group(TyperGroup):
                 raise
             if type(exc).__name__ == "NoArgsIsHelpError":  # `ndtom map` alone: its help, as asked
                 raise
-            sub = exc.ctx.command_path if exc.ctx is not None else "ndtom COMMAND"
+            ctx = getattr(exc, "ctx", None)
+            sub = ctx.command_path if ctx is not None else "ndtom COMMAND"
             param = getattr(getattr(exc, "param", None), "name", None)
             hint = f"`{sub} --help` lists " + ("the commands" if sub == "ndtom" else "the options and their ranges")
             if param == "resolution":
                 hint = f"give the cell size in metres, e.g. {sub} BAG -r 0.2 (0.1-0.5 m suits most lidar maps)"
-            fail(exc.format_message(), hint)
+            fail(getattr(exc, "format_message", exc.__str__)(), hint)
 
 
 app = typer.Typer(
