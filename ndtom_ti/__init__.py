@@ -36,3 +36,15 @@ __all__ = [
     "metrics",
     "quality",
 ]
+
+
+def __getattr__(name: str):
+    """Submodules named in the docs (``ndtom_ti.pipeline.map_recording``,
+    ``ndtom_ti.export.export_file``, ``ndtom_ti.io``, ...) reachable after ``import ndtom_ti``
+    alone, imported on first use (rosbags and the exporters stay out of a plain import)."""
+    import importlib
+    import importlib.util
+
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

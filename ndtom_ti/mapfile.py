@@ -4,9 +4,10 @@ Layout (little endian):
     8 bytes   magic  b"NDTOMTI\\n"
     4 bytes   format version (uint32)
     8 bytes   header length H (uint64)
-    H bytes   header, UTF-8 JSON: settings, array table (name, dtype, shape, offset,
-              nbytes), payload length and SHA-256
-    payload   the arrays' raw bytes, back to back
+    H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256
+    payload   version 4: each array's zstd frames, back to back (``mapcodec``; the table
+              gives name, dtype, shape, coding and the frames' sizes); versions 1-3: the
+              arrays' raw bytes (the table gives name, dtype, shape, offset, nbytes)
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import TYPE_CHECKING, NoReturn, TypeGuard
 
 import numpy as np
 
+from . import mapcodec
 from .atomic import atomic_write, check_target
 from .config import MapConfig, check_resolution
 from .snapshot import ARRAYS, ROWS
@@ -34,7 +36,10 @@ if TYPE_CHECKING:
 MAGIC = b"NDTOMTI\n"
 # 2: g_erased_near (version 1 files lack it: read as zeros).
 # 3: g_ndt_state (earlier files lack it: read as zeros).
-VERSION = 3
+# 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
+VERSION = 4
+# The last version of raw arrays; save_snapshot(..., version=RAW_VERSION) still writes it.
+RAW_VERSION = 3
 # The file's arrays are the snapshot's (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
@@ -54,13 +59,16 @@ def save_map(m: NdtOmMap, path: str | Path) -> Path:
     return save_snapshot(m.snapshot(), path)
 
 
-def save_snapshot(s: MapSnapshot, path: str | Path) -> Path:
-    """Write snapshot ``s`` to ``path``, atomically."""
+def save_snapshot(s: MapSnapshot, path: str | Path, *, version: int = VERSION) -> Path:
+    """Write snapshot ``s`` to ``path``, atomically; ``version=RAW_VERSION`` writes the
+    uncompressed format that ndtom_ti before format 4 reads."""
     path = check_target(path)
-    hbytes, blobs = _encode(s)
+    if version not in (VERSION, RAW_VERSION):
+        raise ValueError(f"map files are written as version {VERSION} or {RAW_VERSION}, not {version}")
+    hbytes, blobs = _encode(s, version)
 
     def write(fh) -> None:
-        fh.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
+        fh.write(_PREFIX.pack(MAGIC, version, len(hbytes)))
         fh.write(hbytes)
         for a in blobs:
             fh.write(_bytes(a))
@@ -69,21 +77,25 @@ def save_snapshot(s: MapSnapshot, path: str | Path) -> Path:
     return path
 
 
-def _encode(s: MapSnapshot) -> tuple[bytes, list]:
-    """The header bytes and the arrays of a map file."""
-    table, offset = [], 0
-    blobs = []
-    for name, (dtype, _) in ARRAYS.items():
-        a = np.ascontiguousarray(getattr(s, name), dtype=dtype)
-        table.append({"name": name, "dtype": dtype, "shape": list(a.shape), "offset": offset, "nbytes": a.nbytes})
-        blobs.append(a)
-        offset += a.nbytes
-    sha = hashlib.sha256()
+def _encode(s: MapSnapshot, version: int) -> tuple[bytes, list]:
+    """The header bytes and the payload's parts of a map file."""
+    arrays = {name: np.ascontiguousarray(getattr(s, name), dtype=dtype) for name, (dtype, _) in ARRAYS.items()}
+    if version >= 4:
+        table, blobs = mapcodec.encode(arrays)
+    else:
+        table, blobs, offset = [], [], 0
+        for name, a in arrays.items():
+            table.append({"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "offset": offset,
+                          "nbytes": a.nbytes})  # fmt: skip
+            blobs.append(a)
+            offset += a.nbytes
+    sha, offset = hashlib.sha256(), 0
     for a in blobs:
         sha.update(_bytes(a))
+        offset += len(_bytes(a))
     header = {
         "format": "ndtom_ti map",
-        "version": VERSION,
+        "version": version,
         "resolution": s.resolution,
         "occupancy": s.occupancy_enabled,
         "config": s.config.to_dict(),
@@ -98,8 +110,8 @@ def _encode(s: MapSnapshot) -> tuple[bytes, list]:
     return json.dumps(header, default=_json_default).encode("utf-8"), blobs
 
 
-def _bytes(a: np.ndarray) -> memoryview:
-    return a.reshape(-1).view(np.uint8).data
+def _bytes(a: np.ndarray | bytes) -> memoryview:
+    return memoryview(a) if isinstance(a, bytes) else a.reshape(-1).view(np.uint8).data
 
 
 def _json_default(o):
@@ -117,7 +129,8 @@ def read_header(path: str | Path) -> dict:
     return _read(Path(path), header_only=True)[0]
 
 
-def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
+def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
+    """The header, the arrays (none with ``header_only``) and the format version of a file."""
     if not path.exists():
         raise FileNotFoundError(f"no map file at {path}")
     if path.is_dir():
@@ -154,10 +167,12 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
         if size > expected:
             raise MapFileError(f"{path} is corrupt: {size - expected} unexpected trailing bytes")
         if header_only:
-            return header, {}
+            return header, {}, version
         payload = fh.read()
     if hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
         raise MapFileError(f"{path} is corrupt: payload checksum mismatch")
+    if version >= 4:
+        return header, mapcodec.decode(header["arrays"], payload, _bad(path)), version
     arrays = {}
     try:
         for entry in header["arrays"]:
@@ -172,7 +187,7 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
         raise MapFileError(f"{path} is corrupt: bad array table ({exc})") from None
     for name in set(ARRAYS) - set(arrays):  # (_check_header refused missing arrays of its version)
         arrays[name] = np.zeros((len(arrays["g_index"]), *_COLUMNS[name]), ARRAYS[name][0])
-    return header, arrays
+    return header, arrays, version
 
 
 def read_snapshot(path: str | Path) -> MapSnapshot:
@@ -182,14 +197,16 @@ def read_snapshot(path: str | Path) -> MapSnapshot:
     from .snapshot import MapSnapshot
 
     path = Path(path)
-    header, arrays = _read(path)
+    header, arrays, version = _read(path)
     try:
         config = MapConfig.from_dict(header["config"])
         lay = header["layout"]
         layout = Layout(l1=tuple(lay["l1"]), l2=int(lay["l2"]), leaf=int(lay["leaf"]))
         layout.validate()
         # files need not list cells sorted; snapshots do
-        for first, order in _check_values(path, arrays, layout, config, header["resolution"]).items():
+        # (the codec of version 4 yields cells sorted and distinct: no need to check again)
+        ordered = version >= 4
+        for first, order in _check_values(path, arrays, layout, config, header["resolution"], ordered).items():
             for name in ROWS[first]:
                 arrays[name] = arrays[name][order]
         settings = {"resolution": float(header["resolution"]), "occupancy_enabled": bool(header["occupancy"]),
@@ -226,6 +243,13 @@ def _open_regular(path: Path):
     except BaseException:
         os.close(fd)
         raise
+
+
+def _bad(path: Path):
+    def bad(what: str) -> NoReturn:
+        raise MapFileError(f"{path} is corrupt: {what}")
+
+    return bad
 
 
 def _is_int(v: object) -> TypeGuard[int]:
@@ -281,16 +305,20 @@ def _check_header(path: Path, header: dict, version: int) -> None:
         if not (isinstance(shape, list) and len(shape) == 1 + len(cols) and all(_is_int(n) and n >= 0 for n in shape)
                 and tuple(shape[1:]) == cols):  # fmt: skip
             bad(f"array {name!r} has shape {shape!r}, expected [rows{''.join(f', {c}' for c in cols)}]")
+        rows[name] = shape[0]
+        if version >= 4:  # the codec's fields: checked below, for the whole table
+            continue
         nbytes, offset = math.prod(shape) * np.dtype(dtype).itemsize, entry.get("offset")
         if entry.get("nbytes") != nbytes or isinstance(entry.get("nbytes"), bool):
             bad(f"array {name!r} of shape {shape} needs {nbytes} bytes, the table says {entry.get('nbytes')!r}")
         if not _is_int(offset) or offset < 0 or offset + nbytes > pb:
             bad(f"array {name!r} (offset {offset!r}, {nbytes} bytes) lies outside the {pb}-byte payload")
-        rows[name] = shape[0]
         spans.append((offset, offset + nbytes, name))
     missing = {name for name in set(ARRAYS) - set(rows) if _SINCE.get(name, 1) <= version}
     if missing:
         bad(f"arrays {sorted(missing)} missing")
+    if version >= 4:
+        mapcodec.check_table(table, pb, bad)
     spans.sort()
     for (_, end, a), (start, _, b) in itertools.pairwise(spans):
         if start < end:
@@ -301,7 +329,7 @@ def _check_header(path: Path, header: dict, version: int) -> None:
                 bad(f"array {name!r} has {rows[name]} rows but {first!r} has {rows[first]}")
 
 
-def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolution: float) -> dict:
+def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolution: float, ordered: bool) -> dict:
     """Cell values a map can hold, before any kernel sees them: cells inside the grid and
     each listed once, log-odds finite and inside the clamps, Gaussians of at least one
     point whose mean lies in its cell and whose scatter is finite and positive
@@ -321,6 +349,8 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
             continue
         if ((idx < lo) | (idx >= hi)).any():
             bad(f"{name} holds cells outside the grid of {layout.cells} cells")
+        if ordered:
+            continue
         n = (hi - lo).tolist()
         key = ((idx[:, 0] - lo[0]) * n[1] + (idx[:, 1] - lo[1])) * n[2] + (idx[:, 2] - lo[2])
         if not (np.diff(key) > 0).all():  # written sorted: cheap check first

@@ -102,6 +102,8 @@ class MappingSummary:
     pool_budget_bytes: int = 0
     scan_seconds: list = field(default_factory=list, repr=False)  # insert_scan time per scan
     wall_seconds: float = 0.0  # the whole loop: reading, decoding, inserting
+    wall_first_scan: float = 0.0  # the loop until the first scan was in (it compiles the kernels)
+    points_first_scan: int = 0
     stopped: str | None = None  # None (ran to the end), 'interrupted', 'memory' or 'error' (a bad scan)
     error: str | None = None  # why it stopped early
 
@@ -113,6 +115,8 @@ class MappingSummary:
     def add(self, rep: Any) -> None:
         """Count one inserted scan's ScanReport."""
         self.scans_used += 1
+        if self.scans_used == 1:
+            self.points_first_scan = rep.points_in
         self.points_in += rep.points_in
         self.points_used += rep.points_used
         self.free_rays += rep.free_rays
@@ -148,6 +152,11 @@ class MappingSummary:
 
     @property
     def points_per_second(self) -> float:
+        """Points read and mapped a second, the first scan (which compiles the kernels: its
+        time is ``ms_first_scan``) apart unless it is the only one."""
+        later = self.wall_seconds - self.wall_first_scan
+        if self.scans_used > 1 and later > 0:
+            return (self.points_in - self.points_first_scan) / later
         return self.points_in / self.wall_seconds if self.wall_seconds > 0 else 0.0
 
     def to_dict(self) -> dict:
@@ -244,7 +253,8 @@ class StopSignals:
 
     ``phase`` is "idle" (no map yet: the first signal raises :class:`Interrupted`),
     "mapping" (the first signal lets the scan in hand finish, then the loop stops;
-    another one stops a read that is under way, never an insert), "saving" (signals
+    another one stops a read that is under way, never an insert), "finished" (every scan
+    is mapped: signals are only told that the complete map is being saved), "saving" (signals
     are counted and only told to wait until the map is on disk) or "done" (ignored). ``count`` and
     ``signum`` (the first signal) say what arrived.
     """
@@ -278,7 +288,9 @@ class StopSignals:
             raise Interrupted(signum)
         if self.phase == "done":  # the map is on disk and the command is ending
             return
-        if self.phase == "saving":
+        if self.phase == "finished":  # every scan is in the map: nothing is cut short
+            self.say(f"{name}: every scan is mapped; saving the complete map.")
+        elif self.phase == "saving":
             self.say(f"{name}: saving the map; wait, it is on disk in a moment.")
         elif self.count == 1:
             self.say(f"{name}: stopping after the scan in hand; what was mapped will be saved.")
@@ -383,6 +395,7 @@ def _run(
                     sig.reading = False
                 if scan is end:
                     ran_out = True
+                    sig.phase = "finished"
                     break
                 if sig.count:
                     break
@@ -399,6 +412,8 @@ def _run(
                     break
                 summary.add(rep)
                 summary.wall_seconds = time.perf_counter() - t0
+                if summary.scans_used == 1:
+                    summary.wall_first_scan = summary.wall_seconds
                 if progress is not None:
                     progress(summary, rep)
         except KeyboardInterrupt:

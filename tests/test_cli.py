@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -90,12 +91,31 @@ def test_info_shows_topics_frames_and_pose_sources(bags) -> None:
     assert r.exit_code == 0 and "TF frames: none" in r.output and "no usable poses" in r.output
 
 
+def test_usage_errors_are_one_error_line_and_a_hint(bags, tmp_path: Path) -> None:
+    """A missing -r or an option out of its range: the Error:/Hint: form of every other
+    bad option (exit 2), not Click's usage text."""
+    for args, texts in (
+        (("map", bags["ros1"]), ("Missing option '-r' / '--resolution'", "Hint: give the cell size in metres")),
+        (("map", bags["ros1"], "-r", "0.5", "--every", "0"), ("'--every'", "greater than or equal to 1",
+                                                              "Hint: `ndtom map --help`")),
+        (("bogus",), ("No such command 'bogus'", "Hint: `ndtom --help` lists the commands")),
+    ):
+        r = run(*args)
+        assert_user_error(r, *texts)
+        assert "Usage:" not in r.output and "Try '" not in r.output, r.output
+    assert not list(tmp_path.iterdir())
+
+
 def test_info_of_a_map_file_and_of_nothing(bags, tmp_path: Path) -> None:
     out = tmp_path / "m.ndtom"
     assert run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--no-progress").exit_code == 0
     r = run("info", out)
     assert r.exit_code == 0 and "Map file" in r.output and "0.25 m" in r.output
     assert "scans inserted" in r.output and "/points" in r.output
+    # "Gaussians" is the summary's count; the records (all cells with points) are named and told apart
+    gaussians = NdtOmMap.load(out).metadata["summary"]["gaussians"]
+    assert re.search(rf"Gaussians\W+{gaussians:,} \(cells of >= 3 points, occupied\)", r.output), r.output
+    assert "Gaussian records" in r.output and "fewer points or in free cells" in r.output
     assert_user_error(run("info", tmp_path / "nothing.bag"), "does not exist")
 
 
@@ -251,6 +271,30 @@ def test_bad_recordings_exit_2_without_a_map(bags, tmp_path: Path, make, extra: 
     assert not out.exists() and not list(tmp_path.glob(".out.ndtom*"))
 
 
+def test_no_poses_error_lists_each_source_on_a_line_of_its_own(bags, tmp_path: Path) -> None:
+    r = run("map", bags["notf"], "-r", pb.RES, "-o", tmp_path / "out.ndtom")
+    assert_user_error(r, "no usable poses for /points (frame 'lidar')")
+    lines = r.output.splitlines()
+    assert any(line.startswith("  - TF:") for line in lines), r.output
+    assert any(line.startswith("Map in the sensor frame") for line in lines), r.output
+    assert max(len(line) for line in lines) < 200, r.output
+
+
+def test_info_failures_speak_of_what_was_given(tmp_path: Path) -> None:
+    """A corrupt or missing .ndtom is a map file's fault, not a bag's; and after `ndtom
+    info` fails its hint does not suggest `ndtom info` again."""
+    (tmp_path / "bad.ndtom").write_bytes(b"garbage here")
+    r = run("info", tmp_path / "bad.ndtom")
+    assert_user_error(r, "not an ndtom_ti map file")
+    assert "ROS bag" not in r.output and "ndtom info BAG" not in r.output, r.output
+    r = run("info", tmp_path / "missing.ndtom")
+    assert_user_error(r, "no map file at")
+    assert "bag" not in r.output.lower().replace("also takes recordings", ""), r.output
+    r = run("info", tmp_path / "missing.bag")
+    assert_user_error(r, "missing.bag does not exist", "Hint: `ndtom info` takes a ROS1 .bag file")
+    assert "ndtom info BAG" not in r.output, r.output
+
+
 def test_clouds_before_the_first_transform_are_skipped_and_counted(bags, tmp_path: Path) -> None:
     out = tmp_path / "early.ndtom"
     r = run("map", bags["early"], "-r", pb.RES, "-o", out)
@@ -352,8 +396,12 @@ def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
     r = run("demo", "--out", out)
     assert r.exit_code == 0, r.output
     for text in ("Demo scene", "Mapping summary", "20 of 20 clouds read", "Against the ground truth",
-                 "left where the box was taken away", "Map written to", "Next: ndtom export"):
+                 "left where the box was taken away", "Map written to", f"Next: ndtom view {out / 'demo.ndtom'}",
+                 "ndtom export"):
         assert text in r.output, text
+    # points/s leaves out the first scan, which compiles the kernels (it read "0.00 M points/s")
+    rate = float(re.search(r"([\d.]+) M points/s after the first scan", r.output).group(1))
+    assert rate > 0.05, r.output
     m = NdtOmMap.load(out / "demo.ndtom")
     check = m.metadata["ground_truth_check"]
     assert check["left_in_vanished"] == 0 and check["on_surface"] > 0.98
@@ -387,3 +435,19 @@ def test_real_ndtom_map_exit_codes(bags, tmp_path: Path) -> None:
     p = subprocess.run([*_ndtom(), "map", str(bags["notf"]), "-r", "0.25", "-o", str(tmp_path / "bad.ndtom")],
                        capture_output=True, text=True, timeout=300, env=env)
     assert p.returncode == 2 and "Error: no usable poses" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_tables_written_to_a_file_are_not_folded_at_80_columns(tmp_path: Path) -> None:
+    """Output to a file or CI log (no terminal, no COLUMNS): table cells keep their words
+    whole on one line, not folded at Rich's default 80 columns."""
+    m = NdtOmMap(0.5)
+    m.insert_scan(np.random.default_rng(0).normal(size=(500, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+    path = m.save(tmp_path / "m.ndtom")
+    del m
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    with open(tmp_path / "log.txt", "w") as log:
+        subprocess.run([sys.executable, "-m", "ndtom_ti", "info", str(path)], stdout=log, env=env, check=True,
+                       timeout=120)
+    text = (tmp_path / "log.txt").read_text()
+    assert "(every cell with points: the Gaussians, and those of fewer points or in free cells)" in text, text
+    assert max(len(line) for line in text.splitlines()) <= 160

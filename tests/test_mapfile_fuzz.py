@@ -26,8 +26,8 @@ import pytest
 from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
-from ndtom_ti import MapFileError, MapMemoryError, NdtOmMap
-from ndtom_ti.mapfile import read_header
+from ndtom_ti import MapFileError, MapMemoryError, NdtOmMap, mapcodec
+from ndtom_ti.mapfile import RAW_VERSION, read_header, save_snapshot
 
 EXAMPLES = int(os.environ.get("NDTOM_FUZZ_EXAMPLES", "150"))
 OUTCOMES: Counter = Counter()
@@ -45,6 +45,8 @@ def _build_bases() -> dict[str, bytes]:
                 T[:3, 3] = [0.3 * k, -0.2 * k, 0.1]
                 m.insert_scan(rng.normal(size=(400, 3)) * [2.0, 1.5, 0.3] + [3.0, 0.0, 0.0], T)
             out[name] = m.save(Path(tmp) / f"{name}.ndtom").read_bytes()
+            # the same map in the raw format of version 3 (older files must keep loading)
+            out[f"{name} v3"] = save_snapshot(m.snapshot(), Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
             del m
     gc.collect()
     return out
@@ -72,7 +74,13 @@ def join(head: bytes, header: dict, payload: bytes, *, fix_sha: bool = True) -> 
     return head + struct.pack("<Q", len(hb)) + hb + payload
 
 
-def arrays_of(header: dict, payload: bytes) -> dict[str, np.ndarray]:
+def _raise(what: str):
+    raise ValueError(what)
+
+
+def arrays_of(header: dict, payload: bytes, head: bytes) -> dict[str, np.ndarray]:
+    if struct.unpack("<I", head[8:12])[0] >= 4:
+        return {k: v.copy() for k, v in mapcodec.decode(header["arrays"], payload, _raise).items()}
     out = {}
     for e in header["arrays"]:
         a = np.frombuffer(payload, dtype=e["dtype"], count=math.prod(e["shape"]), offset=e["offset"])
@@ -80,8 +88,15 @@ def arrays_of(header: dict, payload: bytes) -> dict[str, np.ndarray]:
     return out
 
 
-def repack(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    """Write ``arrays`` back to back with a table that describes them exactly."""
+def repack(header: dict, arrays: dict[str, np.ndarray], head: bytes) -> bytes:
+    """Write ``arrays`` back to back with a table that describes them exactly (version 4:
+    compressed; an index that cannot be coded, unsorted or repeated, raises)."""
+    if struct.unpack("<I", head[8:12])[0] >= 4:
+        table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]})
+        header["arrays"] = table
+        payload = b"".join(frames)
+        header["payload_bytes"] = len(payload)
+        return payload
     blobs, off = [], 0
     for e in header["arrays"]:
         a = np.ascontiguousarray(arrays[e["name"]])
@@ -147,7 +162,7 @@ def mutate_header(draw, data: bytes) -> bytes:
 def mutate_rows(draw, data: bytes) -> bytes:
     """An array gets more or fewer rows (others unchanged); table and checksum consistent."""
     head, header, payload = split(data)
-    arrays = arrays_of(header, payload)
+    arrays = arrays_of(header, payload, head)
     name = draw(st.sampled_from(sorted(arrays)))
     a = arrays[name]
     rows = draw(st.integers(min_value=0, max_value=len(a) + 3))
@@ -158,14 +173,14 @@ def mutate_rows(draw, data: bytes) -> bytes:
                                max_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0))  # fmt: skip
         if len(a):
             arrays[name] = np.concatenate([a, np.frombuffer(extra, a.dtype).reshape(-1, *a.shape[1:])])
-    return join(head, header, repack(header, arrays))
+    return join(head, header, repack(header, arrays, head))
 
 
 @st.composite
 def mutate_shape(draw, data: bytes) -> bytes:
     """An array's bytes read with another shape (columns, dimensions, dtype)."""
     head, header, payload = split(data)
-    arrays = arrays_of(header, payload)
+    arrays = arrays_of(header, payload, head)
     name = draw(st.sampled_from(sorted(arrays)))
     a = arrays[name]
     how = draw(st.sampled_from(["flat", "cols", "dtype", "3d"]))
@@ -181,7 +196,7 @@ def mutate_shape(draw, data: bytes) -> bytes:
     elif how == "3d":
         a = a.reshape(1, *a.shape)
     arrays[name] = a
-    return join(head, header, repack(header, arrays))
+    return join(head, header, repack(header, arrays, head))
 
 
 def _special(dtype: np.dtype) -> st.SearchStrategy:
@@ -199,7 +214,7 @@ def _special(dtype: np.dtype) -> st.SearchStrategy:
 def mutate_value(draw, data: bytes) -> bytes:
     """One element of one array set to another value (checksum recomputed)."""
     head, header, payload = split(data)
-    arrays = arrays_of(header, payload)
+    arrays = arrays_of(header, payload, head)
     names = sorted(n for n, a in arrays.items() if a.size)
     if not names:
         return data
@@ -212,7 +227,7 @@ def mutate_value(draw, data: bytes) -> bytes:
         j = draw(st.integers(min_value=0, max_value=len(a) - 1))
         a[j] = a[i // a.shape[1]]
     arrays[name] = a
-    return join(head, header, repack(header, arrays))
+    return join(head, header, repack(header, arrays, head))
 
 
 @st.composite
@@ -255,8 +270,8 @@ def mutated_file(draw) -> tuple[str, bytes]:
 # ---------------------------------------------------------------------------- the property
 def validate(m: NdtOmMap, data: bytes, path: Path) -> None:
     """A loaded map holds what its file says, within range, and saves back unchanged."""
-    _, header, payload = split(data)
-    arrays = arrays_of(header, payload)
+    head, header, payload = split(data)
+    arrays = arrays_of(header, payload, head)
     cfg = m.config
     lo, hi = np.array(m.layout.lo), np.array(m.layout.hi)
     assert math.isfinite(m.resolution) and m.resolution > 0
@@ -338,17 +353,17 @@ def teardown_module(module):
         print(f"\nmap file fuzz ({EXAMPLES} examples asked): {dict(OUTCOMES)}")
 
 
-@pytest.mark.parametrize("name", ["ndtom", "rndt"])
+@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v3", "rndt v3"])
 def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
     """Deterministic companion: each array one row short (checksum valid) is refused."""
     head, header, payload = split(bases()[name])
     for target in [e["name"] for e in header["arrays"]]:
         h = json.loads(json.dumps(header))
-        arrays = arrays_of(h, payload)
+        arrays = arrays_of(h, payload, head)
         if not len(arrays[target]):
             continue
         arrays[target] = arrays[target][:-1]
         path = tmp_path / f"{target}.ndtom"
-        path.write_bytes(join(head, h, repack(h, arrays)))
+        path.write_bytes(join(head, h, repack(h, arrays, head)))
         with pytest.raises(MapFileError, match="rows"):
             NdtOmMap.load(path)

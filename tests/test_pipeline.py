@@ -130,6 +130,28 @@ def test_ctrl_c_stops_after_the_current_scan(tmp_path: Path) -> None:
     del m
 
 
+def test_ctrl_c_after_the_last_scan_says_the_map_is_complete(monkeypatch) -> None:
+    """Ctrl-C once every scan is mapped (while the summary is made, before the save):
+    nothing is cut short, so the map is complete (exit 0) and the message says so, not
+    "stopping after the scan in hand"."""
+    import ndtom_ti.pipeline as P
+
+    finish = P._finish
+
+    def finish_after_ctrl_c(m, summary):
+        os.kill(os.getpid(), signal.SIGINT)
+        finish(m, summary)
+
+    monkeypatch.setattr(P, "_finish", finish_after_ctrl_c)
+    said: list[str] = []
+    scans = [(pb.sensor_points(k, np.random.default_rng(k)), pb.T_map_lidar(k)) for k in range(2)]
+    with P.stop_signals((signal.SIGINT,), phase="idle", say=said.append) as sig:
+        m, s = map_scans(scans, pb.RES)
+    assert sig.count == 1 and s.complete and s.stopped is None and s.scans_used == 2
+    assert said == ["Ctrl-C: every scan is mapped; saving the complete map."], said
+    del m
+
+
 def test_keyboard_interrupt_while_reading_keeps_the_map(tmp_path: Path) -> None:
     def scans():
         for k in range(3):
@@ -224,6 +246,23 @@ def test_demo_map_matches_the_ground_truth() -> None:
     assert after["left_in_vanished"] == 0  # and erased by the rays once it was gone
     assert after["on_surface"] > 0.98 and after["median_distance"] < 0.01
     assert s.scans_used == 20 and s.gaussians > 5000
+
+
+def test_points_per_second_leaves_the_first_scan_out() -> None:
+    from types import SimpleNamespace
+
+    from ndtom_ti.pipeline import MappingSummary
+
+    s = MappingSummary()
+    rep = SimpleNamespace(points_in=10**6, points_used=10**6, free_rays=0, dropped_nonfinite=0, dropped_range=0,
+                          dropped_outside_grid=0, seconds=0.5)
+    s.add(rep)
+    s.wall_first_scan = s.wall_seconds = 10.0  # the first scan compiled the kernels
+    assert s.points_per_second == pytest.approx(1e5)  # alone: all there is
+    s.add(rep)
+    s.add(rep)
+    s.wall_seconds = 11.0
+    assert s.points_per_second == pytest.approx(2e6)  # 2 M points in the 1 s after the first scan
 
 
 def test_summary_gives_the_first_scan_apart():

@@ -86,7 +86,7 @@ def test_sweep_without_matplotlib_skips_the_plot_and_says_so_first(tmp_path: Pat
 
 def test_sweep_octomap_baseline_without_pyoctomap_stops_before_work(tmp_path: Path) -> None:
     r = ndtom(tmp_path, "sweep", "--synthetic", "--scans", "2", "--baseline", "octomap", "--out", "sw")
-    assert r.returncode == 2, r.output
+    assert r.returncode == 1, r.output  # the code of every missing extra (the viewer's below)
     assert "the OctoMap baseline (--baseline octomap) needs the optional package pyoctomap" in r.output
     assert "extra [bench]" in r.output and f'pip install -e "{REPO}[bench]"' in r.output
     assert "warm-up" not in r.output and not (tmp_path / "sw" / "sweep.csv").exists()

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zstandard
 from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -31,7 +32,8 @@ import test_pipeline_bags as pb
 import ndtom_ti
 from ndtom_ti import MapFileError, NdtOmMap
 from ndtom_ti.cli import app
-from ndtom_ti.mapfile import VERSION, read_header
+from ndtom_ti import mapcodec
+from ndtom_ti.mapfile import RAW_VERSION, VERSION, read_header
 from ndtom_ti.pipeline import map_scans
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -469,6 +471,8 @@ def parse(data: bytes) -> tuple[dict, dict]:
     hlen = struct.unpack("<Q", data[12:20])[0]
     header = json.loads(data[20 : 20 + hlen])
     payload = data[20 + hlen :]
+    if struct.unpack("<I", data[8:12])[0] >= 4:
+        return header, {k: v.copy() for k, v in mapcodec.decode(header["arrays"], payload, _raise).items()}
     arrays = {}
     for e in header["arrays"]:
         a = np.frombuffer(payload, dtype=e["dtype"], count=math.prod(e["shape"]), offset=e["offset"])
@@ -476,10 +480,17 @@ def parse(data: bytes) -> tuple[dict, dict]:
     return header, arrays
 
 
-def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None, version: int = VERSION) -> bytes:
-    """A map file of ``arrays`` (in header order) with a consistent table and a valid
-    checksum, unless ``table`` (a function of the table) or ``header_bytes`` change it."""
+def _raise(what: str):
+    raise AssertionError(what)
+
+
+def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None,
+          version: int = RAW_VERSION) -> bytes:
+    """A map file of raw ``arrays`` (format 3 or older, in header order) with a consistent
+    table and a valid checksum, unless ``table`` (a function of the table) or
+    ``header_bytes`` change it. (The values' checks are the same for every version.)"""
     header = json.loads(json.dumps(header))
+    header["version"] = version
     entries, blobs, off = [], [], 0
     for e in header["arrays"]:
         a = np.ascontiguousarray(arrays[e["name"]], dtype=e["dtype"])
@@ -560,24 +571,35 @@ CRAFTED = {
 }
 
 
+@pytest.mark.parametrize("version", [RAW_VERSION, VERSION])
 @pytest.mark.parametrize("case", sorted(CRAFTED))
-def test_crafted_arrays_are_map_file_errors(tmp_path, good_file, case):
+def test_crafted_arrays_are_map_file_errors(tmp_path, good_file, case, version):
     arrays_fn, table_fn, message = CRAFTED[case]
     header, arrays = parse(good_file)
     if arrays_fn is not None:
         arrays = arrays_fn(arrays)
     path = tmp_path / "crafted.ndtom"
-    path.write_bytes(build(header, arrays, table=table_fn))
+    if version == VERSION:  # the same arrays compressed: the values are checked alike
+        if table_fn is not None:
+            pytest.skip("a table of raw arrays (format 4's table: test_crafted_format_4_* below)")
+        try:
+            data = build4(header, arrays)
+        except (ValueError, IndexError):  # a cell twice, unsorted or not 3 columns: format 4 cannot hold it
+            return
+        message += "|key bounds"  # (cells far outside the grid: their bounds are refused first)
+    else:
+        data = build(header, arrays, table=table_fn)
+    path.write_bytes(data)
     with pytest.raises(MapFileError, match=message):
         NdtOmMap.load(path)
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, 3])
 def test_older_files_load_without_the_arrays_added_since(tmp_path, good_file, version):
     """Files of format version 1 have no g_erased_near, those of versions 1 and 2 no
-    g_ndt_state: read as zeros."""
+    g_ndt_state: read as zeros. Version 3 (raw arrays) loads as it was written."""
     header, arrays = parse(good_file)
-    lacks = {"g_erased_near", "g_ndt_state"} if version == 1 else {"g_ndt_state"}
+    lacks = {1: {"g_erased_near", "g_ndt_state"}, 2: {"g_ndt_state"}, 3: set()}[version]
     header["arrays"] = [e for e in header["arrays"] if e["name"] not in lacks]
     path = tmp_path / f"v{version}.ndtom"
     path.write_bytes(build(header, arrays, version=version))
@@ -610,11 +632,12 @@ HEADER_CASES = {
 }
 
 
+@pytest.mark.parametrize("version", [RAW_VERSION, VERSION])
 @pytest.mark.parametrize("case", sorted(HEADER_CASES))
-def test_crafted_header_fields_are_map_file_errors(tmp_path, good_file, case):
+def test_crafted_header_fields_are_map_file_errors(tmp_path, good_file, case, version):
     key, value = HEADER_CASES[case]
     header, arrays = parse(good_file)
-    data = build(header, arrays)
+    data = build(header, arrays) if version == RAW_VERSION else good_file
     h2, _ = parse(data)
     h2[key] = value
     hb = json.dumps(h2).encode()
@@ -651,6 +674,180 @@ def test_untouched_rebuild_loads(tmp_path, good_file):
     m = NdtOmMap.load(path)
     assert len(m.known_cells()["index"]) == len(arrays["occ_index"])
     del m
+
+
+# ---------------------------------------------------------------------------- crafted files of format 4
+def build4(header: dict, arrays: dict) -> bytes:
+    """A format-4 file of ``arrays`` compressed as the writer does, checksum valid."""
+    table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]})
+    return join4({**header, "version": VERSION, "arrays": table}, b"".join(frames))
+
+
+def split4(data: bytes) -> tuple[dict, bytes]:
+    hlen = struct.unpack("<Q", data[12:20])[0]
+    return json.loads(data[20 : 20 + hlen]), data[20 + hlen :]
+
+
+def join4(header: dict, payload: bytes, *, fix_sha: bool = True) -> bytes:
+    header = {**header, "payload_bytes": len(payload)}
+    if fix_sha:
+        header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
+    hb = json.dumps(header).encode()
+    return b"NDTOMTI\n" + struct.pack("<IQ", VERSION, len(hb)) + hb + payload
+
+
+def streams4(header: dict) -> list[tuple[str, int, int, int]]:
+    """(array, stream number, offset, bytes) of every zstd frame of a format-4 payload."""
+    out, off = [], 0
+    for e in header["arrays"]:
+        for i, st in enumerate(e["streams"]):
+            out.append((e["name"], i, off, st["nbytes"]))
+            off += st["nbytes"]
+    return out
+
+
+def restream(header: dict, payload: bytes, name: str, i: int, frame: bytes, raw_nbytes: int) -> bytes:
+    """The file with stream ``i`` of array ``name`` replaced by ``frame`` (table updated)."""
+    header = json.loads(json.dumps(header))
+    parts = []
+    for arr, j, off, n in streams4(header):
+        parts.append(frame if (arr, j) == (name, i) else payload[off : off + n])
+    for e in header["arrays"]:
+        if e["name"] == name:
+            e["streams"][i] = {"nbytes": len(frame), "raw_nbytes": raw_nbytes}
+    return join4(header, b"".join(parts))
+
+
+def inflate(header: dict, payload: bytes, name: str, i: int) -> bytes:
+    for arr, j, off, n in streams4(header):
+        if (arr, j) == (name, i):
+            return zstandard.ZstdDecompressor().decompress(payload[off : off + n])
+    raise KeyError(name)
+
+
+def zstd(raw: bytes, **kw) -> bytes:
+    return zstandard.ZstdCompressor(level=1, **kw).compress(raw)
+
+
+def test_maps_are_saved_in_format_4_and_load_bit_for_bit(tmp_path, good_file):
+    from ndtom_ti.mapfile import read_snapshot, save_snapshot
+
+    header, payload = split4(good_file)
+    assert struct.unpack("<I", good_file[8:12])[0] == VERSION == 4 and header["version"] == 4
+    assert {e["coding"] for e in header["arrays"]} <= {"delta", "raw", "planes"}
+    s = read_snapshot(_write(tmp_path / "a.ndtom", good_file))
+    raw = save_snapshot(s, tmp_path / "v3.ndtom", version=RAW_VERSION)
+    assert len(good_file) * 3 < raw.stat().st_size  # (tens of times smaller on real maps: docs/large-maps.md)
+    for path in (raw, save_snapshot(s, tmp_path / "again.ndtom")):
+        back = read_snapshot(path)
+        for name in mapcodec.CODING.keys() | {"occ_index", "g_index"}:
+            a, b = getattr(s, name), getattr(back, name)
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+    assert (tmp_path / "again.ndtom").read_bytes() == good_file  # the same map, the same bytes
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def test_a_byte_flip_in_compressed_data_is_a_checksum_error(tmp_path, good_file):
+    """Any byte of any frame changed: the file's SHA-256 says so; with the checksum made to
+    match, zstd's own checksum or the frame's structure still refuses it."""
+    from ndtom_ti.mapfile import read_snapshot
+
+    header, payload = split4(good_file)
+    rng = np.random.default_rng(3)
+    tried = 0
+    for name, i, off, n in streams4(header):
+        for pos in {off, off + n // 2, off + n - 1, *rng.integers(off, off + n, 4).tolist()}:
+            bad = bytearray(payload)
+            bad[pos] ^= 0x40
+            with pytest.raises(MapFileError, match="checksum"):
+                read_snapshot(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad), fix_sha=False)))
+            with pytest.raises(MapFileError, match="corrupt"):
+                read_snapshot(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad))))
+            tried += 1
+    assert tried > 30
+    r = run_cli("export", tmp_path / "flip.ndtom", "-o", tmp_path / "x.ply")
+    assert r.exit_code == 2 and "corrupt" in r.output and "Traceback" not in r.output, r.output
+
+
+def test_decompression_never_inflates_past_the_declared_size(tmp_path, good_file):
+    """A frame of 256 MiB of zeros (a few KiB in the file) standing for an array of a few
+    bytes is refused from its header, before it is inflated: the reader's memory peak
+    stays far below it. So are frames that do not declare their size, and declared sizes
+    no zstd frame can reach."""
+    import tracemalloc
+
+    from ndtom_ti.mapfile import read_snapshot
+
+    header, payload = split4(good_file)
+    st = next(e for e in header["arrays"] if e["name"] == "g_ndt_state")["streams"][0]
+    bomb = zstd(bytes(256 * 2**20))
+    assert len(bomb) < 2**20
+    path = _write(tmp_path / "bomb.ndtom", restream(header, payload, "g_ndt_state", 0, bomb, st["raw_nbytes"]))
+    tracemalloc.start()
+    try:
+        with pytest.raises(MapFileError, match="declared"):
+            read_snapshot(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 32 * 2**20, peak
+    raw = inflate(header, payload, "g_ndt_state", 0)
+    for frame, message in ((zstd(raw, write_content_size=False), "does not declare its size"),
+                           (zstd(raw) + b"\0" * 8, "trailing|not a zstd frame|decompress"),
+                           (zstd(raw[:-1] + b"\x07"), "g_ndt_state")):  # fmt: skip
+        with pytest.raises(MapFileError, match=message):
+            read_snapshot(_write(tmp_path / "f.ndtom", restream(header, payload, "g_ndt_state", 0, frame, len(raw))))
+    # a table that declares more rows than a frame of its size can hold: refused unread
+    h = json.loads(json.dumps(header))
+    for e in h["arrays"]:
+        if e["name"].startswith("g_"):
+            e["shape"][0] = 10**12
+    with pytest.raises(MapFileError, match="more than zstd can hold|declares"):
+        read_header(_write(tmp_path / "rows.ndtom", join4(h, payload)))
+
+
+def _delta_case(header, payload, how):
+    d8 = np.frombuffer(inflate(header, payload, "occ_index", 0), np.uint8).copy()
+    far = np.frombuffer(inflate(header, payload, "occ_index", 1), "<i8").copy()
+    total = math.prod(next(e for e in header["arrays"] if e["name"] == "occ_index")["span"])
+    d8[-1] = 0  # the last difference becomes an escape: its long value is appended
+    extra = {"no long value": [], "zero difference": [0], "past the span": [total], "negative": [-5]}[how]
+    far = np.concatenate([far, np.array(extra, "<i8")])
+    data = restream(header, payload, "occ_index", 0, zstd(d8.tobytes()), d8.nbytes)
+    h, p = split4(data)
+    return restream(h, p, "occ_index", 1, zstd(far.tobytes()), far.nbytes)
+
+
+CRAFTED4 = {
+    "escape without its long difference": (lambda h, p: _delta_case(h, p, "no long value"), "escapes"),
+    "zero key difference (a cell twice)": (lambda h, p: _delta_case(h, p, "zero difference"), "differences outside"),
+    "negative key difference": (lambda h, p: _delta_case(h, p, "negative"), "differences outside"),
+    "key past the span": (lambda h, p: _delta_case(h, p, "past the span"), "past its span"),
+    "unknown coding": (lambda h, p: join4({**h, "arrays": [{**e, "coding": "lz4"} if e["name"] == "g_n" else e
+                                                          for e in h["arrays"]]}, p), "coding"),  # fmt: skip
+    "stream sizes off": (lambda h, p: join4(h, p + b"\0"), "streams hold"),
+    "stream missing": (lambda h, p: join4({**h, "arrays": [{**e, "streams": e["streams"][:1]} for e in h["arrays"]]},
+                                          p), "streams"),  # fmt: skip
+    "span too wide": (lambda h, p: join4({**h, "arrays": [{**e, "span": [2**31, 2**31, 2**31]} if e["name"] == "g_index"
+                                                          else e for e in h["arrays"]]}, p), "key bounds"),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("case", sorted(CRAFTED4))
+def test_crafted_format_4_streams_are_map_file_errors(tmp_path, good_file, case):
+    from ndtom_ti.mapfile import read_snapshot
+
+    fn, message = CRAFTED4[case]
+    header, payload = split4(good_file)
+    path = _write(tmp_path / "c.ndtom", fn(header, payload))
+    with pytest.raises(MapFileError, match=message):
+        read_snapshot(path)
+    r = run_cli("info", path)
+    assert "internal error" not in r.output and "Traceback" not in r.output, r.output
 
 
 def test_map_with_nan_statistics_is_refused_by_the_viewer(tmp_path, good_file, capsys):

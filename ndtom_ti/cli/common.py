@@ -40,8 +40,16 @@ class MissModel(str, Enum):
 
 
 # ---------------------------------------------------------------------------- output helpers
+# Output to a file, pipe or CI log has no width: Rich would assume 80 columns and fold
+# table cells mid-word ("octoma/p"). Tables there take the width they need, up to this.
+LOG_WIDTH = 160
+
+
 def console_out() -> Console:
-    return Console(highlight=False)
+    c = Console(highlight=False)
+    if not c.is_terminal and not os.environ.get("COLUMNS"):
+        c.width = LOG_WIDTH
+    return c
 
 
 def console_err() -> Console:
@@ -56,13 +64,13 @@ def fail(message: str, hint: str | None = None, code: int = EXIT_USAGE) -> NoRet
     raise typer.Exit(code)
 
 
-def need_extra(module: str, purpose: str, code: int = EXIT_FAILURE) -> None:
+def need_extra(module: str, purpose: str) -> None:
     """Stop before any work when an optional package is missing, naming its extra and
-    how to install it."""
+    how to install it; exit 1 for every command (``exitcodes``)."""
     from ..extras import available, extra_of, install_hint, missing_message
 
     if not available(module):
-        fail(missing_message(module, purpose), f"install it with: {install_hint(extra_of(module))}", code)
+        fail(missing_message(module, purpose), f"install it with: {install_hint(extra_of(module))}", EXIT_FAILURE)
 
 
 def without_extra(module: str, skipped: str) -> bool:

@@ -11,7 +11,6 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
-from ..exitcodes import EXIT_USAGE
 from .common import (
     Arch,
     check_writable,
@@ -71,7 +70,7 @@ def sweep(
         if baseline not in (None, "octomap"):
             fail(f"unknown baseline {baseline!r}", "the supported baseline is `--baseline octomap`")
         if baseline == "octomap":
-            need_extra("pyoctomap", "the OctoMap baseline (--baseline octomap)", EXIT_USAGE)
+            need_extra("pyoctomap", "the OctoMap baseline (--baseline octomap)")
         no_plot = without_extra("matplotlib", "the sweep writes sweep.csv and the table but no sweep.png")
         out = out.expanduser()
         out.mkdir(parents=True, exist_ok=True)

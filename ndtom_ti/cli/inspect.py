@@ -54,8 +54,14 @@ def _info_map(path: Path) -> None:
     t.add_row("scans inserted", fmt_count(int(h.get("scans_inserted", 0))))
     t.add_row("points inserted", fmt_count(int(h.get("points_inserted", 0))))
     arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
-    if "g_index" in arrays:
-        t.add_row("Gaussian records", fmt_count(arrays["g_index"][0]))
+    if "g_index" in arrays:  # one word for one thing: "Gaussians" as `ndtom map` and export count them
+        min_points = (h.get("config") or {}).get("min_points", 3)
+        summary = md.get("summary")
+        gaussians = summary.get("gaussians") if isinstance(summary, dict) else None
+        if isinstance(gaussians, int):
+            t.add_row("Gaussians", f"{fmt_count(gaussians)} (cells of >= {min_points} points, occupied)")
+        t.add_row("Gaussian records", f"{fmt_count(arrays['g_index'][0])} (every cell with points: the Gaussians, and "
+                  f"those of fewer points or in free cells)")  # fmt: skip
     if "occ_index" in arrays:
         t.add_row("known cells", fmt_count(arrays["occ_index"][0]))
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
@@ -186,13 +192,17 @@ def info(
 ) -> None:
     """Show what is in a recording: topics, types, counts, duration, the TF tree, which
     topics can be mapped and which pose sources exist. Given a map file, show its header."""
-    with user_errors():
-        if path.is_file():
+    # (this command's own hint must not suggest this command again)
+    with user_errors(recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml) "
+                     "or an .ndtom map file", map_file="give a map file written by `ndtom map` or `ndtom demo` "
+                     "(`ndtom info` also takes recordings)"):  # fmt: skip
+        is_map = path.suffix.lower() == ".ndtom"  # named a map file: its faults are a map file's, not a bag's
+        if path.is_file() and not is_map:
             with path.open("rb") as fh:
                 is_map = fh.read(len(_MAGIC)) == _MAGIC
-            if is_map:
-                _info_map(path)
-                return
+        if is_map:
+            _info_map(path)
+            return
         _info_recording(path)
 
 

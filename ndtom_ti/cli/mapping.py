@@ -134,7 +134,8 @@ class _Bar:
                 self.progress.start()
             return
         if self.progress is not None:
-            rate = f"{summary.points_per_second / 1e6:.2f} M points/s"
+            # the first scan compiles the kernels: no rate until a second one is in
+            rate = f"{summary.points_per_second / 1e6:.2f} M points/s" if summary.scans_used > 1 else "compiling"
             total = summary.scans_expected
             if total is not None and summary.scans_used > total:
                 total = summary.scans_used
@@ -196,7 +197,8 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     if summary.scan_seconds:
         t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms"
                   f" (first scan {summary.ms_first_scan:.0f} ms, kernels compiled)")  # fmt: skip
-    t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s)")
+    later = " after the first scan" if summary.scans_used > 1 else ""
+    t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s{later})")
     if output is not None:
         t.add_row("map file", escape(str(output)))
     return t
@@ -542,5 +544,15 @@ def demo(
             code = _finish_mapping(m, summary, out_path, bar, [gt], signals=sig)
             m.close()  # its slot back now: the map is on disk
         if code == EXIT_OK:
-            console_out().print(f"Next: ndtom export {out_path} --format ply", soft_wrap=True, markup=False)
+            console_out().print(_demo_next(out_path), soft_wrap=True, markup=False)
     raise typer.Exit(code)
+
+
+def _demo_next(out_path: Path) -> str:
+    """What to do with the demo's map: see it in the browser, or export it."""
+    from ..extras import available, install_hint
+
+    view = f"ndtom view {out_path}  (the map in the browser)"
+    if not available("viser"):
+        view = f"{view}, after: {install_hint('viewer')}"
+    return f"Next: {view}\n      ndtom export {out_path} -o demo.ply  (or .bt .pcd .pgm)"

@@ -4,15 +4,53 @@ modules (see the package docstring)."""
 
 from __future__ import annotations
 
+import importlib
 import signal
 from typing import Annotated
 
 import typer
+from typer.core import TyperGroup
 
 from .. import __version__
-from .common import set_own_process, set_pin_threads
+from .common import fail, set_own_process, set_pin_threads
+
+
+def _click_exceptions():
+    # Typer 0.2x carries its own copy of Click; older Typer uses Click itself.
+    for name in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            return importlib.import_module(name)
+        except ImportError:
+            continue
+    return None
+
+
+_CLICK = _click_exceptions()
+
+
+class _Group(TyperGroup):
+    """Click's own usage errors of a command (a required option missing, a value out of its
+    range) in the one-line ``Error:``/``Hint:`` form of every other bad option, exit 2."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except Exception as exc:
+            if _CLICK is None or not isinstance(exc, _CLICK.UsageError):
+                raise
+            if type(exc).__name__ == "NoArgsIsHelpError":  # `ndtom map` alone: its help, as asked
+                raise
+            ctx = getattr(exc, "ctx", None)
+            sub = ctx.command_path if ctx is not None else "ndtom COMMAND"
+            param = getattr(getattr(exc, "param", None), "name", None)
+            hint = f"`{sub} --help` lists " + ("the commands" if sub == "ndtom" else "the options and their ranges")
+            if param == "resolution":
+                hint = f"give the cell size in metres, e.g. {sub} BAG -r 0.2 (0.1-0.5 m suits most lidar maps)"
+            fail(getattr(exc, "format_message", exc.__str__)(), hint)
+
 
 app = typer.Typer(
+    cls=_Group,
     name="ndtom",
     help="Exact NDT Occupancy Maps from ROS bags (Taichi, CPU or CUDA).",
     no_args_is_help=True,

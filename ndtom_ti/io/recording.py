@@ -582,8 +582,11 @@ class Recording:
                 'no pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped, '
                 'PoseWithCovarianceStamped, TransformStamped)'
             )
+        # one line per source tried (the message was one ~600-character line)
         raise RecordingError(
-            f'no usable poses for {what} (frame {frame!r}) in {self.path}: ' + '; '.join(reasons) + f'. {_SUGGEST}'
+            f'no usable poses for {what} (frame {frame!r}) in {self.path}:\n'
+            + ''.join(f'  - {r.rstrip(".")}\n'.replace('; ', ';\n    ') for r in reasons)
+            + _SUGGEST
         )
 
     # -- public API

@@ -1,0 +1,80 @@
+"""Map file size and save/load time: format 4 (compressed) against format 3 (raw arrays),
+paired in one process on the same maps.
+
+    ndtom map ../shared/data/norlab_outdoor_stationary_14.bag -r 0.2 -o norlab.ndtom
+    python benchmarks/mapfile_size.py norlab.ndtom [more.ndtom ...] --repeats 5
+
+For each map: known cells, Gaussians, bytes of each format and bytes per known cell, then
+the median seconds of writing and of reading it (MapSnapshot.save / MapSnapshot.load:
+the file alone, no Taichi) in each format, alternated, and their ratio. --map also times
+NdtOmMap.save and NdtOmMap.load (what `ndtom map` and a script pay: the map's arrays
+taken out of Taichi, or put in).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from ndtom_ti.mapfile import RAW_VERSION, VERSION, save_snapshot
+from ndtom_ti.snapshot import MapSnapshot
+
+
+def timed(fn) -> float:
+    gc.collect()
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("maps", nargs="+", type=Path)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--map", action="store_true", help="also time NdtOmMap.save/load (starts Taichi)")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for path in args.maps:
+            s = MapSnapshot.load(path)
+            files = {v: Path(tmp) / f"v{v}.ndtom" for v in (RAW_VERSION, VERSION)}
+            times: dict[str, list[float]] = {}
+            m = None
+            if args.map:
+                import ndtom_ti
+
+                ndtom_ti.init("cpu")
+                m = ndtom_ti.NdtOmMap.from_snapshot(s)
+            for _ in range(args.repeats):
+                for v, f in files.items():  # alternated: drifts of the machine hit both alike
+                    times.setdefault(f"save {v}", []).append(timed(lambda v=v, f=f, s=s: save_snapshot(s, f, version=v)))
+                    times.setdefault(f"load {v}", []).append(timed(lambda f=f: MapSnapshot.load(f)))
+                    if m is not None:
+                        import ndtom_ti.mapfile as mf
+
+                        times.setdefault(f"map save {v}", []).append(
+                            timed(lambda v=v, f=f, m=m: mf.save_snapshot(m.snapshot(), f, version=v))
+                        )
+                        times.setdefault(f"map load {v}", []).append(timed(lambda f=f: ndtom_ti.NdtOmMap.load(f).close()))
+            if m is not None:
+                m.close()
+            size = {v: f.stat().st_size for v, f in files.items()}
+            med = {k: statistics.median(t) for k, t in times.items()}
+            known = len(s.occ_index)
+            rows.append((path.name, known, len(s.g_index), size, med))
+            print(f"{path.name}: {known:,} known cells, {len(s.g_index):,} Gaussian records")
+            for v in files:
+                print(f"  format {v}: {size[v] / 2**20:.1f} MiB, {size[v] / max(known, 1):.2f} bytes a known cell")
+            for what in ("save", "load", "map save", "map load"):
+                if f"{what} {VERSION}" in med:
+                    a, b = med[f"{what} {RAW_VERSION}"], med[f"{what} {VERSION}"]
+                    print(f"  {what}: format {RAW_VERSION} {a:.3f} s, format {VERSION} {b:.3f} s, ratio {b / a:.2f}"
+                          f" (medians of {args.repeats})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,193 @@
+"""The payload of map files of version 4: the snapshot's arrays, losslessly compressed.
+
+Raw arrays took ~17.5 bytes a known cell, mostly cell indices and log-odds of free space.
+Here each array becomes one or two zstd frames, back to back in the array table's order:
+
+- cell indices (``occ_index``, ``g_index``, rows sorted): packed into int64 keys
+  (:mod:`.cellkeys`; ``lo`` and ``span`` in the table), stored as the differences of
+  consecutive keys, the first key's counted from -1, so every difference is >= 1. Most are
+  small (neighbouring cells of a column): ``delta8`` holds each as one byte, 0 where it does
+  not fit, and ``delta64`` those that did not fit (<i8), in order.
+- every other array: its raw bytes (``raw``: log-odds repeat as whole values, which zstd
+  finds as matches), or its bytes in planes (``planes``: byte b of column c of every row
+  together; the similar signs and exponents of Gaussian means and the small high bytes of
+  counts become runs). Bit for bit what was given.
+
+Each frame declares its decompressed size, which must equal what the table's shape needs
+(checked before anything is inflated), so a file never makes the reader inflate more than
+its arrays' declared size; frames carry zstd's own checksum besides the file's SHA-256.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import NoReturn
+
+import numpy as np
+import zstandard
+
+from .cellkeys import pack, unpack
+
+# zstd level 1: on the recordings' maps ~1.5x faster than level 3 (its default) for ~5% more bytes
+LEVEL = 1
+# A zstd frame cannot expand more than this (a 3-byte RLE block header stands for 128 KiB):
+# a larger declared size is a lie, refused before any memory is taken for it.
+_MAX_RATIO = 2**15
+_INDEX = ("occ_index", "g_index")
+# What each array compresses best as (bytes of the recordings' maps, zstd level 3). The
+# reader takes "raw" or "planes" for any array that is not an index.
+CODING = {"occ_logodds": "raw", "g_n": "planes", "g_mean_rel": "planes", "g_scatter": "raw",
+          "g_erased_near": "planes", "g_ndt_state": "raw"}  # fmt: skip
+
+Bad = Callable[[str], NoReturn]
+
+
+def _compress(raw: bytes | memoryview) -> bytes:
+    return zstandard.ZstdCompressor(level=LEVEL, write_checksum=True, write_content_size=True).compress(raw)
+
+
+def _planes(a: np.ndarray) -> np.ndarray:
+    """Bytes of ``a`` (rows first) regrouped as (bytes of a row, rows): plane p holds byte p
+    of every row."""
+    rows, row_bytes = len(a), a.itemsize * math.prod(a.shape[1:])
+    return np.ascontiguousarray(np.ascontiguousarray(a).view(np.uint8).reshape(rows, row_bytes).T)
+
+
+def encode(arrays: dict[str, np.ndarray]) -> tuple[list[dict], list[bytes]]:
+    """Table entries (name, dtype, shape, coding, streams) and the frames, in order, of
+    ``arrays`` (name -> array of its dtype; index arrays with rows in (i, j, k) order)."""
+    entries, raws = {}, {}
+    # The values first: their frames compress in a second thread (zstd lets the GIL go)
+    # while this one codes the cell indices; saving takes about what the slower of the two does.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for name in sorted(arrays, key=lambda n: n in _INDEX):
+            a = arrays[name]
+            entry: dict = {"name": name, "dtype": a.dtype.str, "shape": list(a.shape)}
+            if name in _INDEX:
+                keys, lo, span = pack(a)
+                d = np.diff(keys, prepend=np.int64(-1))  # the first key's counted from -1
+                if len(d) and d.min() < 1:
+                    raise ValueError(f"{name}: cells must be sorted and distinct to be written")
+                far = d > 255
+                d8 = d.astype(np.uint8)
+                d8[far] = 0
+                raws[name] = [d8, d[far]]
+                entry.update(coding="delta", lo=lo.tolist(), span=span.tolist())
+            else:
+                entry["coding"] = CODING.get(name, "raw")
+                raws[name] = [_planes(a) if entry["coding"] == "planes" else np.ascontiguousarray(a)]
+            entry["futures"] = [pool.submit(_compress, r.reshape(-1).view(np.uint8).data) for r in raws[name]]
+            entries[name] = entry
+        table, blobs = [], []
+        for name in arrays:  # the table and the frames in the caller's order
+            entry = entries[name]
+            frames = [f.result() for f in entry.pop("futures")]
+            entry["streams"] = [
+                {"nbytes": len(f), "raw_nbytes": r.nbytes} for f, r in zip(frames, raws[name], strict=True)
+            ]
+            table.append(entry)
+            blobs.extend(frames)
+    return table, blobs
+
+
+def check_table(table: list[dict], payload_bytes: int, bad: Bad) -> None:
+    """The codec fields of a version-4 array table (names, dtypes and shapes are checked
+    by the caller): each array's coding, its streams' sizes consistent with its shape and
+    with zstd, and all streams filling the payload exactly."""
+    total = 0
+    for e in table:
+        name, shape, coding = e["name"], e["shape"], e.get("coding")
+        rows, row_bytes = shape[0], math.prod(shape[1:]) * np.dtype(e["dtype"]).itemsize
+        want = 2 if name in _INDEX else 1
+        if coding not in (("delta",) if name in _INDEX else ("raw", "planes")):
+            bad(f"array {name!r} has coding {coding!r}")
+        streams = e.get("streams")
+        if not (isinstance(streams, list) and len(streams) == want and all(isinstance(s, dict) for s in streams)):
+            bad(f"array {name!r} needs {want} streams, the table has {streams!r}")
+        for s in streams:
+            nb, raw = s.get("nbytes"), s.get("raw_nbytes")
+            if not (_int(nb) and _int(raw) and nb >= 0 and raw >= 0):
+                bad(f"array {name!r} has stream sizes {nb!r} and {raw!r}: not non-negative integers")
+            if raw > _MAX_RATIO * nb + 64:
+                bad(f"array {name!r} declares {raw} bytes in a {nb}-byte stream: more than zstd can hold")
+            total += nb
+        first = streams[0]["raw_nbytes"]
+        if first != (rows if name in _INDEX else rows * row_bytes):
+            bad(f"array {name!r} of shape {shape} declares {first} bytes in its first stream")
+        if name in _INDEX:
+            lo, span = e.get("lo"), e.get("span")
+            if not (isinstance(lo, list) and isinstance(span, list) and len(lo) == len(span) == 3
+                    and all(_int(v) and abs(v) < 2**31 for v in lo) and all(_int(v) and 0 < v <= 2**32 for v in span)
+                    and math.prod(span) < 2**62):  # fmt: skip
+                bad(f"array {name!r} has key bounds lo {lo!r}, span {span!r}")
+            if streams[1]["raw_nbytes"] % 8 or streams[1]["raw_nbytes"] > 8 * rows:
+                bad(f"array {name!r} declares {streams[1]['raw_nbytes']} bytes of long differences for {rows} rows")
+    if total != payload_bytes:
+        bad(f"the streams hold {total} bytes, the payload {payload_bytes}")
+
+
+def _int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _inflate(blob: memoryview, size: int, what: str, bad: Bad) -> bytes:
+    """The ``size`` bytes a zstd frame holds, inflated only after its header says ``size``."""
+    try:
+        declared = zstandard.frame_content_size(blob)
+    except zstandard.ZstdError as exc:
+        bad(f"{what} is not a zstd frame ({exc})")
+    if declared == -1:
+        bad(f"{what} is a zstd frame that does not declare its size")
+    if declared != size:
+        bad(f"{what} holds a frame of {declared} bytes where {size} were declared")
+    dobj = zstandard.ZstdDecompressor().decompressobj()
+    try:
+        out = dobj.decompress(blob)
+    except zstandard.ZstdError as exc:
+        bad(f"{what} does not decompress ({exc})")
+    if len(out) != size or not dobj.eof or dobj.unused_data:
+        bad(f"{what} decompresses to {len(out)} bytes with trailing data, {size} declared")
+    return out
+
+
+def decode(table: list[dict], payload: bytes, bad: Bad) -> dict[str, np.ndarray]:
+    """The arrays of a payload whose table passed :func:`check_table` (and whose checksum
+    matched). Index arrays come back with distinct rows in (i, j, k) order."""
+    view, offset, out = memoryview(payload), 0, {}
+    for e in table:
+        name, shape, dtype = e["name"], e["shape"], np.dtype(e["dtype"])
+        raws = []
+        for i, s in enumerate(e["streams"]):
+            raws.append(
+                _inflate(view[offset : offset + s["nbytes"]], s["raw_nbytes"], f"array {name!r} stream {i}", bad)
+            )
+            offset += s["nbytes"]
+        if e["coding"] == "raw":
+            out[name] = np.frombuffer(raws[0], dtype).reshape(shape)
+            continue
+        if e["coding"] == "planes":
+            rows, row_bytes = shape[0], dtype.itemsize * math.prod(shape[1:])
+            planes = np.frombuffer(raws[0], np.uint8).reshape(row_bytes, rows)
+            out[name] = np.ascontiguousarray(planes.T).view(dtype).reshape(shape)
+            continue
+        d = np.frombuffer(raws[0], np.uint8).astype(np.int64)
+        far = d == 0
+        long = np.frombuffer(raws[1], "<i8")
+        if len(long) != np.count_nonzero(far):
+            bad(f"array {name!r} has {len(long)} long key differences for {np.count_nonzero(far)} escapes")
+        lo, span = np.array(e["lo"], np.int64), np.array(e["span"], np.int64)
+        total = int(math.prod(e["span"]))
+        # every difference >= 1 and every key inside the span: then no sum can overflow int64
+        if len(long) and not ((long > 0) & (long <= total)).all():
+            bad(f"array {name!r} has key differences outside [1, {total}]")
+        d[far] = long
+        keys = np.cumsum(d)
+        keys -= 1
+        if len(keys) and (keys[-1] >= total or keys.min() < 0):  # (a sum past int64 turns negative first)
+            bad(f"array {name!r} has keys past its span {e['span']}")
+        if len(keys) and (lo + span - 1 >= 2**31).any():
+            bad(f"array {name!r} has key bounds past int32")
+        out[name] = unpack(keys, lo, span, np.int32).reshape(shape)
+    return out
