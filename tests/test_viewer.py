@@ -109,6 +109,55 @@ def test_colour_maps_and_caps():
     assert len(np.unique(geo.cell_keys(idx))) == 5
 
 
+
+def _flat(n, rng, z=0.0, half=10.0, normal_z=True):
+    """n flat Gaussians (normal along z, or along x) spread over a square at height z."""
+    mean = np.c_[rng.uniform(-half, half, (n, 2)), np.full(n, z)]
+    d = [0.04, 0.04, 1e-4] if normal_z else [1e-4, 0.04, 0.04]
+    return mean, np.tile(np.diag(d), (n, 1, 1))
+
+
+def test_bulk_sphere_frames_the_bulk_not_a_few_far_cells(rng):
+    # outdoors: a ground disc of 20 m, and a few cells 150-190 m away (a lidar's far returns)
+    near = np.c_[rng.uniform(-20, 20, (5000, 2)), rng.normal(0, 0.2, 5000)]
+    far = np.c_[rng.uniform(150, 190, (60, 2)), np.zeros(60)]
+    center, radius = geo.bulk_sphere(np.r_[near, far])
+    assert np.linalg.norm(center[:2]) < 3.0 and 15.0 < radius < 30.0, (center, radius)
+    # an evenly filled room: its middle, and most of it (the view fits the sphere's width)
+    room = rng.uniform([0, 0, 0], [12, 8, 3], (5000, 3))
+    center, radius = geo.bulk_sphere(room)
+    assert np.allclose(center, [6, 4, 1.5], atol=0.3) and radius >= 0.7 * np.linalg.norm([12, 8, 3]) / 2
+
+
+def test_ceiling_height_finds_a_roof_not_the_sky(rng):
+    floor = _flat(3000, rng, z=0.0)
+    roof = _flat(3000, rng, z=4.0)
+    wall = _flat(800, rng, z=2.0, normal_z=False)
+    wall[0][:, 0] = 10.0
+    wall[0][:, 2] = rng.uniform(0, 4, 800)
+    mean, cov = (np.r_[a, b, c] for a, b, c in zip(floor, roof, wall))
+    h = geo.ceiling_height(mean, cov, 0.2)
+    assert h is not None and 3.0 < h < 4.0, h
+    # outdoors: sloping ground (6 m over the map) and walls, no roof: no clip
+    ground = _flat(3000, rng, z=0.0)
+    ground[0][:, 2] = 0.3 * ground[0][:, 0]
+    mean, cov = (np.r_[a, b] for a, b in zip(ground, wall))
+    assert geo.ceiling_height(mean, cov, 0.2) is None
+
+
+def test_nothing_non_finite_is_drawn(maps, make_viewer):
+    assert geo.finite_rows(np.array([[0, 0, 0], [np.nan, 0, 0], [0, np.inf, 0]], float)).tolist() == [1, 0, 0]
+    assert geo.finite_rows(np.zeros((0, 3))).shape == (0,)
+    m, _ = maps
+    v = make_viewer(m)
+    v.set_trajectory([[0, 0, 1], [np.nan, 0, 1], [1, 0, 1]])
+    v.set_scan([[1, 2, 0.5], [np.nan, np.nan, np.nan], [2, 2, 0.5]])
+    v.refresh()
+    scene_arrays = [v._handles["scan"].points, v._handles["trajectory"].points,
+                    v._handles["gaussians"].batched_positions]  # fmt: skip
+    assert v.drawn["scan"] == 2 and all(np.isfinite(np.asarray(a)).all() for a in scene_arrays)
+
+
 # ---------------------------------------------------------------------------- GUI logic
 
 
@@ -196,10 +245,18 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     height_colors = np.array(v._handles["gaussians"].batched_colors)
     v.controls.color_mode.value = "occupancy"  # one click away
     g = m.gaussians(min_probability=0.5)
-    expected = geo.occupancy_colors(g["p_occ"])
+    # the scale spans what is drawn (threshold .. highest p): the surest red, the least sure green
+    prange = (0.5, float(g["p_occ"].max()))
+    assert v.drawn["prange"] == prange
+    expected = geo.occupancy_colors(g["p_occ"], prange)
     assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
     assert not np.array_equal(expected, height_colors)
-    assert "occupancy probability" in v.controls.legend.content and "height of" not in v.controls.legend.content
+    surest, least = np.argmax(g["p_occ"]), np.argmin(g["p_occ"])
+    assert tuple(expected[surest]) == (200, 20, 30) and expected[least][1] > 150 > 100 > expected[least][0]
+    at_top = np.mean(g["p_occ"] >= prange[1] - 1e-3)
+    legend = v.controls.legend.content
+    assert "occupancy probability" in legend and "height of" not in legend
+    assert f"{100 * at_top:.0f}% of them at {prange[1]:.2f}" in legend and "least sure" in legend
     v.controls.geometry.value = "splats"
     assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
 
@@ -543,7 +600,8 @@ def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
     expected = int(((z >= zlo) & (z <= 1.0)).sum())
     assert v.drawn["gaussians"] == expected < len(z)
     assert (np.asarray(v._handles["gaussians"].batched_positions)[:, 2] <= 1.0).all()
-    assert v.drawn["zrange"] == geo.height_range(z)  # colours stay those of the whole map
+    # the colours refit to the clip: its lowest to its highest Gaussian span the whole colour bar
+    assert v.drawn["zrange"] == geo.height_range(z[z <= 1.0]) != geo.height_range(z)
     assert "Height clip" in v.controls.legend.content and "between" in v.controls.stats.content
     v.controls.layers["occupied"].value = True
     assert (np.asarray(v._handles["occupied"].points)[:, 2] <= 1.0 + RES).all()
@@ -557,7 +615,7 @@ def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
     g = m.gaussians(min_probability=0.5)
     lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
     pos, look = (np.array(x) for x in v._camera_for(np.radians(50.0), 0.75))
-    assert np.all(np.abs(look - (lo + hi) / 2) < 0.1 * (hi - lo) + 1e-6)  # looks at the map's middle
+    assert np.all(np.abs(look - (lo + hi) / 2) < 0.15 * (hi - lo) + 1e-6)  # looks at the middle of its bulk
     assert pos[2] > hi[2]  # from above
     # a narrow view steps back further than a wide one (the whole map stays in view)
     narrow, wide = (np.linalg.norm(np.array(v._camera_for(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))

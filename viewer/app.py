@@ -64,7 +64,8 @@ FACTORS = (1, 2, 3, 4)  # resolution selector: native and coarser levels made wi
 _LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
 COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
-FREE_OPACITY = 0.15  # free cells: translucent, so the scene shows through them
+FREE_OPACITY = 0.15
+SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)  # free cells: translucent, so the scene shows through them
 
 
 def _fmt(n: int) -> str:
@@ -557,8 +558,9 @@ class MapViewer:
             return None
         return lo, hi
 
-    def _update_zclip(self, z: np.ndarray, res: float) -> None:
-        """Fit the height clip slider to the map's heights (kept where the user moved it)."""
+    def _update_zclip(self, z: np.ndarray, res: float, ceiling: float | None = None) -> None:
+        """Fit the height clip slider to the map's heights (kept where the user moved it);
+        at the first fit, ``ceiling`` (an indoor map's roof) starts the clip below it."""
         if len(z) == 0:
             return
         step = max(round(float(res) / 2.0, 3), 0.01)
@@ -580,7 +582,10 @@ class MapViewer:
             c.zclip.step = step
             c.zclip.min = zlo
             c.zclip.max = zhi
-            c.zclip.value = (zlo, zhi) if full else (max(cur[0], zlo), min(cur[1], zhi))
+            if old is None and ceiling is not None and zlo < ceiling < zhi:
+                c.zclip.value = (zlo, float(np.floor(ceiling / step) * step))
+            else:
+                c.zclip.value = (zlo, zhi) if full else (max(cur[0], zlo), min(cur[1], zhi))
         finally:
             self._setting_zclip = False
 
@@ -750,7 +755,9 @@ class MapViewer:
         scene = self.server.scene
         name = "/ndtom/gaussians"
         if use == "splats":
-            eps = (0.02 * res) ** 2
+            # splats at least SPLAT_MIN_SIGMA of a cell thick: a lidar's ring seen from afar gives
+            # line-thin Gaussians, and a splat thinner than a pixel fades out (a map of them is blank)
+            eps = (SPLAT_MIN_SIGMA * res) ** 2
             cov = g["cov"] + eps * np.eye(3)[None]
             return scene.add_gaussian_splats(
                 name, centers=g["mean"].astype(np.float32), covariances=cov.astype(np.float32),
@@ -792,11 +799,18 @@ class MapViewer:
         geometry = str(c.geometry.value)
         g = snap.get("g")
         res = snap.get("resolution") or 0.1
+        # nothing non-finite reaches the page (three.js fails on a NaN position; a scan may carry NaN points)
+        if g is not None and not (keep := geo.finite_rows(g["mean"], g["cov"])).all():
+            g = {k: v[keep] for k, v in g.items()}
+        traj = traj[geo.finite_rows(traj)] if len(traj) else traj
+        scan = scan[geo.finite_rows(scan)] if len(scan) else scan
         drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
                                  "notes": list(snap["notes"]), "skipped": list(snap["skipped"])}  # fmt: skip
         zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
-        zrange = geo.height_range(zsrc)  # the legend fits the map's heights (not the clip)
-        self._update_zclip(zsrc, res)
+        ceiling = None
+        if self._zlimits is None and g is not None and len(g["n"]):
+            ceiling = geo.ceiling_height(g["mean"], g["cov"], res)  # indoors: a first view below the roof
+        self._update_zclip(zsrc, res, ceiling)
         clip = self._clip_range()
         drawn["clip"] = clip
 
@@ -806,6 +820,9 @@ class MapViewer:
 
         if g is not None and clip is not None:
             g = {k: v[inside(g["mean"][:, 2])] for k, v in g.items()}
+        # the colours fit what is drawn: the clip's heights, the drawn Gaussians' occupancies
+        zrange = geo.height_range(g["mean"][:, 2] if g is not None and len(g["n"]) else zsrc)
+        prange = geo.occupancy_range(g["p_occ"] if g is not None else np.zeros(0), snap["threshold"])
         n_all = 0 if g is None else len(g["n"])
         use = geometry
         if geometry == "auto":
@@ -820,11 +837,12 @@ class MapViewer:
         drawn["gaussians_total"] = n_all
         drawn["geometry"] = use
         drawn["zrange"] = zrange
+        drawn["prange"] = prange
 
         with self.server.atomic():
             # Gaussians
             if g is not None and n_g:
-                cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange)
+                cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange, prange)
                 if self._handles.get("gaussians") is not None and drawn["geometry"] != self.drawn.get("geometry"):
                     self._handles.pop("gaussians").remove()  # splats <-> ellipsoids: other node type
                 self._set("gaussians", lambda: self._gaussian_node(g, cols, res, use, want["gaussians"]))
@@ -840,13 +858,15 @@ class MapViewer:
                         self._handles[key].visible = False
                     continue
                 centers, p = snap[key]
+                if not (fin := geo.finite_rows(centers)).all():
+                    centers, p = centers[fin], p[fin]
                 if clip is not None:
                     keep = inside(centers[:, 2])
                     centers, p = centers[keep], p[keep]
                 if key == "free" and color_mode == "height":
                     cols = np.tile(np.array(geo.FREE_RGB, np.uint8), (len(p), 1))
                 else:
-                    cols = geo.colors_for(color_mode, p, centers[:, 2], zrange)
+                    cols = geo.colors_for(color_mode, p, centers[:, 2], zrange, prange)
                 if len(p) and key == "free":
                     self._set(key, lambda centers=centers, cols=cols: self._free_node(centers, cols, res, want["free"]))
                 elif len(p):
@@ -867,6 +887,7 @@ class MapViewer:
             # Conflicting cells: the comparison map's Gaussians where NDT-OM has none
             conf = snap.get("conflicts")
             if conf is not None:
+                conf = {k: v[geo.finite_rows(conf["mean"], conf["cov"])] for k, v in conf.items()}
                 if clip is not None:
                     keep = inside(conf["mean"][:, 2])
                     conf = {k: v[keep] for k, v in conf.items()}
@@ -906,9 +927,12 @@ class MapViewer:
                 self._set("scan", None)
             drawn["scan"] = len(scan)
 
+            at_top = None
+            if g is not None and n_g:
+                at_top = float(np.mean(g["p_occ"] >= prange[1] - 1e-3))
             c.legend.content = geo.legend_html(
                 color_mode, threshold=snap["threshold"], zrange=zrange, conflicts=self.compare is not None,
-                live=self._live_layers, free=want["free"], clip=clip,
+                live=self._live_layers, free=want["free"], clip=clip, prange=prange, at_top=at_top,
             )  # fmt: skip
             c.stats.content = self._stats_markdown(snap, drawn)
             notes = drawn["notes"]
@@ -923,14 +947,12 @@ class MapViewer:
         return "; a coarser Resolution shows all of the map" if self._selected_factor() < FACTORS[-1] else ""
 
     def _frame(self, g: dict | None, traj: np.ndarray) -> None:
-        """Point the camera at the map once it has content: the whole map in view, seen
-        from above at an angle."""
+        """Point the camera at the map once it has content: its bulk (all of an indoor map)
+        in view, seen from above at an angle."""
         pts = g["mean"] if g is not None and len(g["n"]) else traj
         if len(pts) == 0:
             return
-        lo, hi = np.percentile(pts, 1.0, axis=0), np.percentile(pts, 99.0, axis=0)
-        center = (lo + hi) / 2.0
-        radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1.0)
+        center, radius = geo.bulk_sphere(pts)  # the bulk: an outdoor map's far rings are no speck's frame
         direction = np.array([-0.45, -0.75, 0.8])
         self._view = (center, radius, direction / np.linalg.norm(direction))
         cam = self.server.initial_camera
