@@ -197,18 +197,51 @@ def test_resolution_dropdown_switches_to_coarsened_maps(maps, make_viewer):
     m, _ = maps
     v = make_viewer(m, cache_size=2)
     opts = v.controls.resolution.options
-    assert opts == ("0.5 m (native)", "1 m (2x)", "1.5 m (3x)", "2 m (4x)")
+    assert opts == ("0.5 m (native)", "1 m (2x)", "1.5 m (3x)", "2 m (4x)", "auto: 0.5 m drawn")
+    assert v.controls.resolution.value == opts[-1]  # auto by default: it says what it draws
     v.controls.resolution.value = opts[1]
     assert v.level == 2 and v.drawn["resolution"] == 2 * RES
     c2 = m.coarsen(2)
     assert v.drawn["gaussians"] == len(c2.gaussians(min_probability=0.5)["n"]) < len(m)
     del c2
-    for o in opts[2:]:
+    for o in opts[2:4]:
         v.controls.resolution.value = o
         assert len(v._cache) <= 2  # old levels are dropped: the process holds at most 8 maps
     assert v.level == 4
     v.controls.resolution.value = opts[0]
     assert v.level == 1 and v.drawn["gaussians"] == len(m)
+
+
+def test_the_resolution_chosen_is_drawn_and_auto_says_what_it_draws(maps, make_viewer):
+    from viser import GaussianSplatHandle
+
+    m, _ = maps
+    n = len(m.gaussians(min_probability=0.5)["n"])
+    v = make_viewer(m, max_ellipsoids=50, max_splats=100, max_chosen=1000)
+    res = v.controls.resolution
+    # auto: a coarser level that fits, named in the selector (and the geometry it draws)
+    assert v.level >= 2 and res.value == f"auto: {v.drawn['resolution']:g} m drawn" == res.options[-1]
+    assert v.controls.geometry.value == f"auto: {v.drawn['geometry']}"
+    # the native level chosen by hand: drawn as chosen (splats), up to max_chosen, with a warning
+    res.value = res.options[2]  # 3x: fewer than max_chosen, more than max_splats
+    n3 = len(m.coarsen(3).gaussians(min_probability=0.5)["n"])
+    assert 100 < n3 <= 1000, n3
+    assert v.level == 3 and v.drawn["gaussians"] == n3 and v.drawn["geometry"] == "splats"
+    assert res.value == res.options[2] and res.options[-1] == "auto"  # the selector shows what is drawn
+    assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and "respond slowly" in v.controls.notice.content
+    assert not v.controls.redraw.visible
+    # past max_chosen: the part around where the view looks
+    res.value = res.options[0]
+    assert v.level == 1 and v.drawn["gaussians"] == 1000 < n and v.controls.redraw.visible
+    assert "nearest the view's centre" in v.controls.notice.content
+    drawn = np.asarray(v._handles["gaussians"].centers)
+    center = v._view_center(drawn)
+    g = m.gaussians(min_probability=0.5)
+    d_all = np.sort(np.linalg.norm(g["mean"] - center, axis=1))
+    assert np.linalg.norm(drawn - center, axis=1).max() <= d_all[999] + 1e-3
+    # "Gaussians as" splats / ellipsoids on a chosen level: what the statistics say is drawn
+    v.controls.geometry.value = "ellipsoids"
+    assert v.drawn["geometry"] == "ellipsoids" and "drawn as ellipsoids" in v.controls.stats.content
 
 
 def test_layer_toggles_set_visibility_and_compute_on_demand(maps, make_viewer):

@@ -61,6 +61,7 @@ LAYERS = {  # key -> checkbox label
 _DEFAULT_ON = {"gaussians", "conflicts", "trajectory", "scan"}  # free cells stay off: they bury the scene
 _LIVE_LAYERS = ("trajectory", "scan")  # offered once live mapping runs (or a trajectory is set)
 FACTORS = (1, 2, 3, 4)  # resolution selector: native and coarser levels made with coarsen()
+AUTO = 0  # resolution selector: the level of detail picks the level (its entry says which)
 _LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
 COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
@@ -132,6 +133,7 @@ class Controls:
     stats: Any = None
     notice: Any = None
     frame: Any = None
+    redraw: Any = None
     zclip: Any = None
     # live mapping (made by ``MapViewer.live``)
     live_folder: Any = None
@@ -189,6 +191,7 @@ class MapViewer:
         geometry: str = "auto",
         max_ellipsoids: int = 4_000,
         max_splats: int = 20_000,
+        max_chosen: int = 100_000,
         max_free_cells: int = 20_000,
         max_occupied_cells: int = 100_000,
         cache_size: int = 2,
@@ -213,6 +216,7 @@ class MapViewer:
 
         self.max_ellipsoids = int(max_ellipsoids)
         self.max_splats = int(max_splats)
+        self.max_chosen = int(max_chosen)
         self.max_free_cells = int(max_free_cells)
         self.max_occupied_cells = int(max_occupied_cells)
         self.cache_size = max(int(cache_size), 0)
@@ -467,6 +471,8 @@ class MapViewer:
     # ------------------------------------------------------------------ GUI
 
     def _level_options(self) -> tuple[list[str], dict[str, int]]:
+        """Labels of the resolution selector: each level, then "auto" (the level of detail's
+        choice, named once drawn: the selector says what is drawn)."""
         m = self.map
         r = m.resolution if m is not None else None
         labels, lookup = [], {}
@@ -477,22 +483,56 @@ class MapViewer:
                 lab = f"{r * f:g} m (native)" if f == 1 else f"{r * f:g} m ({f}x)"
             labels.append(lab)
             lookup[lab] = f
+        drawn = self.drawn.get("resolution") if self.drawn.get("selected") == AUTO else None
+        auto = "auto" if drawn is None else f"auto: {drawn:g} m drawn"
+        labels.append(auto)
+        lookup[auto] = AUTO
         return labels, lookup
 
     def _update_resolution_options(self) -> None:
         labels, lookup = self._level_options()
-        self._level_lookup = lookup
         h = self.controls.resolution
         if h is not None and list(h.options) != labels:
             old = self._selected_factor()
-            h.options = labels
-            h.value = labels[FACTORS.index(old)]
+            self._level_lookup = lookup
+            self._setting_choice = True  # a relabelling, not a choice: no refresh
+            try:
+                h.options = labels
+                h.value = labels[-1] if old == AUTO else labels[FACTORS.index(old)]
+            finally:
+                self._setting_choice = False
+        self._level_lookup = lookup
 
     def _selected_factor(self) -> int:
+        """The chosen level's factor, or AUTO."""
         h = self.controls.resolution
         if h is None:
-            return 1
-        return self._level_lookup.get(h.value, 1)
+            return AUTO
+        v = str(h.value)
+        return AUTO if v.startswith("auto") else self._level_lookup.get(v, AUTO)
+
+    def _geometry_choice(self) -> str:
+        v = str(self.controls.geometry.value)
+        return "auto" if v.startswith("auto") else v
+
+    def _update_geometry_label(self, use: str) -> None:
+        """The geometry selector's "auto" entry says which geometry it draws."""
+        h = self.controls.geometry
+        label = f"auto: {use}"
+        if h is None or label in h.options:
+            return
+        auto_now = str(h.value).startswith("auto")
+        self._setting_choice = True
+        try:
+            h.options = [label, *GEOMETRIES[1:]]
+            if auto_now:
+                h.value = label
+        finally:
+            self._setting_choice = False
+
+    def _on_choice(self) -> None:
+        if not getattr(self, "_setting_choice", False):
+            self.request_refresh()
 
     def _build_gui(self, *, threshold: float, color_mode: str, geometry: str) -> None:
         gui = self.server.gui
@@ -512,14 +552,17 @@ class MapViewer:
                 hint="draw Gaussians and occupied cells with occupancy probability above this",
             )  # fmt: skip
             c.resolution = gui.add_dropdown(
-                "Resolution", labels, initial_value=labels[0],
-                hint="native resolution, or a coarser level made on demand (NdtOmMap.coarsen)",
+                "Resolution", labels, initial_value=labels[-1],
+                hint=f"a level is drawn whole (past {_fmt(self.max_chosen)} Gaussians: the part around the view); "
+                "auto: the level of detail picks the finest level that keeps the page responsive",
             )  # fmt: skip
             c.geometry = gui.add_dropdown(
                 "Gaussians as", GEOMETRIES, initial_value=geometry,
                 hint=f"auto: ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, splats up to "
                 f"{_fmt(self.max_splats)}, then a coarser level",
             )  # fmt: skip
+            c.redraw = gui.add_button("Draw around the view", visible=False,
+                                      hint="draw the chosen level's Gaussians nearest where the view looks")  # fmt: skip
             c.point_size = gui.add_slider("Point size", min=0.005, max=0.5, step=0.005, initial_value=0.03,
                                           hint="size (m) of the latest scan's points",
                                           visible=self._live_layers)  # fmt: skip
@@ -533,13 +576,14 @@ class MapViewer:
         with gui.add_folder("Statistics", expand_by_default=False):
             c.stats = gui.add_markdown("")
 
-        c.resolution.on_update(lambda _: self.request_refresh())
+        c.resolution.on_update(lambda _: self._on_choice())
         c.threshold.on_update(lambda _: self.request_refresh())
         c.color_mode.on_update(lambda _: self.request_refresh())
-        c.geometry.on_update(lambda _: self.request_refresh())
+        c.geometry.on_update(lambda _: self._on_choice())
         c.zclip.on_update(lambda _: self._on_zclip())
         c.point_size.on_update(lambda _: self._on_point_size())
         c.frame.on_click(lambda _: self.frame())
+        c.redraw.on_click(lambda _: self.request_refresh())
         for key, box in c.layers.items():
             box.on_update(lambda _, key=key: self._on_layer(key))
 
@@ -630,9 +674,10 @@ class MapViewer:
     def _snapshot(self, want: dict[str, bool]) -> dict:
         """Everything the layers need, as numpy arrays, taken under map_lock."""
         thr = float(self.controls.threshold.value)
-        sel = self._selected_factor()
-        mode = str(self.controls.geometry.value)
-        out: dict[str, Any] = {"threshold": thr, "selected": sel, "notes": [], "skipped": []}
+        chosen = self._selected_factor()
+        sel = chosen or 1  # auto starts from the native level
+        mode = self._geometry_choice()
+        out: dict[str, Any] = {"threshold": thr, "selected": chosen, "notes": [], "skipped": []}
         with self.map_lock:
             base = self._maps["ndtom"]
             if base is None:
@@ -647,7 +692,7 @@ class MapViewer:
             factor = sel
             n_sel = len(g["n"])
             cap = self.max_ellipsoids if mode == "ellipsoids" else self.max_splats
-            if n_sel > cap:
+            if n_sel > cap and chosen == AUTO:  # a level chosen by hand is drawn as chosen
                 # Too many to draw: the first coarser level that fits (its Gaussians are larger, so
                 # they stay visible from afar, where an even subsample of small ones fades out).
                 # Estimate each level's count from the parents of the drawn cells.
@@ -796,7 +841,7 @@ class MapViewer:
         c = self.controls
         scene = self.server.scene
         color_mode = str(c.color_mode.value)
-        geometry = str(c.geometry.value)
+        geometry = self._geometry_choice()
         g = snap.get("g")
         res = snap.get("resolution") or 0.1
         # nothing non-finite reaches the page (three.js fails on a NaN position; a scan may carry NaN points)
@@ -828,11 +873,27 @@ class MapViewer:
         if geometry == "auto":
             use = "ellipsoids" if n_all <= self.max_ellipsoids else "splats"
         cap = self.max_ellipsoids if use == "ellipsoids" else self.max_splats
-        if g is not None and n_all > cap:
+        by_hand = snap["selected"] != AUTO
+        part = False
+        if by_hand and g is not None and n_all > max(cap, self.max_chosen):
+            # a level chosen by hand is drawn whole up to max_chosen; past it, the part around the view
+            center = self._view_center(g["mean"])
+            rows = np.sort(np.argsort(np.linalg.norm(g["mean"] - center, axis=1), kind="stable")[: self.max_chosen])
+            g = {k: v[rows] for k, v in g.items()}
+            part = True
+            drawn["notes"].append(
+                f"{_fmt(n_all)} Gaussians at {res:g} m: showing the {_fmt(len(rows))} nearest the view's centre "
+                f"(past {_fmt(self.max_chosen)} the page stops responding); move the view, then *Draw around the view*"
+            )
+        elif by_hand and g is not None and n_all > cap:
+            drawn["notes"].append(f"{_fmt(n_all)} Gaussians drawn as {use} at {res:g} m: past {_fmt(cap)} the page "
+                                  "may respond slowly (Resolution auto keeps it responsive)")  # fmt: skip
+        elif g is not None and n_all > cap:
             rows = geo.cap_rows(n_all, cap)
             g = {k: v[rows] for k, v in g.items()}
             drawn["notes"].append(f"{_fmt(n_all)} Gaussians to draw as {use}: showing an even {_fmt(len(rows))} "
                                   f"of them (past {_fmt(cap)} the page stops responding){self._coarser_hint()}")  # fmt: skip
+        drawn["selected"] = snap["selected"]
         n_g = 0 if g is None else len(g["n"])
         drawn["gaussians_total"] = n_all
         drawn["geometry"] = use
@@ -940,8 +1001,21 @@ class MapViewer:
             c.notice.visible = bool(notes)
             c.layers["conflicts"].disabled = self.compare is None
         self.drawn = drawn
+        c.redraw.visible = part
+        self._update_resolution_options()  # "auto" names the level drawn
+        self._update_geometry_label(use)
         if not self._framed:
             self._frame(g if clip is None else snap.get("g"), traj)
+
+    def _view_center(self, pts: np.ndarray) -> np.ndarray:
+        """Where a connected page's camera looks (else the map's framed centre)."""
+        for client in self.server.get_clients().values():
+            with contextlib.suppress(Exception):
+                look = np.asarray(client.camera.look_at, np.float64)
+                if look.shape == (3,) and np.isfinite(look).all():
+                    return look
+        view = getattr(self, "_view", None)
+        return view[0] if view is not None else geo.bulk_sphere(pts)[0]
 
     def _coarser_hint(self) -> str:
         return "; a coarser Resolution shows all of the map" if self._selected_factor() < FACTORS[-1] else ""
