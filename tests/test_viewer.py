@@ -308,6 +308,8 @@ def test_conflicting_cells_layer(maps, make_viewer):
     h = v._handles["conflicts"]
     assert tuple(np.asarray(h.batched_colors).reshape(-1, 3)[0]) == geo.CONFLICT_RGB
     assert f"{len(expected):,} conflicting cells" in v.controls.stats.content
+    # each marker at least about a cell wide, flat Gaussians too: a few among thousands stay findable
+    assert (np.asarray(h.batched_scales) >= 0.5 * RES).all()
     v.controls.layers["conflicts"].value = False
     assert not v.layer_visible("conflicts")
     alone = make_viewer(m)
@@ -340,6 +342,17 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
         assert _keys(lm.compare.gaussians()["index"]) == _keys(r_ref.gaussians()["index"])
     assert v.drawn["conflicts"] > 0 and "Done" in c.live_status.content
     lm.stop()
+
+
+def test_time_per_scan_chart_fits_the_scans_after_the_first():
+    from ndtom_ti.viewer.live import chart_scales
+
+    scales, title = chart_scales([5300.0, 40.0, 55.0, 48.0], [900.0, 20.0, 30.0, float("nan")])
+    assert scales["y"] == {"auto": False, "range": (0.0, 1.2 * 55.0)}  # the later scans fill the chart
+    assert "scan 1: 5,300 ms (compiling)" in title
+    scales, title = chart_scales([60.0, 40.0, 55.0])  # no spike: the automatic scale
+    assert scales["y"] == {"auto": True} and title == "Time per scan (ms)"
+    assert chart_scales([5300.0])[0]["y"] == {"auto": True}
 
 
 def test_live_pause_stops_mapping(room_scans, make_viewer):
@@ -482,6 +495,9 @@ def test_view_html_snapshot(map_file, tmp_path, capsys):
     assert view_command(map_file, "127.0.0.1", 0, out) == 0
     text = out.read_text()
     assert text.lstrip().lower().startswith("<!doctype html") and len(text) > 100_000
+    # the page carries the panel's legend and statistics, laid over the scene
+    panel = text[text.index('<details id="ndtom-panel"') :]
+    assert "Colour: height of the Gaussian" in panel and "<b>Gaussians</b>:" in panel and "</details>" in panel
     assert f"Wrote {out}" in capsys.readouterr().out
     assert view_command(map_file, "127.0.0.1", 0, tmp_path / "no" / "such" / "s.html") == 2
     assert "does not exist" in capsys.readouterr().err

@@ -22,9 +22,11 @@ Security: every HTTP request and WebSocket upgrade passes the Host/Origin checks
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import math
 import os
+import re
 import socket
 import tempfile
 import threading
@@ -66,6 +68,7 @@ _LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
 COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
 FREE_OPACITY = 0.15
+CONFLICT_MIN_SIGMA = 0.5  # of a cell: the least size of a conflicting cell's marker
 SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)  # free cells: translucent, so the scene shows through them
 
 
@@ -253,6 +256,7 @@ class MapViewer:
         # prints a URL that works
         with guarded_server(self.guard), contextlib.redirect_stdout(io.StringIO()):
             self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        self.label = label
         self.host = host
         self.port = int(self.server.get_port())
         self.url = url_for(host, self.port, self.guard.token)
@@ -378,7 +382,7 @@ class MapViewer:
             raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
         if path.exists() and not path.is_file():
             raise IsADirectoryError(f"cannot write {path}: it exists and is not a regular file")
-        data = self.server.scene.as_html().encode("utf-8")
+        data = with_panel(self.server.scene.as_html(), self.panel_html()).encode("utf-8")
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
         try:
             with os.fdopen(fd, "wb") as fh:
@@ -392,6 +396,20 @@ class MapViewer:
                 os.unlink(tmp)
             raise
         return path
+
+    def panel_html(self) -> str:
+        """The legend, statistics and notes of the live panel as one block of HTML (a written
+        page has no panel of its own: viser's standalone page holds the scene alone)."""
+        c = self.controls
+        label = html.escape(self.label)
+        notes = "".join(f"<div><b>Note</b>: {_md_html(n)}</div>" for n in self.drawn.get("notes", ()))
+        return (
+            '<details id="ndtom-panel" open style="position:fixed;top:8px;right:8px;z-index:1000;width:300px;'
+            "max-height:90vh;overflow:auto;background:rgba(255,255,255,0.92);border:1px solid #ccc;"
+            'border-radius:6px;padding:6px 8px;font:13px/1.4 sans-serif;color:#222">'
+            f"<summary><b>{label}</b></summary>{notes}{c.legend.content}"
+            f'<div style="font-size:0.85em;margin-top:4px">{_md_html(c.stats.content)}</div></details>'
+        )
 
     def live(
         self,
@@ -955,7 +973,9 @@ class MapViewer:
                 n_c = len(conf["mean"])
                 if n_c:
                     V, F = geo.icosphere(1)
-                    wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=0.05 * res)
+                    # at least half a cell in every axis: a few conflicting cells among thousands of
+                    # Gaussians stay findable (a flat 1-sigma shell vanishes edge-on)
+                    wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=CONFLICT_MIN_SIGMA * res)
                     self._set("conflicts", lambda: scene.add_batched_meshes_simple(
                         "/ndtom/conflicts", V, F, batched_wxyzs=wxyz,
                         batched_positions=conf["mean"].astype(np.float32),
@@ -1106,6 +1126,20 @@ class MapViewer:
         for note in drawn["notes"]:
             lines.append(f"**Note**: {note}")
         return "  \n".join(lines)
+
+
+def _md_html(text: str) -> str:
+    """The panel's markdown (``**bold**``, ``*italic*``, hard line breaks) as HTML."""
+    out = html.escape(str(text))
+    out = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", out)
+    out = re.sub(r"\*(.+?)\*", r"<i>\1</i>", out)
+    return out.replace("  \n", "<br>").replace("\n", "<br>")
+
+
+def with_panel(page: str, panel: str) -> str:
+    """``page`` (viser's standalone HTML) with ``panel`` laid over the scene."""
+    end = page.rfind("</body>")
+    return page + panel if end < 0 else page[:end] + panel + page[end:]
 
 
 def _coarser(m: NdtOmMap | MapSnapshot, factor: int) -> MapSnapshot:

@@ -39,6 +39,22 @@ if TYPE_CHECKING:
 __all__ = ["LiveMapper", "scan_parts"]
 
 
+def chart_scales(times_ms: list[float], compare_ms: list[float] = ()) -> tuple[dict, str]:
+    """Scales and title of the time-per-scan chart. The first scan compiles the kernels (seconds,
+    where later scans take milliseconds): on an automatic scale its spike flattens the rest,
+    so the scale fits the scans after it and the title gives the first one's time."""
+    auto = {"x": {"time": False, "auto": True}, "y": {"auto": True}}
+    later = [t for t in [*times_ms[1:], *compare_ms[1:]] if np.isfinite(t)]
+    first = max([t for t in (*times_ms[:1], *compare_ms[:1]) if np.isfinite(t)], default=0.0)
+    if not later or first <= 2.0 * max(later):
+        return auto, "Time per scan (ms)"
+    top = 1.2 * max(later)
+    return (
+        {"x": {"time": False, "auto": True}, "y": {"auto": False, "range": (0.0, top)}},
+        f"Time per scan (ms); scan 1: {first:,.0f} ms (compiling), above the chart",
+    )
+
+
 class LiveMapper:
     """Insert ``scans`` into ``m`` (and a Recursive NDT map) while ``viewer`` shows it.
 
@@ -257,6 +273,9 @@ class LiveMapper:
                 y2[:k] = self.compare_times_ms[:k]
                 cols.append(y2)
             c.chart.data = tuple(cols)
+            scales, title = chart_scales(self.times_ms[:n], self.compare_times_ms[:n])
+            c.chart.scales = scales
+            c.chart.title = title
         self._update_status()
 
     # ------------------------------------------------------------------ threads
