@@ -344,15 +344,15 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
     lm.stop()
 
 
-def test_time_per_scan_chart_fits_the_scans_after_the_first():
-    from ndtom_ti.viewer.live import chart_scales
+def test_time_per_scan_chart_leaves_out_the_first_scans_compile():
+    from ndtom_ti.viewer.live import chart_series
 
-    scales, title = chart_scales([5300.0, 40.0, 55.0, 48.0], [900.0, 20.0, 30.0, float("nan")])
-    assert scales["y"] == {"auto": False, "range": (0.0, 1.2 * 55.0)}  # the later scans fill the chart
-    assert "scan 1: 5,300 ms (compiling)" in title
-    scales, title = chart_scales([60.0, 40.0, 55.0])  # no spike: the automatic scale
-    assert scales["y"] == {"auto": True} and title == "Time per scan (ms)"
-    assert chart_scales([5300.0])[0]["y"] == {"auto": True}
+    (x, ys, y2), note = chart_series([5300.0, 40.0, 55.0, 48.0], [900.0, 20.0, 30.0])
+    assert x.tolist() == [2, 3] and ys.tolist() == [40.0, 55.0] and y2.tolist() == [20.0, 30.0]  # no NaN
+    assert note == "Scan 1 took 5,300 ms (compiling the kernels): not charted."
+    (x, ys), note = chart_series([60.0, 40.0, 55.0])  # no spike: all of it
+    assert x.tolist() == [1, 2, 3] and ys.tolist() == [60.0, 40.0, 55.0] and note == ""
+    assert chart_series([5300.0])[0][1].tolist() == [5300.0]
 
 
 def test_live_pause_stops_mapping(room_scans, make_viewer):
