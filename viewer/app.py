@@ -707,6 +707,10 @@ class MapViewer:
                 out["notes"].append(f"the {sel}x level could not be made ({exc}); showing the native level")
                 m, sel = base, 1
             g = m.gaussians(min_probability=thr)
+            if self._zlimits is None and len(g["n"]):
+                # indoors, a first view below the roof; found at the chosen level (the native one at
+                # first): a coarse level's large tiles take trees and uneven ground for ceilings
+                out["ceiling"] = geo.ceiling_height(g["mean"], g["cov"], m.resolution)
             factor = sel
             n_sel = len(g["n"])
             cap = self.max_ellipsoids if mode == "ellipsoids" else self.max_splats
@@ -870,10 +874,7 @@ class MapViewer:
         drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
                                  "notes": list(snap["notes"]), "skipped": list(snap["skipped"])}  # fmt: skip
         zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
-        ceiling = None
-        if self._zlimits is None and g is not None and len(g["n"]):
-            ceiling = geo.ceiling_height(g["mean"], g["cov"], res)  # indoors: a first view below the roof
-        self._update_zclip(zsrc, res, ceiling)
+        self._update_zclip(zsrc, res, snap.get("ceiling"))
         clip = self._clip_range()
         drawn["clip"] = clip
 

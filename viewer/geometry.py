@@ -325,9 +325,9 @@ def ceiling_height(
     or None (no ceiling: outdoors, or a room seen without its ceiling).
 
     A ceiling covers the map from above: in most of the map's footprint (tiles of 1 m or 4
-    cells) the highest Gaussian is flat (a horizontal surface) and lies at least ``storey``
-    above the lowest one of its tile (the floor; sloping ground outdoors has no such gap,
-    walls' tops are not flat). The clip goes just below the median of those tops: the main
+    cells) the highest Gaussian is flat (a horizontal surface), lies at least ``storey``
+    above the lowest one of its tile (the floor) and has open space under it (sloping ground
+    and trees outdoors fill their tiles, walls' tops are not flat). The clip goes just below the median of those tops: the main
     roof goes (a lower ceiling over a side room may stay), a sloped roof is cut halfway."""
     mean = np.asarray(mean, np.float64).reshape(-1, 3)
     cov = np.asarray(cov, np.float64).reshape(-1, 3, 3)
@@ -344,7 +344,14 @@ def ceiling_height(
     top, bottom = order[last], order[first]
     _, vec = np.linalg.eigh(0.5 * (cov[top] + np.swapaxes(cov[top], 1, 2)))
     flat = np.abs(vec[:, 2, 0]) > 0.8  # normal (least-variance axis) near vertical
-    high = flat & (mean[top, 2] - mean[bottom, 2] >= storey)
+    # and open space under it: a gap of half a storey with nothing in it (trees, uneven ground
+    # and walls fill their tiles from the bottom up)
+    zs = mean[order, 2]
+    tile_of = np.cumsum(np.r_[0, (k[1:] != k[:-1]).astype(np.int64)])
+    gap = np.zeros(len(last))
+    same = k[1:] == k[:-1]
+    np.maximum.at(gap, tile_of[1:][same], np.diff(zs)[same])
+    high = flat & (mean[top, 2] - mean[bottom, 2] >= storey) & (gap >= storey / 2.0)
     if high.mean() < min_share:
         return None
     return float(np.median(mean[top[high], 2])) - max(float(resolution), 0.1)
