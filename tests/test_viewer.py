@@ -109,7 +109,6 @@ def test_colour_maps_and_caps():
     assert len(np.unique(geo.cell_keys(idx))) == 5
 
 
-
 def _flat(n, rng, z=0.0, half=10.0, normal_z=True):
     """n flat Gaussians (normal along z, or along x) spread over a square at height z."""
     mean = np.c_[rng.uniform(-half, half, (n, 2)), np.full(n, z)]
@@ -285,7 +284,7 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
     assert not np.array_equal(expected, height_colors)
     surest, least = np.argmax(g["p_occ"]), np.argmin(g["p_occ"])
-    assert tuple(expected[surest]) == (200, 20, 30) and expected[least][1] > 150 > 100 > expected[least][0]
+    assert tuple(expected[surest]) == (200, 20, 30) and expected[least][1] > 150 and expected[least][0] < 100
     at_top = np.mean(g["p_occ"] >= prange[1] - 1e-3)
     legend = v.controls.legend.content
     assert "occupancy probability" in legend and "height of" not in legend
@@ -330,7 +329,9 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
     assert lm.scans_done == len(room_scans) and len(lm.times_ms) == len(room_scans) == len(lm.compare_times_ms)
     time.sleep(0.5)  # the drawing thread catches up
     for _ in range(100):
-        if c.scan.content.endswith(f" {len(room_scans)} / {len(room_scans)}") and v.drawn.get("trajectory") == len(room_scans):
+        if c.scan.content.endswith(f" {len(room_scans)} / {len(room_scans)}") and v.drawn.get("trajectory") == len(
+            room_scans
+        ):
             break
         time.sleep(0.05)
     assert c.scan.content == f"**Scans inserted**: {len(room_scans)} / {len(room_scans)}"
@@ -553,7 +554,6 @@ def test_map_lock_serialises_concurrent_refreshes(maps, make_viewer):
     assert not errors
     v.refresh()
     assert v.drawn["gaussians"] == len(m.gaussians(min_probability=float(v.controls.threshold.value))["n"])
-
 
 
 def test_live_mapping_in_a_fresh_process():

@@ -157,16 +157,19 @@ class MapViewer:
     picks a free port (``viewer.port`` / ``viewer.url`` give the real one; a busy port
     makes viser use the next free one, which is printed).
 
-    Colours: by height (a legend fitted to the map's heights) or by occupancy. Layers
+    Colours: by height (a legend fitted to the heights drawn) or by occupancy (spread over the
+    probabilities drawn). Layers
     are offered only when the map has them (conflicting cells with ``compare``, the
     trajectory and the latest scan while mapping live); free cells are off until ticked
     and drawn translucent. A height clip hides what is above or below a band (a hall's
-    roof), and "Frame the map" returns the camera to the first view.
+    roof; an indoor map's first view starts below its ceiling), and "Frame the map" returns the
+    camera to the first view, which frames the bulk of the map.
 
     Level of detail: "auto" draws up to ``max_ellipsoids`` Gaussians as ellipsoids, up to
     ``max_splats`` as splats; past the cap of the geometry in use the viewer draws the
     first coarser level (2x .. 8x, coarsened from a snapshot of the map) that fits, and what still
-    exceeds it is subsampled evenly. Free and occupied cells are capped at
+    exceeds it is subsampled evenly. A Resolution chosen by hand is drawn as chosen, up to
+    ``max_chosen`` Gaussians (past it, those nearest where the view looks). Free and occupied cells are capped at
     ``max_free_cells`` / ``max_occupied_cells``. Every cap that applies is stated at the
     top of the panel. The defaults keep the page responsive with software WebGL (a
     2-core machine without GPU drew 20,000 splats at ~50 frames/s idle, 4,000 ellipsoids

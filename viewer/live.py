@@ -49,7 +49,9 @@ def chart_series(times_ms: list[float], compare_ms: list[float] | None = None) -
     the chart (uPlot takes a NaN for a number: the axis range becomes NaN and nothing is
     drawn), so with a comparison the rows are those both series have."""
     n = len(times_ms) if compare_ms is None else min(len(times_ms), len(compare_ms))
-    rows = [np.asarray(times_ms[:n], np.float64)] + ([] if compare_ms is None else [np.asarray(compare_ms[:n], np.float64)])
+    rows = [np.asarray(times_ms[:n], np.float64)] + (
+        [] if compare_ms is None else [np.asarray(compare_ms[:n], np.float64)]
+    )
     x = np.arange(1, n + 1, dtype=np.float64)
     later = np.concatenate([r[1:] for r in rows]) if n > 1 else np.zeros(0)
     first = max((float(r[0]) for r in rows if n), default=0.0)
