@@ -228,6 +228,9 @@ def test_the_resolution_chosen_is_drawn_and_auto_says_what_it_draws(maps, make_v
     assert v.level == 3 and v.drawn["gaussians"] == n3 and v.drawn["geometry"] == "splats"
     assert res.value == res.options[2] and res.options[-1] == "auto"  # the selector shows what is drawn
     assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and "respond slowly" in v.controls.notice.content
+    # every splat at least 0.15 of a cell thick: line-thin Gaussians (a lidar's rings) stay visible from afar
+    cov = np.asarray(v._handles["gaussians"].covariances, np.float64)
+    assert np.linalg.eigvalsh(cov).min() >= 0.99 * (0.15 * 3 * RES) ** 2
     assert not v.controls.redraw.visible
     # past max_chosen: the part around where the view looks
     res.value = res.options[0]

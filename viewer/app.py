@@ -69,7 +69,8 @@ COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
 FREE_OPACITY = 0.15
 CONFLICT_MIN_SIGMA = 0.5  # of a cell: the least size of a conflicting cell's marker
-SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)  # free cells: translucent, so the scene shows through them
+SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)
+SPLAT_VIEW_SIGMA = 0.0015  # of the first view's radius: ~1/3 of a pixel there (see _gaussian_node)  # free cells: translucent, so the scene shows through them
 
 
 def _fmt(n: int) -> str:
@@ -825,9 +826,12 @@ class MapViewer:
         scene = self.server.scene
         name = "/ndtom/gaussians"
         if use == "splats":
-            # splats at least SPLAT_MIN_SIGMA of a cell thick: a lidar's ring seen from afar gives
-            # line-thin Gaussians, and a splat thinner than a pixel fades out (a map of them is blank)
-            eps = (SPLAT_MIN_SIGMA * res) ** 2
+            # splats at least SPLAT_MIN_SIGMA of a cell thick, and about a third of a pixel of the
+            # first view: a lidar's ring seen from afar gives line-thin Gaussians, and a splat
+            # thinner than a pixel fades out (a big map's native level would be a blank page)
+            view = getattr(self, "_view", None)
+            radius = view[1] if view is not None else geo.bulk_sphere(g["mean"])[1]
+            eps = max(SPLAT_MIN_SIGMA * res, SPLAT_VIEW_SIGMA * radius) ** 2
             cov = g["cov"] + eps * np.eye(3)[None]
             return scene.add_gaussian_splats(
                 name, centers=g["mean"].astype(np.float32), covariances=cov.astype(np.float32),
