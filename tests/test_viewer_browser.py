@@ -322,8 +322,7 @@ def test_indoor_first_view_is_below_the_ceiling_in_colours_of_the_clip(small_pag
     m = NdtOmMap(RES)
     T = np.eye(4)
     T[:3, 3] = (10.0, 7.0, 1.5)
-    for _ in range(2):
-        m.insert_scan(_hall_points(rng), T)
+    m.insert_scan(_hall_points(rng, 50000), T)
     z = m.gaussians(min_probability=0.5)["mean"][:, 2]
     v = _viewer(viewers, m.snapshot())
     m.close()
