@@ -405,13 +405,12 @@ class MapViewer:
         """The legend, statistics and notes of the live panel as one block of HTML (a written
         page has no panel of its own: viser's standalone page holds the scene alone)."""
         c = self.controls
-        label = html.escape(self.label)
-        notes = "".join(f"<div><b>Note</b>: {_md_html(n)}</div>" for n in self.drawn.get("notes", ()))
+        label = html.escape(self.label)  # (the statistics end with the notes)
         return (
             '<details id="ndtom-panel" open style="position:fixed;top:8px;right:8px;z-index:1000;width:300px;'
             "max-height:90vh;overflow:auto;background:rgba(255,255,255,0.92);border:1px solid #ccc;"
             'border-radius:6px;padding:6px 8px;font:13px/1.4 sans-serif;color:#222">'
-            f"<summary><b>{label}</b></summary>{notes}{c.legend.content}"
+            f"<summary><b>{label}</b></summary>{c.legend.content}"
             f'<div style="font-size:0.85em;margin-top:4px">{_md_html(c.stats.content)}</div></details>'
         )
 
