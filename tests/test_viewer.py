@@ -109,6 +109,54 @@ def test_colour_maps_and_caps():
     assert len(np.unique(geo.cell_keys(idx))) == 5
 
 
+def _flat(n, rng, z=0.0, half=10.0, normal_z=True):
+    """n flat Gaussians (normal along z, or along x) spread over a square at height z."""
+    mean = np.c_[rng.uniform(-half, half, (n, 2)), np.full(n, z)]
+    d = [0.04, 0.04, 1e-4] if normal_z else [1e-4, 0.04, 0.04]
+    return mean, np.tile(np.diag(d), (n, 1, 1))
+
+
+def test_bulk_sphere_frames_the_bulk_not_a_few_far_cells(rng):
+    # outdoors: a ground disc of 20 m, and a few cells 150-190 m away (a lidar's far returns)
+    near = np.c_[rng.uniform(-20, 20, (5000, 2)), rng.normal(0, 0.2, 5000)]
+    far = np.c_[rng.uniform(150, 190, (60, 2)), np.zeros(60)]
+    center, radius = geo.bulk_sphere(np.r_[near, far])
+    assert np.linalg.norm(center[:2]) < 3.0 and 15.0 < radius < 30.0, (center, radius)
+    # an evenly filled room: its middle, and most of it (the view fits the sphere's width)
+    room = rng.uniform([0, 0, 0], [12, 8, 3], (5000, 3))
+    center, radius = geo.bulk_sphere(room)
+    assert np.allclose(center, [6, 4, 1.5], atol=0.3) and radius >= 0.7 * np.linalg.norm([12, 8, 3]) / 2
+
+
+def test_ceiling_height_finds_a_roof_not_the_sky(rng):
+    floor = _flat(3000, rng, z=0.0)
+    roof = _flat(3000, rng, z=4.0)
+    wall = _flat(800, rng, z=2.0, normal_z=False)
+    wall[0][:, 0] = 10.0
+    wall[0][:, 2] = rng.uniform(0, 4, 800)
+    mean, cov = (np.r_[a, b, c] for a, b, c in zip(floor, roof, wall))
+    h = geo.ceiling_height(mean, cov, 0.2)
+    assert h is not None and 3.0 < h < 4.0, h
+    # outdoors: sloping ground (6 m over the map) and walls, no roof: no clip
+    ground = _flat(3000, rng, z=0.0)
+    ground[0][:, 2] = 0.3 * ground[0][:, 0]
+    mean, cov = (np.r_[a, b] for a, b in zip(ground, wall))
+    assert geo.ceiling_height(mean, cov, 0.2) is None
+
+
+def test_nothing_non_finite_is_drawn(maps, make_viewer):
+    assert geo.finite_rows(np.array([[0, 0, 0], [np.nan, 0, 0], [0, np.inf, 0]], float)).tolist() == [1, 0, 0]
+    assert geo.finite_rows(np.zeros((0, 3))).shape == (0,)
+    m, _ = maps
+    v = make_viewer(m)
+    v.set_trajectory([[0, 0, 1], [np.nan, 0, 1], [1, 0, 1]])
+    v.set_scan([[1, 2, 0.5], [np.nan, np.nan, np.nan], [2, 2, 0.5]])
+    v.refresh()
+    scene_arrays = [v._handles["scan"].points, v._handles["trajectory"].points,
+                    v._handles["gaussians"].batched_positions]  # fmt: skip
+    assert v.drawn["scan"] == 2 and all(np.isfinite(np.asarray(a)).all() for a in scene_arrays)
+
+
 # ---------------------------------------------------------------------------- GUI logic
 
 
@@ -148,18 +196,54 @@ def test_resolution_dropdown_switches_to_coarsened_maps(maps, make_viewer):
     m, _ = maps
     v = make_viewer(m, cache_size=2)
     opts = v.controls.resolution.options
-    assert opts == ("0.5 m (native)", "1 m (2x)", "1.5 m (3x)", "2 m (4x)")
+    assert opts == ("0.5 m (native)", "1 m (2x)", "1.5 m (3x)", "2 m (4x)", "auto: 0.5 m drawn")
+    assert v.controls.resolution.value == opts[-1]  # auto by default: it says what it draws
     v.controls.resolution.value = opts[1]
     assert v.level == 2 and v.drawn["resolution"] == 2 * RES
     c2 = m.coarsen(2)
     assert v.drawn["gaussians"] == len(c2.gaussians(min_probability=0.5)["n"]) < len(m)
     del c2
-    for o in opts[2:]:
+    for o in opts[2:4]:
         v.controls.resolution.value = o
         assert len(v._cache) <= 2  # old levels are dropped: the process holds at most 8 maps
     assert v.level == 4
     v.controls.resolution.value = opts[0]
     assert v.level == 1 and v.drawn["gaussians"] == len(m)
+
+
+def test_the_resolution_chosen_is_drawn_and_auto_says_what_it_draws(maps, make_viewer):
+    from viser import GaussianSplatHandle
+
+    m, _ = maps
+    n = len(m.gaussians(min_probability=0.5)["n"])
+    v = make_viewer(m, max_ellipsoids=50, max_splats=100, max_chosen=1000)
+    res = v.controls.resolution
+    # auto: a coarser level that fits, named in the selector (and the geometry it draws)
+    assert v.level >= 2 and res.value == f"auto: {v.drawn['resolution']:g} m drawn" == res.options[-1]
+    assert v.controls.geometry.value == f"auto: {v.drawn['geometry']}"
+    # the native level chosen by hand: drawn as chosen (splats), up to max_chosen, with a warning
+    res.value = res.options[2]  # 3x: fewer than max_chosen, more than max_splats
+    n3 = len(m.coarsen(3).gaussians(min_probability=0.5)["n"])
+    assert 100 < n3 <= 1000, n3
+    assert v.level == 3 and v.drawn["gaussians"] == n3 and v.drawn["geometry"] == "splats"
+    assert res.value == res.options[2] and res.options[-1] == "auto"  # the selector shows what is drawn
+    assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and "respond slowly" in v.controls.notice.content
+    # every splat at least 0.15 of a cell thick: line-thin Gaussians (a lidar's rings) stay visible from afar
+    cov = np.asarray(v._handles["gaussians"].covariances, np.float64)
+    assert np.linalg.eigvalsh(cov).min() >= 0.99 * (0.15 * 3 * RES) ** 2
+    assert not v.controls.redraw.visible
+    # past max_chosen: the part around where the view looks
+    res.value = res.options[0]
+    assert v.level == 1 and v.drawn["gaussians"] == 1000 < n and v.controls.redraw.visible
+    assert "nearest the view's centre" in v.controls.notice.content
+    drawn = np.asarray(v._handles["gaussians"].centers)
+    center = v._view_center(drawn)
+    g = m.gaussians(min_probability=0.5)
+    d_all = np.sort(np.linalg.norm(g["mean"] - center, axis=1))
+    assert np.linalg.norm(drawn - center, axis=1).max() <= d_all[999] + 1e-3
+    # "Gaussians as" splats / ellipsoids on a chosen level: what the statistics say is drawn
+    v.controls.geometry.value = "ellipsoids"
+    assert v.drawn["geometry"] == "ellipsoids" and "drawn as ellipsoids" in v.controls.stats.content
 
 
 def test_layer_toggles_set_visibility_and_compute_on_demand(maps, make_viewer):
@@ -196,10 +280,18 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     height_colors = np.array(v._handles["gaussians"].batched_colors)
     v.controls.color_mode.value = "occupancy"  # one click away
     g = m.gaussians(min_probability=0.5)
-    expected = geo.occupancy_colors(g["p_occ"])
+    # the scale spans what is drawn (threshold .. highest p): the surest red, the least sure green
+    prange = (0.5, float(g["p_occ"].max()))
+    assert v.drawn["prange"] == prange
+    expected = geo.occupancy_colors(g["p_occ"], prange)
     assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
     assert not np.array_equal(expected, height_colors)
-    assert "occupancy probability" in v.controls.legend.content and "height of" not in v.controls.legend.content
+    surest, least = np.argmax(g["p_occ"]), np.argmin(g["p_occ"])
+    assert tuple(expected[surest]) == (200, 20, 30) and expected[least][1] > 150 and expected[least][0] < 100
+    at_top = np.mean(g["p_occ"] >= prange[1] - 1e-3)
+    legend = v.controls.legend.content
+    assert "occupancy probability" in legend and "height of" not in legend
+    assert f"{100 * at_top:.0f}% of them at {prange[1]:.2f}" in legend and "least sure" in legend
     v.controls.geometry.value = "splats"
     assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
 
@@ -218,6 +310,8 @@ def test_conflicting_cells_layer(maps, make_viewer):
     h = v._handles["conflicts"]
     assert tuple(np.asarray(h.batched_colors).reshape(-1, 3)[0]) == geo.CONFLICT_RGB
     assert f"{len(expected):,} conflicting cells" in v.controls.stats.content
+    # each marker at least about a cell wide, flat Gaussians too: a few among thousands stay findable
+    assert (np.asarray(h.batched_scales) >= 0.5 * RES).all()
     v.controls.layers["conflicts"].value = False
     assert not v.layer_visible("conflicts")
     alone = make_viewer(m)
@@ -238,7 +332,9 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
     assert lm.scans_done == len(room_scans) and len(lm.times_ms) == len(room_scans) == len(lm.compare_times_ms)
     time.sleep(0.5)  # the drawing thread catches up
     for _ in range(100):
-        if c.scan.content.endswith(f" {len(room_scans)} / {len(room_scans)}") and v.drawn.get("trajectory") == len(room_scans):
+        if c.scan.content.endswith(f" {len(room_scans)} / {len(room_scans)}") and v.drawn.get("trajectory") == len(
+            room_scans
+        ):
             break
         time.sleep(0.05)
     assert c.scan.content == f"**Scans inserted**: {len(room_scans)} / {len(room_scans)}"
@@ -250,6 +346,17 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
         assert _keys(lm.compare.gaussians()["index"]) == _keys(r_ref.gaussians()["index"])
     assert v.drawn["conflicts"] > 0 and "Done" in c.live_status.content
     lm.stop()
+
+
+def test_time_per_scan_chart_leaves_out_the_first_scans_compile():
+    from ndtom_ti.viewer.live import chart_series
+
+    (x, ys, y2), note = chart_series([5300.0, 40.0, 55.0, 48.0], [900.0, 20.0, 30.0])
+    assert x.tolist() == [2, 3] and ys.tolist() == [40.0, 55.0] and y2.tolist() == [20.0, 30.0]  # no NaN
+    assert note == "Scan 1 took 5,300 ms (compiling the kernels): not charted."
+    (x, ys), note = chart_series([60.0, 40.0, 55.0])  # no spike: all of it
+    assert x.tolist() == [1, 2, 3] and ys.tolist() == [60.0, 40.0, 55.0] and note == ""
+    assert chart_series([5300.0])[0][1].tolist() == [5300.0]
 
 
 def test_live_pause_stops_mapping(room_scans, make_viewer):
@@ -392,6 +499,9 @@ def test_view_html_snapshot(map_file, tmp_path, capsys):
     assert view_command(map_file, "127.0.0.1", 0, out) == 0
     text = out.read_text()
     assert text.lstrip().lower().startswith("<!doctype html") and len(text) > 100_000
+    # the page carries the panel's legend and statistics, laid over the scene
+    panel = text[text.index('<details id="ndtom-panel"') :]
+    assert "Colour: height of the Gaussian" in panel and "<b>Gaussians</b>:" in panel and "</details>" in panel
     assert f"Wrote {out}" in capsys.readouterr().out
     assert view_command(map_file, "127.0.0.1", 0, tmp_path / "no" / "such" / "s.html") == 2
     assert "does not exist" in capsys.readouterr().err
@@ -447,7 +557,6 @@ def test_map_lock_serialises_concurrent_refreshes(maps, make_viewer):
     assert not errors
     v.refresh()
     assert v.drawn["gaussians"] == len(m.gaussians(min_probability=float(v.controls.threshold.value))["n"])
-
 
 
 def test_live_mapping_in_a_fresh_process():
@@ -543,7 +652,8 @@ def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
     expected = int(((z >= zlo) & (z <= 1.0)).sum())
     assert v.drawn["gaussians"] == expected < len(z)
     assert (np.asarray(v._handles["gaussians"].batched_positions)[:, 2] <= 1.0).all()
-    assert v.drawn["zrange"] == geo.height_range(z)  # colours stay those of the whole map
+    # the colours refit to the clip: its lowest to its highest Gaussian span the whole colour bar
+    assert v.drawn["zrange"] == geo.height_range(z[z <= 1.0]) != geo.height_range(z)
     assert "Height clip" in v.controls.legend.content and "between" in v.controls.stats.content
     v.controls.layers["occupied"].value = True
     assert (np.asarray(v._handles["occupied"].points)[:, 2] <= 1.0 + RES).all()
@@ -557,7 +667,7 @@ def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
     g = m.gaussians(min_probability=0.5)
     lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
     pos, look = (np.array(x) for x in v._camera_for(np.radians(50.0), 0.75))
-    assert np.all(np.abs(look - (lo + hi) / 2) < 0.1 * (hi - lo) + 1e-6)  # looks at the map's middle
+    assert np.all(np.abs(look - (lo + hi) / 2) < 0.15 * (hi - lo) + 1e-6)  # looks at the middle of its bulk
     assert pos[2] > hi[2]  # from above
     # a narrow view steps back further than a wide one (the whole map stays in view)
     narrow, wide = (np.linalg.norm(np.array(v._camera_for(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))

@@ -258,6 +258,102 @@ def test_controls_a_person_uses(small_page, room, viewers):
     sync_api.expect(page.get_by_text(re.compile(r"Height clip: .* to 0\.30 m"))).to_be_visible()
 
 
+def _outdoor_points(rng) -> np.ndarray:
+    """A lidar 1.8 m above flat ground (48 rings out to ~50 m: line-thin Gaussians along the
+    rings, as a real lidar's) and six small buildings 150-190 m away (far cells, ~8% of them)."""
+    el = np.radians(np.linspace(-25.0, -2.0, 48))
+    az = np.radians(np.arange(0.0, 360.0, 0.25))
+    E, A = np.meshgrid(el, az, indexing="ij")
+    r = 1.8 / np.tan(-E)
+    parts = [np.c_[(r * np.cos(A)).ravel(), (r * np.sin(A)).ravel(), np.full(E.size, -1.8)]]
+    for k, dist in enumerate((150.0, 160.0, 170.0, 180.0, 190.0, 175.0)):
+        a = np.radians(60.0 * k + 10.0)
+        n, t = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+        u, z = rng.uniform(-2.0, 2.0, 400), rng.uniform(-1.8, 3.2, 400)
+        parts.append(np.c_[dist * n[0] + u * t[0], dist * n[1] + u * t[1], z])
+    return np.concatenate(parts)
+
+
+def _hall_points(rng, n: int = 60000) -> np.ndarray:
+    """Points seen from (10, 7, 1.5) (sensor frame) in a 20 x 14 x 4 m hall: floor, walls, flat ceiling."""
+    o = np.array([10.0, 7.0, 1.5])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (np.array([20.0, 14.0, 4.0]) - o) / d, -o / d)
+    t = np.nanmin(np.where(t > 0, t, np.inf), axis=1)
+    return d * t[:, None]
+
+
+def test_outdoor_map_first_view_and_frame_show_its_bulk(small_page, viewers):
+    """norlab at 0.2 m was a white canvas at first sight: its 1-99% box reached far cells, and
+    line-thin splats of the lidar's rings faded out from the distance that box needed."""
+    rng = np.random.default_rng(5)
+    m = NdtOmMap(RES, max_range=250.0)
+    T = np.eye(4)
+    T[2, 3] = 1.8
+    m.insert_scan(_outdoor_points(rng), T)
+    n = len(m.gaussians(min_probability=0.5)["n"])
+    v = _viewer(viewers, m.snapshot())
+    m.close()
+    assert v.drawn["geometry"] == "splats" and v.drawn["gaussians"] == n > 4000  # auto: splats, every one
+    page = small_page
+    page.goto(v.url)
+    # the selectors say what is drawn
+    sync_api.expect(page.get_by_label("Resolution")).to_have_value(f"auto: {RES:g} m drawn")
+    sync_api.expect(page.get_by_label("Gaussians as")).to_have_value("auto: splats")
+
+    def bulk(c):
+        return c["box_w"] > 0.6 * c["width"] and c["drawn"] > 0.03 * c["page"]
+
+    first = _canvas(page, bulk, settled=True, timeout=40.0)
+    assert bulk(first), first
+    client = next(iter(v.server.get_clients().values()))
+    client.camera.position = (900.0, -900.0, 600.0)
+    far = _canvas(page, lambda c: c["drawn"] < 0.2 * first["drawn"])
+    assert far["drawn"] < 0.2 * first["drawn"], far
+    page.get_by_role("button", name="Frame the map").click()
+    back = _canvas(page, bulk, settled=True, timeout=40.0)
+    assert bulk(back), (first, back)
+
+
+def test_indoor_first_view_is_below_the_ceiling_in_colours_of_the_clip(small_page, viewers):
+    rng = np.random.default_rng(6)
+    m = NdtOmMap(RES)
+    T = np.eye(4)
+    T[:3, 3] = (10.0, 7.0, 1.5)
+    m.insert_scan(_hall_points(rng, 50000), T)
+    z = m.gaussians(min_probability=0.5)["mean"][:, 2]
+    v = _viewer(viewers, m.snapshot())
+    m.close()
+    # the first view is clipped below the ceiling (4 m), and the colour bar spans the clip's heights
+    lo, hi = v.drawn["clip"]
+    assert 3.0 <= hi < 4.0 and lo <= z.min(), v.drawn["clip"]
+    assert v.drawn["zrange"][1] <= hi and v.drawn["gaussians"] < 0.8 * len(z)
+    page = small_page
+    page.goto(v.url)
+    _canvas(page, lambda c: c["drawn"] > 5000, settled=True)
+    client = next(iter(v.server.get_clients().values()))
+
+    def red_share(img: np.ndarray) -> float:  # the top of the colour bar: red (hue < 20 or > 340)
+        h = _saturated_pixel_hues(img)
+        return float(((h < 20) | (h > 340)).mean()) if len(h) else 1.0
+
+    img = _render_until(client, lambda im: _drawn(im) > 3000)
+    hues = _saturated_pixel_hues(img)
+    bins = np.histogram(hues, bins=6, range=(0, 360))[0]
+    clipped = red_share(img)
+    # the floor and walls show, in several colours; the red top of the scale is the walls' rim only
+    # (0.31 here; 0.76 with the ceiling)
+    assert (bins > 0.03 * len(hues)).sum() >= 3 and clipped < 0.45, (bins, clipped)
+    # negative control: with the ceiling drawn, it covers the view in the top colour
+    zlo, zhi = v._zlimits
+    v.controls.zclip.value = (zlo, zhi)
+    assert v.drawn["clip"] is None
+    img = _render_until(client, lambda im: _drawn(im) > 3000 and red_share(im) > 0.6)
+    assert red_share(img) > max(0.6, 1.8 * clipped), (clipped, red_share(img))
+
+
 def test_a_token_viewer_opens_from_its_url_and_refuses_a_foreign_page(page, room, viewers):
     v = _viewer(viewers, room, token="browser-test-token")
     client = _connect(page, v)  # the printed URL, token included: the page and its WebSocket get in
@@ -306,6 +402,18 @@ def test_play_button_advances_live_mapping(page, room_scans, viewers):
     assert v.drawn["gaussians"] > 1000 and v.drawn["conflicts"] > 0
     v.frame()
     assert _drawn(_render_until(client, lambda im: _drawn(im) > 3000)) > 3000
+
+    def magenta(img: np.ndarray) -> int:  # the conflicting cells' colour; no height colour is near it
+        px = img[img[..., 3] > 200][:, :3].astype(int)
+        return int(((px[:, 0] > 150) & (px[:, 2] > 150) & (px[:, 1] < 110)).sum())
+
+    # the few conflicting cells are easy to find: markers about a cell wide, in the first view
+    img = _render_until(client, lambda im: _drawn(im) > 3000 and magenta(im) > 150)
+    seen = magenta(img)
+    assert seen > 150, f"{seen} magenta pixels of {v.drawn['conflicts']} conflicting cells"
+    v.controls.layers["conflicts"].value = False  # negative control
+    img = _render_until(client, lambda im: _drawn(im) > 3000 and magenta(im) < 0.1 * seen)
+    assert magenta(img) < 0.1 * seen
     # the time-per-scan chart draws its NDT-OM line (#c81e1e)
     js = """() => {
         let n = 0;
@@ -342,3 +450,6 @@ def test_html_snapshot_renders_from_a_file(page, room, tmp_path):
         time.sleep(0.5)
         n = page.evaluate(js)
     assert n > 500, f"the snapshot page drew {n} pixels"
+    # with the panel's legend and statistics over the scene
+    sync_api.expect(page.get_by_text("Colour: height of the Gaussian's mean")).to_be_visible()
+    sync_api.expect(page.locator("#ndtom-panel").get_by_text("Gaussians", exact=True)).to_be_visible()

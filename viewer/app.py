@@ -22,9 +22,11 @@ Security: every HTTP request and WebSocket upgrade passes the Host/Origin checks
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import math
 import os
+import re
 import socket
 import tempfile
 import threading
@@ -61,10 +63,14 @@ LAYERS = {  # key -> checkbox label
 _DEFAULT_ON = {"gaussians", "conflicts", "trajectory", "scan"}  # free cells stay off: they bury the scene
 _LIVE_LAYERS = ("trajectory", "scan")  # offered once live mapping runs (or a trajectory is set)
 FACTORS = (1, 2, 3, 4)  # resolution selector: native and coarser levels made with coarsen()
+AUTO = 0  # resolution selector: the level of detail picks the level (its entry says which)
 _LOD_FACTORS = (2, 3, 4, 6, 8)  # auto level of detail may go this far coarser
 COLOR_MODES = ("height", "occupancy")
 GEOMETRIES = ("auto", "ellipsoids", "splats")
-FREE_OPACITY = 0.15  # free cells: translucent, so the scene shows through them
+FREE_OPACITY = 0.15
+CONFLICT_MIN_SIGMA = 0.5  # of a cell: the least size of a conflicting cell's marker
+SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)
+SPLAT_VIEW_SIGMA = 0.0015  # of the first view's radius: ~1/3 of a pixel there (see _gaussian_node)  # free cells: translucent, so the scene shows through them
 
 
 def _fmt(n: int) -> str:
@@ -131,6 +137,7 @@ class Controls:
     stats: Any = None
     notice: Any = None
     frame: Any = None
+    redraw: Any = None
     zclip: Any = None
     # live mapping (made by ``MapViewer.live``)
     live_folder: Any = None
@@ -151,16 +158,19 @@ class MapViewer:
     picks a free port (``viewer.port`` / ``viewer.url`` give the real one; a busy port
     makes viser use the next free one, which is printed).
 
-    Colours: by height (a legend fitted to the map's heights) or by occupancy. Layers
+    Colours: by height (a legend fitted to the heights drawn) or by occupancy (spread over the
+    probabilities drawn). Layers
     are offered only when the map has them (conflicting cells with ``compare``, the
     trajectory and the latest scan while mapping live); free cells are off until ticked
     and drawn translucent. A height clip hides what is above or below a band (a hall's
-    roof), and "Frame the map" returns the camera to the first view.
+    roof; an indoor map's first view starts below its ceiling), and "Frame the map" returns the
+    camera to the first view, which frames the bulk of the map.
 
     Level of detail: "auto" draws up to ``max_ellipsoids`` Gaussians as ellipsoids, up to
     ``max_splats`` as splats; past the cap of the geometry in use the viewer draws the
     first coarser level (2x .. 8x, coarsened from a snapshot of the map) that fits, and what still
-    exceeds it is subsampled evenly. Free and occupied cells are capped at
+    exceeds it is subsampled evenly. A Resolution chosen by hand is drawn as chosen, up to
+    ``max_chosen`` Gaussians (past it, those nearest where the view looks). Free and occupied cells are capped at
     ``max_free_cells`` / ``max_occupied_cells``. Every cap that applies is stated at the
     top of the panel. The defaults keep the page responsive with software WebGL (a
     2-core machine without GPU drew 20,000 splats at ~50 frames/s idle, 4,000 ellipsoids
@@ -188,6 +198,7 @@ class MapViewer:
         geometry: str = "auto",
         max_ellipsoids: int = 4_000,
         max_splats: int = 20_000,
+        max_chosen: int = 100_000,
         max_free_cells: int = 20_000,
         max_occupied_cells: int = 100_000,
         cache_size: int = 2,
@@ -212,6 +223,7 @@ class MapViewer:
 
         self.max_ellipsoids = int(max_ellipsoids)
         self.max_splats = int(max_splats)
+        self.max_chosen = int(max_chosen)
         self.max_free_cells = int(max_free_cells)
         self.max_occupied_cells = int(max_occupied_cells)
         self.cache_size = max(int(cache_size), 0)
@@ -248,6 +260,7 @@ class MapViewer:
         # prints a URL that works
         with guarded_server(self.guard), contextlib.redirect_stdout(io.StringIO()):
             self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        self.label = label
         self.host = host
         self.port = int(self.server.get_port())
         self.url = url_for(host, self.port, self.guard.token)
@@ -373,7 +386,7 @@ class MapViewer:
             raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
         if path.exists() and not path.is_file():
             raise IsADirectoryError(f"cannot write {path}: it exists and is not a regular file")
-        data = self.server.scene.as_html().encode("utf-8")
+        data = with_panel(self.server.scene.as_html(), self.panel_html()).encode("utf-8")
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
         try:
             with os.fdopen(fd, "wb") as fh:
@@ -387,6 +400,19 @@ class MapViewer:
                 os.unlink(tmp)
             raise
         return path
+
+    def panel_html(self) -> str:
+        """The legend, statistics and notes of the live panel as one block of HTML (a written
+        page has no panel of its own: viser's standalone page holds the scene alone)."""
+        c = self.controls
+        label = html.escape(self.label)  # (the statistics end with the notes)
+        return (
+            '<details id="ndtom-panel" open style="position:fixed;top:8px;right:8px;z-index:1000;width:300px;'
+            "max-height:90vh;overflow:auto;background:rgba(255,255,255,0.92);border:1px solid #ccc;"
+            'border-radius:6px;padding:6px 8px;font:13px/1.4 sans-serif;color:#222">'
+            f"<summary><b>{label}</b></summary>{c.legend.content}"
+            f'<div style="font-size:0.85em;margin-top:4px">{_md_html(c.stats.content)}</div></details>'
+        )
 
     def live(
         self,
@@ -466,6 +492,8 @@ class MapViewer:
     # ------------------------------------------------------------------ GUI
 
     def _level_options(self) -> tuple[list[str], dict[str, int]]:
+        """Labels of the resolution selector: each level, then "auto" (the level of detail's
+        choice, named once drawn: the selector says what is drawn)."""
         m = self.map
         r = m.resolution if m is not None else None
         labels, lookup = [], {}
@@ -476,22 +504,56 @@ class MapViewer:
                 lab = f"{r * f:g} m (native)" if f == 1 else f"{r * f:g} m ({f}x)"
             labels.append(lab)
             lookup[lab] = f
+        drawn = self.drawn.get("resolution") if self.drawn.get("selected") == AUTO else None
+        auto = "auto" if drawn is None else f"auto: {drawn:g} m drawn"
+        labels.append(auto)
+        lookup[auto] = AUTO
         return labels, lookup
 
     def _update_resolution_options(self) -> None:
         labels, lookup = self._level_options()
-        self._level_lookup = lookup
         h = self.controls.resolution
         if h is not None and list(h.options) != labels:
             old = self._selected_factor()
-            h.options = labels
-            h.value = labels[FACTORS.index(old)]
+            self._level_lookup = lookup
+            self._setting_choice = True  # a relabelling, not a choice: no refresh
+            try:
+                h.options = labels
+                h.value = labels[-1] if old == AUTO else labels[FACTORS.index(old)]
+            finally:
+                self._setting_choice = False
+        self._level_lookup = lookup
 
     def _selected_factor(self) -> int:
+        """The chosen level's factor, or AUTO."""
         h = self.controls.resolution
         if h is None:
-            return 1
-        return self._level_lookup.get(h.value, 1)
+            return AUTO
+        v = str(h.value)
+        return AUTO if v.startswith("auto") else self._level_lookup.get(v, AUTO)
+
+    def _geometry_choice(self) -> str:
+        v = str(self.controls.geometry.value)
+        return "auto" if v.startswith("auto") else v
+
+    def _update_geometry_label(self, use: str) -> None:
+        """The geometry selector's "auto" entry says which geometry it draws."""
+        h = self.controls.geometry
+        label = f"auto: {use}"
+        if h is None or label in h.options:
+            return
+        auto_now = str(h.value).startswith("auto")
+        self._setting_choice = True
+        try:
+            h.options = [label, *GEOMETRIES[1:]]
+            if auto_now:
+                h.value = label
+        finally:
+            self._setting_choice = False
+
+    def _on_choice(self) -> None:
+        if not getattr(self, "_setting_choice", False):
+            self.request_refresh()
 
     def _build_gui(self, *, threshold: float, color_mode: str, geometry: str) -> None:
         gui = self.server.gui
@@ -511,14 +573,17 @@ class MapViewer:
                 hint="draw Gaussians and occupied cells with occupancy probability above this",
             )  # fmt: skip
             c.resolution = gui.add_dropdown(
-                "Resolution", labels, initial_value=labels[0],
-                hint="native resolution, or a coarser level made on demand (NdtOmMap.coarsen)",
+                "Resolution", labels, initial_value=labels[-1],
+                hint=f"a level is drawn whole (past {_fmt(self.max_chosen)} Gaussians: the part around the view); "
+                "auto: the level of detail picks the finest level that keeps the page responsive",
             )  # fmt: skip
             c.geometry = gui.add_dropdown(
                 "Gaussians as", GEOMETRIES, initial_value=geometry,
                 hint=f"auto: ellipsoids up to {_fmt(self.max_ellipsoids)} Gaussians, splats up to "
                 f"{_fmt(self.max_splats)}, then a coarser level",
             )  # fmt: skip
+            c.redraw = gui.add_button("Draw around the view", visible=False,
+                                      hint="draw the chosen level's Gaussians nearest where the view looks")  # fmt: skip
             c.point_size = gui.add_slider("Point size", min=0.005, max=0.5, step=0.005, initial_value=0.03,
                                           hint="size (m) of the latest scan's points",
                                           visible=self._live_layers)  # fmt: skip
@@ -532,13 +597,14 @@ class MapViewer:
         with gui.add_folder("Statistics", expand_by_default=False):
             c.stats = gui.add_markdown("")
 
-        c.resolution.on_update(lambda _: self.request_refresh())
+        c.resolution.on_update(lambda _: self._on_choice())
         c.threshold.on_update(lambda _: self.request_refresh())
         c.color_mode.on_update(lambda _: self.request_refresh())
-        c.geometry.on_update(lambda _: self.request_refresh())
+        c.geometry.on_update(lambda _: self._on_choice())
         c.zclip.on_update(lambda _: self._on_zclip())
         c.point_size.on_update(lambda _: self._on_point_size())
         c.frame.on_click(lambda _: self.frame())
+        c.redraw.on_click(lambda _: self.request_refresh())
         for key, box in c.layers.items():
             box.on_update(lambda _, key=key: self._on_layer(key))
 
@@ -557,8 +623,9 @@ class MapViewer:
             return None
         return lo, hi
 
-    def _update_zclip(self, z: np.ndarray, res: float) -> None:
-        """Fit the height clip slider to the map's heights (kept where the user moved it)."""
+    def _update_zclip(self, z: np.ndarray, res: float, ceiling: float | None = None) -> None:
+        """Fit the height clip slider to the map's heights (kept where the user moved it);
+        at the first fit, ``ceiling`` (an indoor map's roof) starts the clip below it."""
         if len(z) == 0:
             return
         step = max(round(float(res) / 2.0, 3), 0.01)
@@ -580,7 +647,10 @@ class MapViewer:
             c.zclip.step = step
             c.zclip.min = zlo
             c.zclip.max = zhi
-            c.zclip.value = (zlo, zhi) if full else (max(cur[0], zlo), min(cur[1], zhi))
+            if old is None and ceiling is not None and zlo < ceiling < zhi:
+                c.zclip.value = (zlo, float(np.floor(ceiling / step) * step))
+            else:
+                c.zclip.value = (zlo, zhi) if full else (max(cur[0], zlo), min(cur[1], zhi))
         finally:
             self._setting_zclip = False
 
@@ -625,9 +695,10 @@ class MapViewer:
     def _snapshot(self, want: dict[str, bool]) -> dict:
         """Everything the layers need, as numpy arrays, taken under map_lock."""
         thr = float(self.controls.threshold.value)
-        sel = self._selected_factor()
-        mode = str(self.controls.geometry.value)
-        out: dict[str, Any] = {"threshold": thr, "selected": sel, "notes": [], "skipped": []}
+        chosen = self._selected_factor()
+        sel = chosen or 1  # auto starts from the native level
+        mode = self._geometry_choice()
+        out: dict[str, Any] = {"threshold": thr, "selected": chosen, "notes": [], "skipped": []}
         with self.map_lock:
             base = self._maps["ndtom"]
             if base is None:
@@ -639,10 +710,14 @@ class MapViewer:
                 out["notes"].append(f"the {sel}x level could not be made ({exc}); showing the native level")
                 m, sel = base, 1
             g = m.gaussians(min_probability=thr)
+            if self._zlimits is None and len(g["n"]):
+                # indoors, a first view below the roof; found at the chosen level (the native one at
+                # first): a coarse level's large tiles take trees and uneven ground for ceilings
+                out["ceiling"] = geo.ceiling_height(g["mean"], g["cov"], m.resolution)
             factor = sel
             n_sel = len(g["n"])
             cap = self.max_ellipsoids if mode == "ellipsoids" else self.max_splats
-            if n_sel > cap:
+            if n_sel > cap and chosen == AUTO:  # a level chosen by hand is drawn as chosen
                 # Too many to draw: the first coarser level that fits (its Gaussians are larger, so
                 # they stay visible from afar, where an even subsample of small ones fades out).
                 # Estimate each level's count from the parents of the drawn cells.
@@ -750,7 +825,12 @@ class MapViewer:
         scene = self.server.scene
         name = "/ndtom/gaussians"
         if use == "splats":
-            eps = (0.02 * res) ** 2
+            # splats at least SPLAT_MIN_SIGMA of a cell thick, and about a third of a pixel of the
+            # first view: a lidar's ring seen from afar gives line-thin Gaussians, and a splat
+            # thinner than a pixel fades out (a big map's native level would be a blank page)
+            view = getattr(self, "_view", None)
+            radius = view[1] if view is not None else geo.bulk_sphere(g["mean"])[1]
+            eps = max(SPLAT_MIN_SIGMA * res, SPLAT_VIEW_SIGMA * radius) ** 2
             cov = g["cov"] + eps * np.eye(3)[None]
             return scene.add_gaussian_splats(
                 name, centers=g["mean"].astype(np.float32), covariances=cov.astype(np.float32),
@@ -789,14 +869,18 @@ class MapViewer:
         c = self.controls
         scene = self.server.scene
         color_mode = str(c.color_mode.value)
-        geometry = str(c.geometry.value)
+        geometry = self._geometry_choice()
         g = snap.get("g")
         res = snap.get("resolution") or 0.1
+        # nothing non-finite reaches the page (three.js fails on a NaN position; a scan may carry NaN points)
+        if g is not None and not (keep := geo.finite_rows(g["mean"], g["cov"])).all():
+            g = {k: v[keep] for k, v in g.items()}
+        traj = traj[geo.finite_rows(traj)] if len(traj) else traj
+        scan = scan[geo.finite_rows(scan)] if len(scan) else scan
         drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
                                  "notes": list(snap["notes"]), "skipped": list(snap["skipped"])}  # fmt: skip
         zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
-        zrange = geo.height_range(zsrc)  # the legend fits the map's heights (not the clip)
-        self._update_zclip(zsrc, res)
+        self._update_zclip(zsrc, res, snap.get("ceiling"))
         clip = self._clip_range()
         drawn["clip"] = clip
 
@@ -806,25 +890,45 @@ class MapViewer:
 
         if g is not None and clip is not None:
             g = {k: v[inside(g["mean"][:, 2])] for k, v in g.items()}
+        # the colours fit what is drawn: the clip's heights, the drawn Gaussians' occupancies
+        zrange = geo.height_range(g["mean"][:, 2] if g is not None and len(g["n"]) else zsrc)
+        prange = geo.occupancy_range(g["p_occ"] if g is not None else np.zeros(0), snap["threshold"])
         n_all = 0 if g is None else len(g["n"])
         use = geometry
         if geometry == "auto":
             use = "ellipsoids" if n_all <= self.max_ellipsoids else "splats"
         cap = self.max_ellipsoids if use == "ellipsoids" else self.max_splats
-        if g is not None and n_all > cap:
+        by_hand = snap["selected"] != AUTO
+        part = False
+        if by_hand and g is not None and n_all > max(cap, self.max_chosen):
+            # a level chosen by hand is drawn whole up to max_chosen; past it, the part around the view
+            center = self._view_center(g["mean"])
+            rows = np.sort(np.argsort(np.linalg.norm(g["mean"] - center, axis=1), kind="stable")[: self.max_chosen])
+            g = {k: v[rows] for k, v in g.items()}
+            part = True
+            drawn["notes"].append(
+                f"{_fmt(n_all)} Gaussians at {res:g} m: showing the {_fmt(len(rows))} nearest the view's centre "
+                f"(past {_fmt(self.max_chosen)} the page stops responding); move the view, then *Draw around the view*"
+            )
+        elif by_hand and g is not None and n_all > cap:
+            drawn["notes"].append(f"{_fmt(n_all)} Gaussians drawn as {use} at {res:g} m: past {_fmt(cap)} the page "
+                                  "may respond slowly (Resolution auto keeps it responsive)")  # fmt: skip
+        elif g is not None and n_all > cap:
             rows = geo.cap_rows(n_all, cap)
             g = {k: v[rows] for k, v in g.items()}
             drawn["notes"].append(f"{_fmt(n_all)} Gaussians to draw as {use}: showing an even {_fmt(len(rows))} "
                                   f"of them (past {_fmt(cap)} the page stops responding){self._coarser_hint()}")  # fmt: skip
+        drawn["selected"] = snap["selected"]
         n_g = 0 if g is None else len(g["n"])
         drawn["gaussians_total"] = n_all
         drawn["geometry"] = use
         drawn["zrange"] = zrange
+        drawn["prange"] = prange
 
         with self.server.atomic():
             # Gaussians
             if g is not None and n_g:
-                cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange)
+                cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange, prange)
                 if self._handles.get("gaussians") is not None and drawn["geometry"] != self.drawn.get("geometry"):
                     self._handles.pop("gaussians").remove()  # splats <-> ellipsoids: other node type
                 self._set("gaussians", lambda: self._gaussian_node(g, cols, res, use, want["gaussians"]))
@@ -840,13 +944,15 @@ class MapViewer:
                         self._handles[key].visible = False
                     continue
                 centers, p = snap[key]
+                if not (fin := geo.finite_rows(centers)).all():
+                    centers, p = centers[fin], p[fin]
                 if clip is not None:
                     keep = inside(centers[:, 2])
                     centers, p = centers[keep], p[keep]
                 if key == "free" and color_mode == "height":
                     cols = np.tile(np.array(geo.FREE_RGB, np.uint8), (len(p), 1))
                 else:
-                    cols = geo.colors_for(color_mode, p, centers[:, 2], zrange)
+                    cols = geo.colors_for(color_mode, p, centers[:, 2], zrange, prange)
                 if len(p) and key == "free":
                     self._set(key, lambda centers=centers, cols=cols: self._free_node(centers, cols, res, want["free"]))
                 elif len(p):
@@ -867,13 +973,16 @@ class MapViewer:
             # Conflicting cells: the comparison map's Gaussians where NDT-OM has none
             conf = snap.get("conflicts")
             if conf is not None:
+                conf = {k: v[geo.finite_rows(conf["mean"], conf["cov"])] for k, v in conf.items()}
                 if clip is not None:
                     keep = inside(conf["mean"][:, 2])
                     conf = {k: v[keep] for k, v in conf.items()}
                 n_c = len(conf["mean"])
                 if n_c:
                     V, F = geo.icosphere(1)
-                    wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=0.05 * res)
+                    # at least half a cell in every axis: a few conflicting cells among thousands of
+                    # Gaussians stay findable (a flat 1-sigma shell vanishes edge-on)
+                    wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=CONFLICT_MIN_SIGMA * res)
                     self._set("conflicts", lambda: scene.add_batched_meshes_simple(
                         "/ndtom/conflicts", V, F, batched_wxyzs=wxyz,
                         batched_positions=conf["mean"].astype(np.float32),
@@ -906,9 +1015,12 @@ class MapViewer:
                 self._set("scan", None)
             drawn["scan"] = len(scan)
 
+            at_top = None
+            if g is not None and n_g:
+                at_top = float(np.mean(g["p_occ"] >= prange[1] - 1e-3))
             c.legend.content = geo.legend_html(
                 color_mode, threshold=snap["threshold"], zrange=zrange, conflicts=self.compare is not None,
-                live=self._live_layers, free=want["free"], clip=clip,
+                live=self._live_layers, free=want["free"], clip=clip, prange=prange, at_top=at_top,
             )  # fmt: skip
             c.stats.content = self._stats_markdown(snap, drawn)
             notes = drawn["notes"]
@@ -916,21 +1028,32 @@ class MapViewer:
             c.notice.visible = bool(notes)
             c.layers["conflicts"].disabled = self.compare is None
         self.drawn = drawn
+        c.redraw.visible = part
+        self._update_resolution_options()  # "auto" names the level drawn
+        self._update_geometry_label(use)
         if not self._framed:
             self._frame(g if clip is None else snap.get("g"), traj)
+
+    def _view_center(self, pts: np.ndarray) -> np.ndarray:
+        """Where a connected page's camera looks (else the map's framed centre)."""
+        for client in self.server.get_clients().values():
+            with contextlib.suppress(Exception):
+                look = np.asarray(client.camera.look_at, np.float64)
+                if look.shape == (3,) and np.isfinite(look).all():
+                    return look
+        view = getattr(self, "_view", None)
+        return view[0] if view is not None else geo.bulk_sphere(pts)[0]
 
     def _coarser_hint(self) -> str:
         return "; a coarser Resolution shows all of the map" if self._selected_factor() < FACTORS[-1] else ""
 
     def _frame(self, g: dict | None, traj: np.ndarray) -> None:
-        """Point the camera at the map once it has content: the whole map in view, seen
-        from above at an angle."""
+        """Point the camera at the map once it has content: its bulk (all of an indoor map)
+        in view, seen from above at an angle."""
         pts = g["mean"] if g is not None and len(g["n"]) else traj
         if len(pts) == 0:
             return
-        lo, hi = np.percentile(pts, 1.0, axis=0), np.percentile(pts, 99.0, axis=0)
-        center = (lo + hi) / 2.0
-        radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1.0)
+        center, radius = geo.bulk_sphere(pts)  # the bulk: an outdoor map's far rings are no speck's frame
         direction = np.array([-0.45, -0.75, 0.8])
         self._view = (center, radius, direction / np.linalg.norm(direction))
         cam = self.server.initial_camera
@@ -1010,6 +1133,20 @@ class MapViewer:
         for note in drawn["notes"]:
             lines.append(f"**Note**: {note}")
         return "  \n".join(lines)
+
+
+def _md_html(text: str) -> str:
+    """The panel's markdown (``**bold**``, ``*italic*``, hard line breaks) as HTML."""
+    out = html.escape(str(text))
+    out = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", out)
+    out = re.sub(r"\*(.+?)\*", r"<i>\1</i>", out)
+    return out.replace("  \n", "<br>").replace("\n", "<br>")
+
+
+def with_panel(page: str, panel: str) -> str:
+    """``page`` (viser's standalone HTML) with ``panel`` laid over the scene."""
+    end = page.rfind("</body>")
+    return page + panel if end < 0 else page[:end] + panel + page[end:]
 
 
 def _coarser(m: NdtOmMap | MapSnapshot, factor: int) -> MapSnapshot:

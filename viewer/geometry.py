@@ -15,14 +15,18 @@ __all__ = [
     "FREE_RGB",
     "SCAN_RGB",
     "TRAJECTORY_RGB",
+    "bulk_sphere",
     "cap_rows",
+    "ceiling_height",
     "cell_keys",
     "colors_for",
     "ellipsoid_instances",
+    "finite_rows",
     "height_colors",
     "icosphere",
     "legend_html",
     "occupancy_colors",
+    "occupancy_range",
     "rotation_to_wxyz",
     "turbo",
     "unit_box",
@@ -148,9 +152,29 @@ def _interp_stops(t: np.ndarray, stops: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t, stops[:, 0], stops[:, k]) for k in (1, 2, 3)], axis=-1)
 
 
-def occupancy_colors(p: np.ndarray) -> np.ndarray:
-    """Colours (N, 3) uint8 of occupancy probabilities in [0, 1]."""
+def occupancy_colors(p: np.ndarray, prange: tuple[float, float] | None = None) -> np.ndarray:
+    """Colours (N, 3) uint8 of occupancy probabilities in [0, 1].
+
+    ``prange=(lo, hi)``: occupied probabilities (p >= 0.5) are spread over the whole occupied
+    half of the scale between ``lo`` (green) and ``hi`` (red). What is drawn lies between the
+    threshold and the log-odds clamp (0.5-0.88 by default): on the absolute scale all of it
+    would be one orange."""
+    p = np.nan_to_num(np.asarray(p, np.float64), nan=0.5)
+    if prange is not None:
+        lo, hi = prange
+        lo = min(max(lo, 0.5), 0.99)
+        hi = max(hi, lo + 0.01)
+        occ = p >= 0.5
+        p = p.copy()
+        p[occ] = 0.5 + 0.5 * np.clip((p[occ] - lo) / (hi - lo), 0.0, 1.0)
     return np.round(_interp_stops(p, _OCC_STOPS)).astype(np.uint8)
+
+
+def occupancy_range(p: np.ndarray, threshold: float) -> tuple[float, float]:
+    """Range of the occupancy colour scale: from the threshold to the highest p drawn."""
+    p = np.asarray(p, np.float64)
+    hi = float(np.nanmax(p)) if len(p) else 1.0
+    return float(threshold), max(hi, float(threshold) + 0.01)
 
 
 def turbo(t: np.ndarray) -> np.ndarray:
@@ -178,11 +202,17 @@ def height_colors(z: np.ndarray, zrange: tuple[float, float]) -> np.ndarray:
     return turbo((np.asarray(z, np.float64) - lo) / (hi - lo))
 
 
-def colors_for(mode: str, p_occ: np.ndarray, z: np.ndarray, zrange: tuple[float, float]) -> np.ndarray:
-    """Colours (N, 3) uint8 by ``mode`` "occupancy" (of p_occ) or "height" (of z)."""
+def colors_for(
+    mode: str,
+    p_occ: np.ndarray,
+    z: np.ndarray,
+    zrange: tuple[float, float],
+    prange: tuple[float, float] | None = None,
+) -> np.ndarray:
+    """Colours (N, 3) uint8 by ``mode`` "occupancy" (of p_occ, over ``prange``) or "height" (of z)."""
     if mode == "height":
         return height_colors(z, zrange)
-    return occupancy_colors(p_occ)
+    return occupancy_colors(p_occ, prange)
 
 
 def _css(rgb) -> str:
@@ -198,6 +228,8 @@ def legend_html(
     live: bool = False,
     free: bool = False,
     clip: tuple[float, float] | None = None,
+    prange: tuple[float, float] | None = None,
+    at_top: float | None = None,
 ) -> str:
     """A small colour bar with its scale (fitted to the map), and the fixed colours of the
     layers the view offers (conflicting cells with a comparison map, trajectory and latest
@@ -208,6 +240,14 @@ def legend_html(
         lo, hi = zrange
         left, mid, right = (f"{v + 0.0:.2f} m".replace("-0.00", "0.00") for v in (lo, (lo + hi) / 2, hi))
         title = "Colour: height of the Gaussian's mean"
+    elif prange is not None:
+        # the occupied half of the scale, spread over what is drawn (threshold .. highest p)
+        lo, hi = prange
+        cols = occupancy_colors(lo + ts * (hi - lo), prange)
+        left, mid, right = f"p = {lo:.2f} (least sure)", f"{(lo + hi) / 2:.2f}", f"{hi:.2f} (surest)"
+        title = f"Colour: occupancy probability of the Gaussians drawn (p > {threshold:.2f})"
+        if at_top is not None:
+            title += f"; {100 * at_top:.0f}% of them at {hi:.2f}"
     else:
         cols = occupancy_colors(ts)
         left, mid, right = "p = 0 (free)", "0.5", "1 (occupied)"
@@ -246,3 +286,72 @@ def cap_rows(n: int, cap: int) -> np.ndarray:
     if n <= cap:
         return np.arange(n)
     return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))
+
+
+def finite_rows(*arrays: np.ndarray) -> np.ndarray:
+    """Mask of the rows finite in every array (a NaN position would reach the page's
+    bounding-sphere computations)."""
+    n = len(arrays[0])
+    keep = np.ones(n, bool)
+    for a in arrays:
+        keep &= np.isfinite(np.asarray(a, np.float64).reshape(n, -1)).all(axis=1) if n else keep
+    return keep
+
+
+def bulk_sphere(pts: np.ndarray, share: float = 0.8) -> tuple[np.ndarray, float]:
+    """Centre and radius of the sphere that frames the bulk of ``pts`` (N, 3).
+
+    A lidar map outdoors thins out with range: its 1-99% box is mostly empty rings and a
+    few far cells, and a camera fitted to it sees the map as a speck. The sphere here holds
+    ``share`` of the points around the middle of their 10-90% box (most of an evenly filled
+    room), and is never larger than the 1-99% box."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:
+        return np.zeros(3), 1.0
+    lo, hi = np.percentile(pts, 1.0, axis=0), np.percentile(pts, 99.0, axis=0)
+    box_center, box_radius = (lo + hi) / 2.0, float(np.linalg.norm(hi - lo)) / 2.0
+    center = (np.percentile(pts, 10.0, axis=0) + np.percentile(pts, 90.0, axis=0)) / 2.0  # walls count as floor
+    bulk = float(np.percentile(np.linalg.norm(pts - center, axis=1), 100.0 * share))
+    if bulk >= box_radius:
+        return box_center, max(box_radius, 1.0)
+    return center, max(bulk, 1.0)
+
+
+def ceiling_height(
+    mean: np.ndarray, cov: np.ndarray, resolution: float, *, min_share: float = 0.3, storey: float = 2.0
+) -> float | None:
+    """Height to clip a map's first view at so that its ceiling does not hide the interior,
+    or None (no ceiling: outdoors, or a room seen without its ceiling).
+
+    A ceiling covers the map from above: in most of the map's footprint (tiles of 1 m or 4
+    cells) the highest Gaussian is flat (a horizontal surface), lies at least ``storey``
+    above the lowest one of its tile (the floor) and has open space under it (sloping ground
+    and trees outdoors fill their tiles, walls' tops are not flat). The clip goes just below the median of those tops: the main
+    roof goes (a lower ceiling over a side room may stay), a sloped roof is cut halfway."""
+    mean = np.asarray(mean, np.float64).reshape(-1, 3)
+    cov = np.asarray(cov, np.float64).reshape(-1, 3, 3)
+    ok = finite_rows(mean, cov)
+    mean, cov = mean[ok], cov[ok]
+    if len(mean) < 100:
+        return None
+    tile = max(4.0 * float(resolution), 1.0)
+    keys = cell_keys(np.floor(np.c_[mean[:, :2] / tile, np.zeros(len(mean))]).astype(np.int64))
+    order = np.lexsort((mean[:, 2], keys))  # by tile, then height
+    k = keys[order]
+    last = np.flatnonzero(np.r_[k[1:] != k[:-1], True])  # the highest Gaussian of each tile
+    first = np.r_[0, last[:-1] + 1]  # the lowest
+    top, bottom = order[last], order[first]
+    _, vec = np.linalg.eigh(0.5 * (cov[top] + np.swapaxes(cov[top], 1, 2)))
+    flat = np.abs(vec[:, 2, 0]) > 0.8  # normal (least-variance axis) near vertical
+    # and open space under it: a gap of half a storey with nothing in it (trees, uneven ground
+    # and walls fill their tiles from the bottom up)
+    zs = mean[order, 2]
+    tile_of = np.cumsum(np.r_[0, (k[1:] != k[:-1]).astype(np.int64)])
+    gap = np.zeros(len(last))
+    same = k[1:] == k[:-1]
+    np.maximum.at(gap, tile_of[1:][same], np.diff(zs)[same])
+    high = flat & (mean[top, 2] - mean[bottom, 2] >= storey) & (gap >= storey / 2.0)
+    if high.mean() < min_share:
+        return None
+    return float(np.median(mean[top[high], 2])) - max(float(resolution), 0.1)

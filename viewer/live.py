@@ -39,6 +39,28 @@ if TYPE_CHECKING:
 __all__ = ["LiveMapper", "scan_parts"]
 
 
+def chart_series(times_ms: list[float], compare_ms: list[float] | None = None) -> tuple[tuple, str]:
+    """The time-per-scan chart's columns (scan number, NDT-OM ms[, R-NDT ms]) and a note on
+    what is left out of them.
+
+    The first scan compiles the kernels (seconds, where later scans take milliseconds): on
+    the chart's automatic scale its spike would flatten the rest, so when it is more than
+    twice the slowest later scan it is left out, and the note gives its time. No NaN goes to
+    the chart (uPlot takes a NaN for a number: the axis range becomes NaN and nothing is
+    drawn), so with a comparison the rows are those both series have."""
+    n = len(times_ms) if compare_ms is None else min(len(times_ms), len(compare_ms))
+    rows = [np.asarray(times_ms[:n], np.float64)] + (
+        [] if compare_ms is None else [np.asarray(compare_ms[:n], np.float64)]
+    )
+    x = np.arange(1, n + 1, dtype=np.float64)
+    later = np.concatenate([r[1:] for r in rows]) if n > 1 else np.zeros(0)
+    first = max((float(r[0]) for r in rows if n), default=0.0)
+    start, note = 0, ""
+    if len(later) and first > 2.0 * float(later.max()):
+        start, note = 1, f"Scan 1 took {first:,.0f} ms (compiling the kernels): not charted."
+    return (x[start:], *(r[start:] for r in rows)), note
+
+
 class LiveMapper:
     """Insert ``scans`` into ``m`` (and a Recursive NDT map) while ``viewer`` shows it.
 
@@ -241,7 +263,8 @@ class LiveMapper:
             text = "Mapping..."
         else:
             text = "Paused: press Play or Step."
-        c.live_status.content = text
+        note = getattr(self, "_chart_note", "")
+        c.live_status.content = f"{text}  \n{note}" if note else text
         # nothing left to play: the buttons say so
         c.play.disabled = c.pause.disabled = c.step.disabled = self.finished
 
@@ -250,13 +273,11 @@ class LiveMapper:
         c.scan.content = self._counter_text()
         n = len(self.times_ms)
         if n:
-            cols = [np.arange(1, n + 1, dtype=np.float64), np.asarray(self.times_ms[:n], np.float64)]
-            if self.compare is not None:
-                y2 = np.full(n, np.nan)
-                k = min(n, len(self.compare_times_ms))
-                y2[:k] = self.compare_times_ms[:k]
-                cols.append(y2)
-            c.chart.data = tuple(cols)
+            cols, self._chart_note = chart_series(
+                self.times_ms[:n], None if self.compare is None else self.compare_times_ms[:n]
+            )
+            if len(cols[0]):
+                c.chart.data = cols
         self._update_status()
 
     # ------------------------------------------------------------------ threads
