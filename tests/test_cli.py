@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import os
 import re
+import shlex
 import shutil
 import signal
 import subprocess
@@ -451,3 +452,16 @@ def test_tables_written_to_a_file_are_not_folded_at_80_columns(tmp_path: Path) -
     text = (tmp_path / "log.txt").read_text()
     assert "(every cell with points: the Gaussians, and those of fewer points or in free cells)" in text, text
     assert max(len(line) for line in text.splitlines()) <= 160
+
+
+@pytest.mark.skipif(shutil.which("script") is None, reason="needs util-linux's script (a terminal for the bar)")
+def test_the_bar_says_when_kernels_compile(tmp_path: Path) -> None:
+    # A fresh process compiles (or loads from Taichi's cache) each kernel at its first call; the
+    # first scan waits for that, and the terminal must say so, not sit at 0 scans in silence.
+    out = tmp_path / "demo"
+    cmd = " ".join(shlex.quote(str(a)) for a in [*_ndtom(), "demo", "--scans", "2", "--out", out, "--arch", "cpu"])
+    p = subprocess.run(["script", "-qec", cmd, "/dev/null"], capture_output=True, text=True, timeout=600,
+                       env={**os.environ, "COLUMNS": "150"})  # fmt: skip
+    assert p.returncode == 0, p.stdout[-3000:]
+    assert "compiling kernels, once per process" in p.stdout, p.stdout[-3000:]
+    assert "Warning" not in p.stdout, p.stdout[-3000:]
