@@ -16,6 +16,7 @@ from rich.tree import Tree
 from ..config import SIGMA_S_CELLS, SIGMA_S_MIN
 from .common import (
     Arch,
+    check_not_input,
     check_writable,
     console_err,
     console_out,
@@ -268,12 +269,10 @@ def export(
             fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
         if map_file.is_dir():
             fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = check_writable(
-            output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]), f"{fmt_name} file"
-        )
+        out_path = output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name])
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
-            if t.resolve() == map_file.resolve():
-                fail(f"the output {t} is the map file itself", "choose another path with -o")
+            check_not_input(t, {"map file": map_file})
+        out_path = check_writable(out_path, f"{fmt_name} file")
         from ..snapshot import MapSnapshot
 
         # a snapshot: numpy only, no map slot and no Taichi (--arch has nothing to choose)

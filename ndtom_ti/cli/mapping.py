@@ -28,6 +28,7 @@ from .common import (
     MAP_SUFFIX,
     Arch,
     MissModel,
+    check_not_input,
     check_writable,
     console_err,
     console_out,
@@ -384,7 +385,9 @@ def map_(
 
         mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range,
                                     miss_model=miss_model.value if miss_model else None)  # fmt: skip
-        out_path = check_writable(output if output is not None else default_output(bag), "map file")
+        out_path = output if output is not None else default_output(bag)
+        check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
+        out_path = check_writable(out_path, "map file")
         if view:
             need_extra("viser", "the live viewer (--view)")
             from ..viewer.cli import live_recording_command, parse_rate
