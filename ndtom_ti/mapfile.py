@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, NoReturn, TypeGuard
 import numpy as np
 
 from .atomic import atomic_write, check_target
-from .config import MapConfig, check_resolution
+from .config import N_LIMIT, MapConfig, check_resolution
 from .snapshot import ARRAYS, ROWS
 
 if TYPE_CHECKING:
@@ -258,6 +258,10 @@ def _check_header(path: Path, header: dict, version: int) -> None:
         bad(f"occupancy must be true or false, got {header.get('occupancy')!r}")
     if not isinstance(header.get("config"), dict):
         bad("config is not a table of map options")
+    try:  # the one check of settings (MapConfig's), here too: `ndtom info` reads the header alone
+        MapConfig.from_dict(header["config"]).check_at(header["resolution"])
+    except (TypeError, ValueError) as exc:
+        bad(f"invalid map options: {exc}")
     if header.get("metadata") is not None and not isinstance(header["metadata"], dict):
         bad("metadata is not a table")
     lay = header.get("layout")
@@ -336,6 +340,8 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
         return unsorted
     if (gn < 1).any():
         bad("g_n holds Gaussians of fewer than one point")
+    if (gn > N_LIMIT).any():  # a map's updates cap N there: more points would wrap the kernels' int32
+        bad(f"g_n holds Gaussians of more than {N_LIMIT} points")
     half = 0.5 * resolution * (1.0 + 1e-6)
     if not (np.isfinite(mean).all() and (np.abs(mean) <= half).all()):
         bad("g_mean_rel holds means that are not finite or outside their cells")

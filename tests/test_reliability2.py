@@ -101,3 +101,259 @@ def test_export_and_view_html_refuse_to_overwrite_the_map(tmp_path, small_map_fi
         assert r.exit_code == 2, (out, r.output)
         assert "would destroy" in r.output
         assert digest(src) == before
+
+
+# ---------------------------------------------------------------------------- 2-5: every setting checked once
+import json  # noqa: E402
+import math  # noqa: E402
+import struct  # noqa: E402
+import time  # noqa: E402
+
+import test_reliability as r1  # noqa: E402 - the crafted-file helpers (parse, build)
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from ndtom_ti import MapFileError  # noqa: E402
+from ndtom_ti.config import MapConfig  # noqa: E402
+from ndtom_ti.mapfile import read_header  # noqa: E402
+from ndtom_ti.pipeline import config_with_ranges, load_config_file  # noqa: E402
+from ndtom_ti.snapshot import MapSnapshot  # noqa: E402
+
+N_LIMIT = 2**30  # documented: the most points a Gaussian holds (docs/sensor-model.md)
+
+
+class Blob(bytes):
+    def __repr__(self) -> str:  # hypothesis prints its arguments: not megabytes of them
+        return f"<{len(self)} bytes>"
+
+
+@pytest.fixture(scope="module")
+def good_file(tmp_path_factory) -> bytes:
+    rng = np.random.default_rng(5)
+    with NdtOmMap(0.25) as m:
+        for _ in range(3):
+            T = np.eye(4)
+            T[:3, 3] = rng.normal(size=3)
+            m.insert_scan(rng.normal(size=(3000, 3)) * [5.0, 5.0, 1.0] + [6.0, 0.0, 0.0], T)
+        return Blob(m.save(tmp_path_factory.mktemp("good") / "good.ndtom").read_bytes())
+
+
+def with_header(data: bytes, **changes) -> bytes:
+    header, arrays = r1.parse(data)
+    header.update(changes)
+    return r1.build(header, arrays)
+
+
+def with_config(data: bytes, **config) -> bytes:
+    header, _ = r1.parse(data)
+    return with_header(data, config={**header["config"], **config})
+
+
+ISSUE_FILE_CASES = [
+    {"min_points": math.inf}, {"n_max": math.inf}, {"min_points": 2e70}, {"sigma_s": 2e70}, {"sigma_s": 1e308},
+    {"max_range": 2**63}, {"min_range": 1e308}, {"n_max": 2**63},
+]
+
+
+@pytest.mark.parametrize("config", ISSUE_FILE_CASES, ids=str)
+def test_map_files_with_out_of_range_settings_are_refused_by_every_reader(tmp_path, good_file, config):
+    path = tmp_path / "bad.ndtom"
+    path.write_bytes(with_config(good_file, **config))
+    for read in (MapSnapshot.load, NdtOmMap.load, read_header):
+        with pytest.raises(MapFileError, match="min_points|n_max|sigma_s|max_range|min_range"):
+            read(path)
+    for args in (("info", path), ("export", path, "-o", tmp_path / "x.ply")):
+        r = run_cli(*args)
+        assert r.exit_code == 2 and "Error:" in r.output and "internal error" not in r.output, r.output
+    pytest.importorskip("viser")
+    r = run_cli("view", path, "--html", tmp_path / "x.html")
+    assert r.exit_code == 2 and "Error:" in r.output, r.output
+
+
+@pytest.mark.parametrize("config", [
+    {"min_points": float("inf")}, {"sigma_s": 2**70}, {"min_points": 2e70}, {"sigma_s": 1e308},
+    {"max_range": 2**63}, {"min_range": 1e308}, {"n_max": 2**63}, {"n_max": 10**400}, {"logodds_max": 1e-50},
+    {"min_points": 2**31},
+], ids=lambda c: str(c)[:40])
+def test_api_refuses_settings_outside_what_the_kernels_hold(config):
+    with pytest.raises(ValueError, match="MapConfig"):
+        NdtOmMap(0.2, **config)
+    with pytest.raises(ValueError, match="MapConfig"):
+        MapConfig(**config)
+
+
+def test_settings_become_plain_numbers():
+    c = MapConfig(min_points=np.int64(4), n_max=5.0, max_range=np.float32(30.0), p_occupied=np.float64(0.7), sigma_s=2)
+    assert type(c.min_points) is int and type(c.n_max) is int and c.n_max == 5
+    assert type(c.max_range) is float and type(c.p_occupied) is float and type(c.sigma_s) is float
+    with pytest.raises(ValueError, match="integer"):
+        MapConfig(min_points=3.5)
+
+
+def test_sigma_s_in_cells_must_fit_at_the_map_resolution():
+    with pytest.raises(ValueError, match="sigma_s"):
+        NdtOmMap(1e-6, sigma_s=1e5)
+    NdtOmMap(1e-6, sigma_s=1e5, miss_model="paper").close()  # the paper's model does not use it
+
+
+@pytest.mark.parametrize("text,name", [
+    ('{"min_points": Infinity}', "c.json"), ('{"n_max": 1e400}', "c.json"), ('{"sigma_s": 1e308}', "c.json"),
+    ('{"max_range": 9223372036854775808}', "c.json"), ("min_points = inf", "c.toml"),
+    ("[map]\nn_max = 9223372036854775807", "c.toml"),
+])
+def test_config_file_settings_out_of_range_are_bad_input(tmp_path, text, name):
+    bag = pb.write_plane_bag(tmp_path)
+    cfg = tmp_path / name
+    cfg.write_text(text)
+    r = run_cli("map", bag, "-r", pb.RES, "--config", cfg, "-o", tmp_path / "m.ndtom", "--no-progress")
+    assert r.exit_code == 2, r.output
+    assert "Error:" in r.output and "internal error" not in r.output and str(cfg.name) in r.output
+    assert not (tmp_path / "m.ndtom").exists()
+
+
+def test_a_gaussian_of_too_many_points_is_refused(tmp_path, good_file):
+    header, arrays = r1.parse(good_file)
+    arrays["g_n"][0] = 2**31 - 1
+    path = tmp_path / "n.ndtom"
+    path.write_bytes(r1.build(header, arrays))
+    with pytest.raises(MapFileError, match="g_n"):
+        MapSnapshot.load(path)
+
+
+def test_a_gaussian_at_the_point_limit_keeps_its_points(tmp_path, good_file):
+    """N is capped at N_LIMIT (as n_max caps it): the next points into the cell neither wrap
+    the kernels' int32 count nor delete the Gaussian."""
+    header, arrays = r1.parse(good_file)
+    k = int(np.argmax(arrays["g_n"]))
+    arrays["g_n"][k] = N_LIMIT
+    path = tmp_path / "n.ndtom"
+    path.write_bytes(r1.build(header, arrays))
+    with NdtOmMap.load(path) as m:
+        cell = arrays["g_index"][k]
+        centre = (cell + 0.5) * 0.25
+        m.insert_scan(centre + np.random.default_rng(1).uniform(-0.1, 0.1, (50, 3)), np.eye(4))
+        g = m.gaussians(min_probability=0.0)
+        row = np.flatnonzero((g["index"] == cell).all(axis=1))
+        assert len(row) == 1 and g["n"][row[0]] == N_LIMIT
+        c = m.coarsen(2).gaussians(min_probability=0.0)
+        assert (c["n"] > 0).all() and c["n"].max() == N_LIMIT
+
+
+# Property-based: any value of any setting, through the API, a map file and --config, gives a
+# clear error (ValueError/TypeError naming the setting; MapFileError) or a map that works.
+FIELDS = [f for f in MapConfig.__dataclass_fields__]
+SPECIAL = [0, -1, 1, 2, 3, 0.5, 0.49, 0.6, -2.0, 2.0, 1e-50, 1e-300, 5e-324, 1e-6, 1e6, 1e15, 2e15, 1e308,
+           2e70, math.inf, -math.inf, math.nan, 2**30, 2**30 + 1, 2**31 - 1, 2**31, 2**63, 2**70, 10**400,
+           3.0, 3.5, True, "3", None, [1], "ndt", "paper", "drop", "free"]
+value = st.one_of(st.sampled_from(SPECIAL), st.floats(), st.floats(-10, 10), st.integers(-(2**70), 2**70),
+                  st.integers(0, 10))
+configs = st.dictionaries(st.sampled_from(FIELDS), value, max_size=4)
+PROPERTY = dict(deadline=None, suppress_health_check=list(HealthCheck), database=None, derandomize=True)
+
+
+def clear(exc: BaseException) -> bool:
+    """A clear error: a ValueError or TypeError (MapFileError is one) whose message says
+    what was wrong, never an internal one."""
+    return isinstance(exc, (ValueError, TypeError)) and len(str(exc)) > 10 and "Traceback" not in str(exc)
+
+
+def check_valid(c: MapConfig) -> None:
+    """The settings of an accepted config are plain, finite-where-needed numbers that fit
+    the kernels' types."""
+    assert type(c.min_points) is int and 1 <= c.min_points <= N_LIMIT
+    assert type(c.n_max) is int and (c.n_max == 0 or 2 <= c.n_max <= N_LIMIT)
+    for name in ("p_occupied", "p_empty", "logodds_min", "logodds_max", "min_range", "eta"):
+        v = getattr(c, name)
+        assert type(v) is float and math.isfinite(v), name
+    assert np.isfinite(np.float32(c.logodds_min)) and np.float32(c.logodds_min) < 0 < np.float32(c.logodds_max)
+    assert c.max_range == math.inf or c.max_range**2 < math.inf
+    assert c.sigma_s is None or (type(c.sigma_s) is float and 0 < c.sigma_s < math.inf)
+
+
+def exercise(m: NdtOmMap) -> None:
+    """The calls that failed on accepted settings: a scan, the queries, coarsen."""
+    pts = np.random.default_rng(0).normal(size=(300, 3)) + [3.0, 0.0, 0.0]
+    m.insert_scan(pts, np.eye(4))
+    m.insert_scan(pts, np.eye(4))
+    m.gaussians(min_probability=0.0)
+    m.known_cells()
+    m.coarsen(2).close()
+
+
+@settings(max_examples=1200, **PROPERTY)
+@given(cfg=configs)
+def test_property_api_settings_give_a_clear_error_or_a_valid_config(cfg):
+    try:
+        c = MapConfig(**cfg)
+    except Exception as exc:  # noqa: BLE001 - the property is about which
+        assert clear(exc), repr(exc)
+        return
+    check_valid(c)
+    assert MapConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c  # what a map file stores reads back
+
+
+@settings(max_examples=40, **PROPERTY)
+@given(cfg=configs, res=st.sampled_from([1e-300, 1e-7, 1e-3, 0.05, 0.2, 1.0, 1e3, 1e6]))
+def test_property_api_maps_of_accepted_settings_work(cfg, res):
+    try:
+        m = NdtOmMap(res, **cfg)
+    except Exception as exc:  # noqa: BLE001
+        assert clear(exc), repr(exc)
+        return
+    with m:
+        check_valid(m.config)
+        exercise(m)
+
+
+@settings(max_examples=700, **PROPERTY)
+@given(cfg=configs, res=st.one_of(st.sampled_from([1e-7, 0.25, 1e3, 2e300]), st.floats(1e-9, 1e9)), data=st.data())
+def test_property_map_file_settings_give_a_map_file_error_or_a_valid_map(tmp_path_factory, good_file, cfg, res,
+                                                                         data):
+    path = tmp_path_factory.getbasetemp() / "prop.ndtom"
+    header, _ = r1.parse(good_file)
+    path.write_bytes(with_header(good_file, resolution=res, config={**header["config"], **cfg}))
+    try:
+        s = MapSnapshot.load(path)
+    except MapFileError as exc:
+        assert clear(exc)
+        with pytest.raises(MapFileError):  # what `ndtom info` reads refuses it too, or the cells were the fault
+            read_header(path) if "options" in str(exc) else (_ for _ in ()).throw(MapFileError("cells"))
+        return
+    check_valid(s.config)
+    read_header(path)
+    s.gaussians(min_probability=0.0)
+    s.coarsen(2)
+    if data.draw(st.integers(0, 9), label="to a map") == 0:  # maps take a slot and Taichi: a tenth of them
+        with NdtOmMap.from_snapshot(s) as m:
+            exercise(m)
+
+
+def toml_value(v) -> str | None:
+    if v is None:
+        return None
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else ("inf" if v == math.inf else "-inf" if v == -math.inf else repr(v))
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, str, list)):
+        return json.dumps(v)
+    raise AssertionError(v)
+
+
+@settings(max_examples=700, **PROPERTY)
+@given(cfg=configs, toml=st.booleans())
+def test_property_config_files_give_a_clear_error_or_a_valid_config(tmp_path_factory, cfg, toml):
+    """What `ndtom map --config` does with the file (load_config_file, then the -r/--min-range/...
+    merge); the command's exit code for its errors is in the tests above."""
+    path = tmp_path_factory.getbasetemp() / ("prop.toml" if toml else "prop.json")
+    if toml:
+        lines = [f"{k} = {toml_value(v)}" for k, v in cfg.items() if toml_value(v) is not None]
+        path.write_text("\n".join(lines))
+    else:
+        path.write_text(json.dumps(cfg))
+    try:
+        c = config_with_ranges(load_config_file(path))
+    except Exception as exc:  # noqa: BLE001
+        assert isinstance(exc, ValueError) and path.name in str(exc), repr(exc)
+        return
+    check_valid(c)
