@@ -126,6 +126,15 @@ def test_guard_rules():
     assert g.check("/", {**ws, "Origin": "https://localhost:8080"})[0] == 403
     assert g.check("/", {**ws, "Origin": "http://localhost:8081"})[0] == 403
     assert g.check("/", ws) is None  # no Origin: not a web page (browsers always send one)
+    # the whole origin must match, not a prefix of it
+    bare = {"Upgrade": "websocket", "Host": "localhost"}
+    assert g.check("/", {**bare, "Origin": "http://localhost"}) is None
+    assert g.check("/", {**bare, "Origin": "http://localhost.evil.example"})[0] == 403
+    assert g.check("/", {**bare, "Origin": "http://localhost:8080"})[0] == 403
+    port80 = {"Upgrade": "websocket", "Host": "127.0.0.1:80"}
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:80"}) is None
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:8080"})[0] == 403
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:80.evil.example"})[0] == 403
     assert is_loopback_host("127.0.0.1") and is_loopback_host("localhost") and is_loopback_host("::1")
     assert not is_loopback_host("0.0.0.0") and not is_loopback_host("192.0.2.1")
     wide = AccessGuard("0.0.0.0")
