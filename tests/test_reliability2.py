@@ -357,3 +357,49 @@ def test_property_config_files_give_a_clear_error_or_a_valid_config(tmp_path_fac
         assert isinstance(exc, ValueError) and path.name in str(exc), repr(exc)
         return
     check_valid(c)
+
+
+# ---------------------------------------------------------------------------- the checksum
+@pytest.mark.parametrize("name,column", [("g_mean_rel", 1), ("g_scatter", 0), ("occ_logodds", None)])
+def test_a_flipped_bit_inside_a_float_array_is_a_checksum_error(tmp_path, good_file, name, column):
+    """A bit flip that leaves every value plausible (the lowest mantissa bit of one float:
+    inside its cell, within the clamps, still positive semi-definite) passes every structural
+    and value check; only the checksum finds it."""
+    header, arrays = r1.parse(good_file)
+    entry = next(e for e in header["arrays"] if e["name"] == name)
+    payload_at = len(good_file) - header["payload_bytes"]
+    row = len(arrays[name]) // 2
+    item = row * (arrays[name].shape[1] if column is not None else 1) + (column or 0)
+    at = payload_at + entry["offset"] + item * arrays[name].itemsize  # little endian: lowest byte first
+    data = bytearray(good_file)
+    data[at] ^= 1
+    flipped = r1.parse(bytes(data))[1][name]
+    assert flipped.reshape(-1)[item] != arrays[name].reshape(-1)[item]
+    path = tmp_path / "flipped.ndtom"
+    path.write_bytes(bytes(data))
+    for read in (MapSnapshot.load, NdtOmMap.load):
+        with pytest.raises(MapFileError, match="checksum"):
+            read(path)
+    # the same values with their checksum made right load: nothing but the checksum refused it
+    h2, a2 = r1.parse(bytes(data))
+    path.write_bytes(r1.build(h2, a2))
+    MapSnapshot.load(path)
+
+
+# ---------------------------------------------------------------------------- CI: ../shared required
+def test_ci_switch_makes_missing_shared_data_a_failure(tmp_path):
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "NDTOM_SHARED": str(tmp_path / "nothing"), "NDTOM_REQUIRE_SHARED": "1"}
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider",
+                        "tests/test_docs.py"], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "NDTOM_REQUIRE_SHARED" in r.stdout + r.stderr, r.stdout + r.stderr
+    from conftest import SHARED
+
+    if all((SHARED / p).exists() for p in ("data", "tools")):  # the real folder is there: the switch passes
+        env["NDTOM_SHARED"] = str(SHARED)
+        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider",
+                            "tests/test_docs.py"], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stdout + r.stderr
+    assert "NDTOM_REQUIRE_SHARED=1" in (root / ".ci" / "run").read_text()
