@@ -403,3 +403,75 @@ def test_ci_switch_makes_missing_shared_data_a_failure(tmp_path):
                             "tests/test_docs.py"], cwd=root, env=env, capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stdout + r.stderr
     assert "NDTOM_REQUIRE_SHARED=1" in (root / ".ci" / "run").read_text()
+
+
+# ---------------------------------------------------------------------------- 6: threads from the first call
+FIRST_USE = r"""
+import os, sys, tempfile, threading
+import numpy as np
+import ndtom_ti
+from ndtom_ti import NdtOmMap
+
+case = sys.argv[1]
+ndtom_ti.init("cpu")
+errors = []
+rng = np.random.default_rng(0)
+pts = rng.normal(size=(2000, 3)) + [3.0, 0.0, 0.0]
+
+def guarded(fn):
+    def run():
+        try:
+            fn()
+        except BaseException as exc:
+            errors.append(repr(exc))
+    return run
+
+if case == "reader":  # the main thread made the map; a reader's first calls come while it inserts
+    m = NdtOmMap(0.2)
+    start = threading.Event()
+
+    def read():
+        start.wait()
+        for _ in range(3):
+            m.known_cells()
+            m.save(os.path.join(tempfile.mkdtemp(), "r.ndtom"))
+            m.gaussians()
+
+    t = threading.Thread(target=guarded(read))
+    t.start()
+    start.set()
+    for _ in range(3):
+        m.insert_scan(pts, np.eye(4))
+    t.join()
+elif case == "worker":  # the first map of the process is made and used in a worker thread
+    def work():
+        with NdtOmMap(0.2) as m:
+            m.insert_scan(pts, np.eye(4))
+            m.known_cells()
+            NdtOmMap.load(m.save(os.path.join(tempfile.mkdtemp(), "w.ndtom"))).close()
+    t = threading.Thread(target=guarded(work))
+    t.start()
+    t.join()
+elif case == "settings":  # what init() still lets a process choose before its first map
+    ndtom_ti.init(max_maps=2)
+    a, b = NdtOmMap(0.5), NdtOmMap(0.5)
+    try:
+        NdtOmMap(0.5)
+        errors.append("a third map was made")
+    except ndtom_ti.NoFreeSlotError:
+        pass
+print("ERRORS", errors)
+sys.exit(1 if errors else 0)
+"""
+
+
+@pytest.mark.parametrize("case", ["reader", "worker", "settings"])
+def test_first_taichi_use_from_a_worker_thread(tmp_path, case):
+    import subprocess
+
+    script = tmp_path / "first_use.py"
+    script.write_text(FIRST_USE)
+    r = subprocess.run([sys.executable, str(script), case], capture_output=True, text=True, timeout=400,
+                       env={**os.environ, "NDTOM_PIN_THREADS": "0"})
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "ERRORS []" in r.stdout
