@@ -475,3 +475,57 @@ def test_first_taichi_use_from_a_worker_thread(tmp_path, case):
                        env={**os.environ, "NDTOM_PIN_THREADS": "0"})
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "ERRORS []" in r.stdout
+
+
+# ---------------------------------------------------------------------------- 7: SIGTERM in `ndtom map --view`
+@pytest.mark.parametrize("signum,code,name", [(15, 143, "SIGTERM"), (2, 130, "Ctrl-C")])
+def test_map_view_names_the_signal_and_exits_with_its_code(tmp_path, monkeypatch, signum, code, name):
+    pytest.importorskip("viser")
+    import signal
+
+    from ndtom_ti.viewer import cli as vcli
+
+    bag = pb.write_plane_bag(tmp_path)
+    monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: None)
+    insert = NdtOmMap.insert_scan
+    done = []
+
+    def insert_then_signal(self, points, T):
+        rep = insert(self, points, T)
+        done.append(1)
+        if len(done) == 2:
+            os.kill(os.getpid(), signum)  # handled by the main thread, between two scans
+        return rep
+
+    monkeypatch.setattr(NdtOmMap, "insert_scan", insert_then_signal)
+    before = signal.getsignal(signum)
+    out = tmp_path / "live.ndtom"
+    r = run_cli("map", bag, "-r", pb.RES, "-o", out, "--view", "--no-wait", "--rate", "0.5", "--port", "0",
+                "--no-progress")
+    assert signal.getsignal(signum) == before
+    assert r.exit_code == code, r.output
+    assert f"({name}; the map is marked incomplete)" in r.output, r.output
+    assert NdtOmMap.load(out).metadata["complete"] is False
+
+
+def test_live_default_finish_exits_143_on_sigterm(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    import signal
+
+    from ndtom_ti.demo import make_scans
+    from ndtom_ti.viewer import cli as vcli
+
+    monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: None)
+
+    def scans():
+        for i, s in enumerate(make_scans(6, rings=4, per_ring=100)):
+            if i == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            if i >= 2:
+                time.sleep(0.3)  # the main thread handles the signal before the scans run out
+            yield s
+
+    out = tmp_path / "d.ndtom"
+    assert vcli.live_command(scans(), 0.5, "127.0.0.1", 0, speed=None, wait_for_browser=False, save=out,
+                             compare=False) == 143
+    assert NdtOmMap.load(out).scans_inserted >= 1

@@ -403,7 +403,7 @@ def map_(
                         "every_distance": every_distance, "t_start": start, "t_end": end, "max_scans": max_scans},
                     occupancy=occupancy, config=mapcfg, host=host, port=port, speed=speed, wait_for_browser=not no_wait,
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
-                    progress=bar, finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                    progress=bar, finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
                 )  # fmt: skip
             finally:
                 bar.stop()
@@ -496,7 +496,7 @@ def demo(
                     "127.0.0.1", port, resolution=resolution, n_scans=scans, scans=data, speed=speed,
                     wait_for_browser=not no_wait, progress=bar,
                     metadata={"command": "ndtom demo --view", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
-                    finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                    finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
                 )  # fmt: skip
             finally:
                 bar.stop()
