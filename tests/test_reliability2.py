@@ -529,3 +529,73 @@ def test_live_default_finish_exits_143_on_sigterm(tmp_path, monkeypatch):
     assert vcli.live_command(scans(), 0.5, "127.0.0.1", 0, speed=None, wait_for_browser=False, save=out,
                              compare=False) == 143
     assert NdtOmMap.load(out).scans_inserted >= 1
+
+
+# ---------------------------------------------------------------------------- 8-10: save targets
+def test_view_html_follows_links_as_map_saves_do(tmp_path, small_map_file):
+    pytest.importorskip("viser")
+    target = tmp_path / "real.html"
+    target.write_text("old page")
+    link = tmp_path / "link.html"
+    link.symlink_to(target)
+    r = run_cli("view", small_map_file, "--html", link)
+    assert r.exit_code == 0, r.output
+    assert link.is_symlink() and os.readlink(link) == str(target)  # the link stays
+    assert "<html" in target.read_text().lower()
+    # a dangling link: written through to where it points, exactly as a map save does
+    for name, write in (("page.html", lambda p: run_cli("view", small_map_file, "--html", p)),
+                        ("map.ndtom", lambda p: MapSnapshot.load(small_map_file).save(p))):
+        dangling = tmp_path / f"dangling-{name}"
+        dangling.symlink_to(tmp_path / f"absent-{name}")
+        write(dangling)
+        assert dangling.is_symlink() and (tmp_path / f"absent-{name}").is_file(), name
+    # a link to a folder is refused, as by map saves
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "to-folder.html").symlink_to(tmp_path / "folder")
+    r = run_cli("view", small_map_file, "--html", tmp_path / "to-folder.html")
+    assert r.exit_code in (1, 2) and "Error:" in r.output and (tmp_path / "to-folder.html").is_symlink()
+
+
+def test_the_longest_legal_file_names_can_be_written(tmp_path, small_map_file):
+    s = MapSnapshot.load(small_map_file)
+    for n in (242, 250, 255):
+        path = tmp_path / ("m" * (n - len(".ndtom")) + ".ndtom")
+        assert len(path.name) == n
+        s.save(path)
+        assert MapSnapshot.load(path).resolution == s.resolution
+        out = path.with_suffix(".ply")
+        r = run_cli("export", path, "-o", out)
+        assert r.exit_code == 0 and out.is_file(), r.output
+    utf8 = tmp_path / ("é" * 120 + ".ndtom")  # 246 bytes: the temporary name is cut by bytes
+    s.save(utf8)
+    assert utf8.is_file()
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith((".tmp", ".check"))]
+
+
+def test_a_save_removes_the_temporaries_killed_saves_left(tmp_path, small_map_file):
+    import fcntl
+
+    s = MapSnapshot.load(small_map_file)
+    target = tmp_path / "m.ndtom"
+    old = time.time() - 3600
+    stale = [tmp_path / f".m.ndtom.{c * 8}.tmp" for c in "ab"]
+    for p in stale:
+        p.write_bytes(b"half a map")
+        os.utime(p, (old, old))
+    fresh = tmp_path / ".m.ndtom.cccccccc.tmp"  # a save under way elsewhere, just started
+    fresh.write_bytes(b"x")
+    locked = tmp_path / ".m.ndtom.dddddddd.tmp"  # a save under way elsewhere, writing slowly
+    locked.write_bytes(b"x")
+    os.utime(locked, (old, old))
+    other = tmp_path / ".other.ndtom.eeeeeeee.tmp"  # another target's: not ours to remove
+    other.write_bytes(b"x")
+    os.utime(other, (old, old))
+    keep = tmp_path / ".m.ndtom.notes.tmp"  # not a name our saves make
+    keep.write_bytes(b"x")
+    os.utime(keep, (old, old))
+    with open(locked, "rb") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX)
+        s.save(target)
+    assert MapSnapshot.load(target).resolution == s.resolution
+    assert not any(p.exists() for p in stale)
+    assert fresh.exists() and locked.exists() and other.exists() and keep.exists()

@@ -24,9 +24,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import os
 import socket
-import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -367,26 +365,13 @@ class MapViewer:
     def save_html(self, path: str | Path) -> Path:
         """Write a standalone HTML page of the current scene (``scene.as_html()``), atomically:
         a failed write (full disk) leaves an existing file as it was."""
-        path = Path(path)
-        folder = path.parent if str(path.parent) else Path(".")
-        if not folder.is_dir():
-            raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
-        if path.exists() and not path.is_file():
-            raise IsADirectoryError(f"cannot write {path}: it exists and is not a regular file")
+        from ndtom_ti.atomic import atomic_write, check_target
+
+        # the target check of every writer (map saves too): a link is followed and stays,
+        # a folder, pipe or device is refused
+        path = check_target(path)
         data = self.server.scene.as_html().encode("utf-8")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-        return path
+        return atomic_write(path, lambda fh: fh.write(data))
 
     def live(
         self,

@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from ..atomic import temp_prefix
 from ..config import check_resolution
 from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
 from ..io import RecordingError
@@ -165,7 +166,7 @@ def check_writable(path: Path, what: str = "output") -> Path:
     if not folder.is_dir():
         fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".check", dir=folder)
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:
