@@ -42,6 +42,7 @@ _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
 _SINCE = {"g_erased_near": 2, "g_ndt_state": 3}
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
+_CHUNK = 16 * 2**20  # bytes hashed at a time
 
 
 class MapFileError(ValueError):
@@ -155,9 +156,15 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict]:
             raise MapFileError(f"{path} is corrupt: {size - expected} unexpected trailing bytes")
         if header_only:
             return header, {}
+        # the checksum first, in bounded memory: a damaged file that declares gigabytes is
+        # refused without holding them (then the payload is read again, checked)
+        start, sha = fh.tell(), hashlib.sha256()
+        while chunk := fh.read(_CHUNK):
+            sha.update(chunk)
+        if sha.hexdigest() != header.get("payload_sha256"):
+            raise MapFileError(f"{path} is corrupt: payload checksum mismatch")
+        fh.seek(start)
         payload = fh.read()
-    if hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
-        raise MapFileError(f"{path} is corrupt: payload checksum mismatch")
     arrays = {}
     try:
         for entry in header["arrays"]:

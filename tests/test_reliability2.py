@@ -599,3 +599,46 @@ def test_a_save_removes_the_temporaries_killed_saves_left(tmp_path, small_map_fi
     assert MapSnapshot.load(target).resolution == s.resolution
     assert not any(p.exists() for p in stale)
     assert fresh.exists() and locked.exists() and other.exists() and keep.exists()
+
+
+# ---------------------------------------------------------------------------- 11: checksum in bounded memory
+BIG_ZEROS = r"""
+import json, resource, struct, sys
+from ndtom_ti.mapfile import MapFileError, VERSION
+from ndtom_ti.snapshot import ARRAYS, MapSnapshot
+
+path, rows = sys.argv[1], int(sys.argv[2])
+table, off = [], 0
+for name, (dtype, cols) in ARRAYS.items():
+    n = rows if name.startswith("occ_") else 0
+    shape = [n, *cols]
+    nbytes = n * int(__import__("math").prod(cols)) * int(dtype[-1])
+    table.append({"name": name, "dtype": dtype, "shape": shape, "offset": off, "nbytes": nbytes})
+    off += nbytes
+header = {"format": "ndtom_ti map", "version": VERSION, "resolution": 0.2, "occupancy": True, "config": {},
+          "layout": {"l1": [128, 128, 16], "l2": 32, "leaf": 8}, "scans_inserted": 1, "points_inserted": 1,
+          "metadata": {}, "arrays": table, "payload_bytes": off, "payload_sha256": "0" * 64}
+hb = json.dumps(header).encode()
+with open(path, "wb") as fh:
+    fh.write(b"NDTOMTI\n" + struct.pack("<IQ", VERSION, len(hb)) + hb)
+    fh.truncate(fh.tell() + off)  # a sparse file of zeros
+limit = 600 * 2**20 + resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))  # far below the declared payload
+try:
+    MapSnapshot.load(path)
+except MapFileError as exc:
+    print("REFUSED", exc)
+except MemoryError:
+    print("MEMORY ERROR")
+"""
+
+
+def test_a_huge_damaged_file_is_refused_in_bounded_memory(tmp_path):
+    import subprocess
+
+    script = tmp_path / "zeros.py"
+    script.write_text(BIG_ZEROS)
+    rows = 80_000_000  # 1.28 GB of occ_index and occ_logodds, all zeros
+    r = subprocess.run([sys.executable, str(script), str(tmp_path / "zeros.ndtom"), str(rows)],
+                       capture_output=True, text=True, timeout=300)
+    assert "REFUSED" in r.stdout and "checksum" in r.stdout, r.stdout + r.stderr[-2000:]
