@@ -179,3 +179,18 @@ def test_wildcard_host_warns_and_prints_a_url_with_its_token(small_map, viewers,
     assert _status(_get(v.port, f"127.0.0.1:{v.port}", f"/?token={v.guard.token}")) == 200
     assert _status(_get(v.port, f"127.0.0.1:{v.port}")) == 401
     assert _status(_get(v.port, f"evil.example:{v.port}", f"/?token={v.guard.token}")) == 403
+
+
+@pytest.mark.parametrize("twice", ["Host: 127.0.0.1:{port}", "Origin: http://127.0.0.1:{port}", "Upgrade: websocket"])
+def test_repeated_headers_are_a_bad_request_not_a_server_error(small_map, viewers, twice, capsys):
+    """A request with two Host, Origin or Upgrade headers: 400, no traceback in the log;
+    the same request with the header once is served."""
+    v = _viewer(viewers, small_map, port=0)
+    host = f"127.0.0.1:{v.port}"
+    once = _upgrade(v.port, host, f"http://{host}")
+    assert _status(once) == 101, once[:200]
+    resp = _upgrade(v.port, host, f"http://{host}", extra=(twice.format(port=v.port),))
+    assert _status(resp) == 400, resp[:300]
+    assert b"more than one" in resp
+    err = capsys.readouterr()
+    assert "Traceback" not in err.err + err.out

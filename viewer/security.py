@@ -161,6 +161,11 @@ class AccessGuard:
 
     def check(self, path: str, headers: Any) -> tuple[int, str] | None:
         """None when the request may proceed, else (HTTP status, reason)."""
+        get_all = getattr(headers, "get_all", None)  # (websockets' Headers: get() raises on repeats)
+        if get_all is not None:
+            for name in ("Host", "Origin", "Upgrade"):
+                if len(get_all(name)) > 1:
+                    return 400, f"more than one {name} header"
         host = headers.get("Host")
         if not self.host_allowed(host):
             return 403, f"Host {host!r} is not this viewer's address"
