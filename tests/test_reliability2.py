@@ -642,3 +642,15 @@ def test_a_huge_damaged_file_is_refused_in_bounded_memory(tmp_path):
     r = subprocess.run([sys.executable, str(script), str(tmp_path / "zeros.ndtom"), str(rows)],
                        capture_output=True, text=True, timeout=300)
     assert "REFUSED" in r.stdout and "checksum" in r.stdout, r.stdout + r.stderr[-2000:]
+
+
+# ---------------------------------------------------------------------------- 14: the terminal
+def test_info_shows_control_characters_of_a_map_instead_of_sending_them(tmp_path):
+    path = tmp_path / "esc.ndtom"
+    evil = "\x1b]0;pwned\x07\x1b[2J\x1b[31mred\x9b1m\x00[bold]x[/bold]"
+    with NdtOmMap(0.5, metadata={"source": evil, "cloud_topic": "/a\rb", "created": "\x1b[8m"}) as m:
+        m.save(path)
+    r = run_cli("info", path)
+    assert r.exit_code == 0, r.output
+    assert not any(c in r.output for c in "\x1b\x07\x00\x9b\r"), repr(r.output)
+    assert "\\x1b]0;pwned\\x07" in r.output and "[bold]x[/bold]" in r.output and "/a\\x0db" in r.output

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
+from rich.markup import escape as _markup_escape
 from rich.text import Text
 from rich.tree import Tree
 
@@ -32,6 +32,14 @@ from .root import app
 _MAGIC = b"NDTOMTI\n"  # the first bytes of a map file
 
 
+def escape(text: str) -> str:
+    """``text`` safe to print: rich markup escaped, and control characters (a terminal's
+    escape sequences in a map's metadata or a bag's topic names) shown as \\xNN, not sent."""
+    shown = "".join(c if c.isprintable() or c == " " else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}"
+                    for c in str(text))  # fmt: skip
+    return _markup_escape(shown)
+
+
 class Format(str, Enum):
     ply = "ply"
     pcd = "pcd"
@@ -49,9 +57,9 @@ def _info_map(path: Path) -> None:
     out = console_out()
     t = make_table(f"Map file {path}", "", "", header=False)
     md = h.get("metadata") or {}
-    t.add_row("format version", str(h.get("version")))
-    t.add_row("resolution", f"{h.get('resolution')} m")
-    t.add_row("occupancy", str(h.get("occupancy")))
+    t.add_row("format version", escape(str(h.get("version"))))
+    t.add_row("resolution", escape(f"{h.get('resolution')} m"))
+    t.add_row("occupancy", escape(str(h.get("occupancy"))))
     t.add_row("scans inserted", fmt_count(int(h.get("scans_inserted", 0))))
     t.add_row("points inserted", fmt_count(int(h.get("points_inserted", 0))))
     arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
@@ -105,7 +113,7 @@ def _info_recording(path: Path) -> None:
         else:
             use = ""
         rate = f"{(ts.count - 1) / info.duration_s:.1f} Hz" if ts.count > 1 and info.duration_s > 0 else "-"
-        topics.add_row(escape(ts.name), ts.msgtype, fmt_count(ts.count), rate, escape(use))
+        topics.add_row(escape(ts.name), escape(ts.msgtype), fmt_count(ts.count), rate, escape(use))
     if not info.topics:
         topics.add_row("(none: the recording is empty)", "", "", "", "")
     out.print(topics)
