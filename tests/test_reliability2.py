@@ -654,3 +654,35 @@ def test_info_shows_control_characters_of_a_map_instead_of_sending_them(tmp_path
     assert r.exit_code == 0, r.output
     assert not any(c in r.output for c in "\x1b\x07\x00\x9b\r"), repr(r.output)
     assert "\\x1b]0;pwned\\x07" in r.output and "[bold]x[/bold]" in r.output and "/a\\x0db" in r.output
+
+
+# ---------------------------------------------------------------------------- export: one code for "could not write"
+@pytest.mark.parametrize("where", ["before (read-only)", "during (disk full)"])
+def test_export_that_cannot_write_exits_1_whenever_it_finds_out(tmp_path, small_map_file, monkeypatch, where):
+    import errno
+    import tempfile
+
+    import ndtom_ti.atomic as atomic
+
+    if where.startswith("before"):
+        def refuse(*a, **k):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+        monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    else:
+        real = atomic.atomic_write
+
+        def full(path, write):
+            def fill(fh):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+            return real(path, fill)
+
+        monkeypatch.setattr(atomic, "atomic_write", full)
+        import ndtom_ti.export as export
+
+        monkeypatch.setattr(export, "atomic_write", full)
+    out = tmp_path / "x.ply"
+    r = run_cli("export", small_map_file, "-o", out)
+    assert r.exit_code == 1, r.output
+    assert "Error:" in r.output and "internal error" not in r.output and not out.exists()

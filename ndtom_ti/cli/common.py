@@ -169,8 +169,8 @@ def check_writable(path: Path, what: str = "output") -> Path:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".check", dir=folder)
         os.close(fd)
         os.unlink(tmp)
-    except OSError as exc:
-        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o")
+    except OSError as exc:  # a read-only or full file system: "could not write" is exit 1 however found
+        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o", EXIT_FAILURE)
     if path.exists() and not path.is_file():
         fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
     return path
