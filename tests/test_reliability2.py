@@ -686,3 +686,32 @@ def test_export_that_cannot_write_exits_1_whenever_it_finds_out(tmp_path, small_
     r = run_cli("export", small_map_file, "-o", out)
     assert r.exit_code == 1, r.output
     assert "Error:" in r.output and "internal error" not in r.output and not out.exists()
+
+
+# ---------------------------------------------------------------------------- 13: --host ::
+def test_viewer_on_ipv6_wildcard_prints_urls_that_answer(small_map_file):
+    pytest.importorskip("viser")
+    import re
+    import socket
+    from urllib.parse import urlsplit
+
+    from ndtom_ti.viewer import MapViewer
+
+    try:
+        socket.create_server(("::1", 0), family=socket.AF_INET6).close()
+    except OSError:
+        pytest.skip("no IPv6 on this machine")
+    said: list[str] = []
+    v = MapViewer(MapSnapshot.load(small_map_file), host="::", port=0, environment_map=False, progress=said.append)
+    try:
+        urls = re.findall(r"http://\S+?/(?:\?token=[\w-]+)?(?=[\s)]|$)", "\n".join(said))
+        assert len(urls) == 2, said
+        for url in urls:
+            u = urlsplit(url)
+            with socket.create_connection((u.hostname, u.port), timeout=5) as s:  # refused before: IPv4 URLs
+                s.sendall(f"GET /?{u.query} HTTP/1.1\r\nHost: {u.netloc}\r\nConnection: close\r\n\r\n".encode())
+                s.settimeout(5)
+                head = s.recv(64)
+            assert head.startswith(b"HTTP/1.1 200"), (url, head)
+    finally:
+        v.close()

@@ -109,7 +109,8 @@ def warm_up(m: NdtOmMap | MapSnapshot | None) -> None:
 
 def url_for(host: str, port: int, token: str | None = None) -> str:
     """The URL a browser opens: a wildcard bind is shown as this machine's address."""
-    shown = primary_address() if host in ("", "0.0.0.0", "::") else host
+    # ("::" listens on IPv6 only, as asyncio binds it: its URL is an IPv6 address)
+    shown = primary_address(ipv6=host == "::") if host in ("", "0.0.0.0", "::") else host
     if ":" in shown and not shown.startswith("["):
         shown = f"[{shown}]"
     return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
@@ -297,7 +298,8 @@ class MapViewer:
             )
         self._say(f"NDT-OM viewer: {self.url}")
         if self.host in ("", "0.0.0.0", "::"):
-            self._say(f"  (on this machine also: {url_for('127.0.0.1', self.port, self.guard.token)})")
+            local = "::1" if self.host == "::" else "127.0.0.1"
+            self._say(f"  (on this machine also: {url_for(local, self.port, self.guard.token)})")
 
     # ------------------------------------------------------------------ public API
 
