@@ -271,10 +271,7 @@ def _call_finish(finish: Callable[..., int], m: Any, summary: Any, signals: _Sto
         takes = "signals" in inspect.signature(finish).parameters
     except (TypeError, ValueError):
         takes = False
-    code = finish(m, summary, signals=signals) if takes else finish(m, summary)
-    if not takes and code == EXIT_INTERRUPTED and signals.count:
-        code = signals.exit_code  # a finish of its own that knows Ctrl-C only: SIGTERM is 143
-    return code
+    return finish(m, summary, signals=signals) if takes else finish(m, summary)
 
 
 def live_command(
