@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO
@@ -37,24 +39,77 @@ def check_target(path: str | Path) -> Path:
     return path
 
 
+# Temporary files are ".NAME.XXXXXXXX.tmp" with NAME cut to this many bytes: a legal name of
+# up to 255 bytes still gets a temporary name within the usual 255-byte limit.
+_TMP_NAME_BYTES = 200
+_STALE_SECONDS = 5.0  # a temporary untouched this long, and not locked, was left by a killed writer
+
+
+def temp_prefix(path: Path) -> str:
+    """The prefix of ``path``'s temporary files (``tempfile.mkstemp``): a dot and its name
+    cut to _TMP_NAME_BYTES bytes of UTF-8 (whole characters)."""
+    name = path.name.encode("utf-8", "surrogateescape")[:_TMP_NAME_BYTES].decode("utf-8", "ignore")
+    return f".{name}."
+
+
+def _lock(fd: int, blocking: bool) -> bool:
+    """An exclusive flock on ``fd`` (True), or False where it is held or flock is missing."""
+    try:
+        import fcntl
+    except ImportError:  # (not POSIX: no cleaning of stale temporaries)
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+    except OSError:
+        return False
+    return True
+
+
+def _remove_stale(directory: Path, prefix: str, own: str) -> None:
+    """Delete temporaries of the same target that a killed save left behind: each writer holds
+    a lock on its temporary while it writes, so one that is not locked and not touched for a
+    while belongs to nobody."""
+    now = time.time()
+    try:
+        names = [n for n in os.listdir(directory) if n.startswith(prefix) and n.endswith(".tmp") and n != own]
+    except OSError:
+        return
+    for name in names:
+        if len(name) != len(prefix) + 8 + 4:  # mkstemp's 8 random characters and ".tmp"
+            continue
+        p = directory / name
+        with contextlib.suppress(OSError):
+            fd = os.open(p, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+            try:
+                st = os.fstat(fd)
+                if stat.S_ISREG(st.st_mode) and now - st.st_mtime > _STALE_SECONDS and _lock(fd, False):
+                    os.unlink(p)
+            finally:
+                os.close(fd)
+
+
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path:
     """Write ``path`` through ``write(fh)`` into a temporary file in the same folder,
     fsync it, then rename it over ``path``: readers see the old file or the new one.
-    Symbolic links and targets that are not regular files: see ``check_target``."""
+    Symbolic links and targets that are not regular files: see ``check_target``. A save
+    that succeeds removes the temporaries of the same target that killed saves left."""
     path = check_target(path)
     directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    prefix = temp_prefix(path)
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=directory)
+    _lock(fd, True)  # held until the file is closed: a cleaner leaves it alone meanwhile
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual mode
-        os.replace(tmp, path)
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual mode
+            os.replace(tmp, path)
     except BaseException:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
         raise
+    _remove_stale(directory, prefix, os.path.basename(tmp))
     return path

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 from dataclasses import asdict, dataclass, fields
+from typing import NoReturn
+
+import numpy as np
 
 MISS_MODELS = ("ndt", "paper")
 # NDT miss model: sigma_s when the config leaves it to the map, in cells (3 m at 0.2 m), and
@@ -12,6 +16,16 @@ MISS_MODELS = ("ndt", "paper")
 # over their last metre or two whatever the cell (docs/quality.md).
 SIGMA_S_CELLS = 15.0
 SIGMA_S_MIN = 1.5
+# Bounds that keep every setting inside the kernels' types (one check, in MapConfig, for the
+# API, map files and --config). N_LIMIT: the most points a Gaussian holds; counts are int32
+# in the kernels, and the room above it takes a scan's hits without wrapping.
+INT32_MAX = 2**31 - 1
+N_LIMIT = 2**30
+RANGE_LIMIT = 1e15  # metres: min_range and a finite max_range (their squares stay finite)
+SIGMA_S_LIMITS = (1e-6, 1e6)  # metres
+RESOLUTION_MAX = 1e6  # metres: 1000 km cells
+_F32_MAX = 3.4028234663852886e38
+_NORMAL_MIN = sys.float_info.min
 
 
 @dataclass(frozen=True)
@@ -54,10 +68,12 @@ class MapConfig:
     eta: float = 0.32
 
     def __post_init__(self) -> None:
-        def bad(msg: str) -> None:
+        def bad(msg: str) -> NoReturn:
             raise ValueError(f"MapConfig: {msg}")
 
         # Types first (a config file may hold "0.6" or [1]): comparisons below need numbers.
+        # Numbers become plain floats or ints here, so that no value reaches a kernel as an
+        # int too big for a float (2**1100), a float where an int is needed, or a numpy scalar.
         for f in fields(self):
             value, default = getattr(self, f.name), f.default
             if value is None and default is None:
@@ -65,8 +81,22 @@ class MapConfig:
             if isinstance(default, str):
                 if not isinstance(value, str):
                     bad(f"{f.name} must be a string, got {value!r}")
-            elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 bad(f"{f.name} must be a number, got {value!r} ({type(value).__name__})")
+            try:
+                as_float = float(value)
+            except (OverflowError, ValueError):
+                bad(f"{f.name} must be a finite number, got {value!r}")
+            if isinstance(default, int):
+                if not (math.isfinite(as_float) and as_float == int(as_float)):
+                    bad(f"{f.name} must be a finite integer, got {value!r}")
+                # an integral float (3.0, from JSON) is taken as the integer it is
+                object.__setattr__(self, f.name, int(value) if isinstance(value, numbers.Integral) else int(as_float))
+            else:
+                if abs(as_float) < _NORMAL_MIN:  # a subnormal number is 0 where Taichi has the CPU flush them
+                    as_float = 0.0
+                object.__setattr__(self, f.name, as_float)
 
         if not 0.5 < self.p_occupied < 1.0:
             bad(f"p_occupied must be in (0.5, 1), got {self.p_occupied}")
@@ -74,29 +104,45 @@ class MapConfig:
             bad(f"p_empty must be in (0, 0.5), got {self.p_empty}")
         if not (math.isfinite(self.logodds_min) and math.isfinite(self.logodds_max)):
             bad("log-odds clamps must be finite")
-        if not self.logodds_min < 0.0 < self.logodds_max:
+        # the kernels hold log-odds as float32: the clamps must be float32 numbers on either side of 0
+        if not -_F32_MAX <= self.logodds_min < 0.0 < self.logodds_max <= _F32_MAX:
             bad(f"need logodds_min < 0 < logodds_max, got {self.logodds_min}, {self.logodds_max}")
-        if int(self.min_points) != self.min_points or self.min_points < 1:
-            bad(f"min_points must be a positive integer, got {self.min_points}")
-        if not (self.min_range >= 0.0 and math.isfinite(self.min_range)):
-            bad(f"min_range must be finite and >= 0, got {self.min_range}")
+        if not (float(np.float32(self.logodds_min)) < 0.0 < float(np.float32(self.logodds_max))):
+            bad(f"log-odds clamps {self.logodds_min}, {self.logodds_max} are 0 as 32-bit floats")
+        if not 1 <= self.min_points <= N_LIMIT:
+            bad(f"min_points must be a positive integer (at most {N_LIMIT}), got {self.min_points:.6g}")
+        if not (0.0 <= self.min_range <= RANGE_LIMIT):
+            bad(f"min_range must be finite, >= 0 and at most {RANGE_LIMIT:g} m, got {self.min_range}")
+        if not (self.max_range <= RANGE_LIMIT or self.max_range == math.inf):
+            bad(f"max_range must be at most {RANGE_LIMIT:g} m, or inf (null) for no limit, got {self.max_range}")
         if not self.max_range > self.min_range:
             bad(f"max_range must be > min_range, got {self.max_range} <= {self.min_range}")
         if self.max_range_mode not in ("drop", "free"):
             bad(f"max_range_mode must be 'drop' or 'free', got {self.max_range_mode!r}")
         if self.max_range_mode == "free" and not math.isfinite(self.max_range):
             bad("max_range_mode='free' needs a finite max_range")
-        if int(self.n_max) != self.n_max or self.n_max < 0 or self.n_max == 1:
-            bad(f"n_max must be 0 (off) or an integer >= 2, got {self.n_max}")
+        if not (self.n_max == 0 or 2 <= self.n_max <= N_LIMIT):
+            bad(f"n_max must be 0 (off) or an integer from 2 to {N_LIMIT}, got {self.n_max:.6g}")
         if self.miss_model not in MISS_MODELS:
             bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
-        if self.sigma_s is not None and not (math.isfinite(self.sigma_s) and self.sigma_s > 0.0):
+        lo, hi = SIGMA_S_LIMITS
+        if self.sigma_s is not None and not (lo <= self.sigma_s <= hi):
             bad(
-                f"sigma_s must be a positive number of metres (or None: {SIGMA_S_CELLS:g} cells, at least {SIGMA_S_MIN:g} m), "
-                f"got {self.sigma_s!r}"
+                f"sigma_s must be a positive number of metres, from {lo:g} to {hi:g} (or None: {SIGMA_S_CELLS:g} cells, "
+                f"at least {SIGMA_S_MIN:g} m), got {self.sigma_s!r}"
             )
         if not 0.0 < self.eta < 0.5:
             bad(f"eta must be in (0, 0.5), got {self.eta!r}")
+
+    def check_at(self, resolution: float) -> None:
+        """The settings that depend on the map's resolution: with the NDT miss model, sigma_s
+        in cells must fit the kernels' 32-bit integers. ValueError otherwise."""
+        cells = self.sigma_s_at(resolution) / float(resolution)
+        if self.ndt_misses and not cells <= N_LIMIT:
+            raise ValueError(
+                f"MapConfig: sigma_s {self.sigma_s_at(resolution):g} m is {cells:.3g} cells of {resolution:g} m, "
+                f"more than the kernels count ({N_LIMIT}); give a smaller sigma_s or a coarser resolution"
+            )
 
     @property
     def l_hit(self) -> float:
@@ -148,9 +194,15 @@ def check_resolution(resolution: object, name: str = "resolution") -> float:
     every resolution the package takes."""
     if isinstance(resolution, bool) or not isinstance(resolution, numbers.Real):
         raise TypeError(f"{name} must be a number of metres, got {type(resolution).__name__}")
-    value = float(resolution)
+    try:
+        value = float(resolution)
+    except OverflowError:
+        value = math.inf
+    # (an upper bound: squares and sums of cell sizes must stay finite)
     if not (math.isfinite(value) and value > 0.0):
         raise ValueError(f"{name} must be a positive number of metres, got {value}")
+    if value > RESOLUTION_MAX:
+        raise ValueError(f"{name} must be at most {RESOLUTION_MAX:g} metres, got {value}")
     return value
 
 

@@ -3,11 +3,13 @@
 
 - 0 ``EXIT_OK``: done (closing the viewer with Ctrl-C is the normal way to end ``ndtom view``).
 - 1 ``EXIT_FAILURE``: failed: mapping stopped early by the memory budget or a bad scan (what
-  was mapped is saved, marked incomplete); the map, a page or a file could not be written;
-  an optional package a command needs is missing; an internal error.
+  was mapped is saved, marked incomplete); the map, a page or a file could not be written
+  (a read-only or full file system, found before the work or during the write); an optional
+  package a command needs is missing; an internal error.
 - 2 ``EXIT_USAGE``: bad input or options (unreadable recording, missing topic or poses, bad
-  option or config file, missing or corrupt map file, output path that cannot be written,
-  a host that cannot be listened on); one ``Error:`` line and a ``Hint:``, no traceback.
+  option or config file, missing or corrupt map file, an output path in a missing folder, a
+  folder or device, or one that is an input, a host that cannot be listened on); one
+  ``Error:`` line and a ``Hint:``, no traceback.
 - 128 + the signal's number: interrupted; 130 (``EXIT_INTERRUPTED``) by Ctrl-C (SIGINT),
   143 (``EXIT_TERMINATED``) by SIGTERM. What was mapped is saved, marked incomplete.
 """

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import weakref
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ import numpy as np
 from . import runtime
 from .budget import MemoryBudget
 from .cellkeys import lex_order
-from .config import MapConfig, check_resolution
+from .config import N_LIMIT, MapConfig, check_resolution
 from .kernels.families import kernel_set
 from .kernels.io import io_kernels
 from .kernels.layout import Layout
@@ -167,6 +168,9 @@ class NdtOmMap:
                     f"{', '.join(f.name for f in fields(MapConfig))}"
                 )
         self.config = config if config is not None else MapConfig(**options)
+        if not isinstance(self.config, MapConfig):
+            raise TypeError(f"config must be a MapConfig, got {type(self.config).__name__}")
+        self.config.check_at(resolution)
         self.resolution = resolution
         self.occupancy_enabled = bool(occupancy)
         self.layout = layout or Layout()
@@ -201,8 +205,11 @@ class NdtOmMap:
         # How the updates run (speed only). On CUDA a numpy block is copied to the device
         # and back at every launch: keep it to the 1M cells nearest the sensor there.
         self.plan = UpdatePlan(block_cells=BLOCK_CELLS if self.arch == "cpu" else 1 << 20)
+        # Without n_max the updates still cap N at N_LIMIT: past 2**31 the kernels' int32
+        # counts would wrap, and a Gaussian of a negative count is deleted.
+        upd_cfg = self.config if self.config.n_max else replace(self.config, n_max=N_LIMIT)
         self._update = ScanUpdate(st=self._st, slot=self._slot, kernels=self._k, records=self._records,
-                                  budget=self._budget, plan=self.plan, config=self.config, resolution=self.resolution,
+                                  budget=self._budget, plan=self.plan, config=upd_cfg, resolution=self.resolution,
                                   occupancy=self.occupancy_enabled, arch=self.arch)  # fmt: skip
 
     # ------------------------------------------------------------------ properties

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import mapcodec
 from .atomic import atomic_write, check_target
-from .config import MapConfig, check_resolution
+from .config import N_LIMIT, MapConfig, check_resolution
 from .snapshot import ARRAYS, ROWS
 
 if TYPE_CHECKING:
@@ -47,6 +47,7 @@ _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
 _SINCE = {"g_erased_near": 2, "g_ndt_state": 3}
 _PREFIX = struct.Struct("<8sIQ")
 _MAX_HEADER = 64 * 2**20
+_CHUNK = 16 * 2**20  # bytes hashed at a time
 
 
 class MapFileError(ValueError):
@@ -168,9 +169,15 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
             raise MapFileError(f"{path} is corrupt: {size - expected} unexpected trailing bytes")
         if header_only:
             return header, {}, version
+        # the checksum first, in bounded memory: a damaged file that declares gigabytes is
+        # refused without holding them (then the payload is read again, checked)
+        start, sha = fh.tell(), hashlib.sha256()
+        while chunk := fh.read(_CHUNK):
+            sha.update(chunk)
+        if sha.hexdigest() != header.get("payload_sha256"):
+            raise MapFileError(f"{path} is corrupt: payload checksum mismatch")
+        fh.seek(start)
         payload = fh.read()
-    if hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
-        raise MapFileError(f"{path} is corrupt: payload checksum mismatch")
     if version >= 4:
         return header, mapcodec.decode(header["arrays"], payload, _bad(path)), version
     arrays = {}
@@ -282,6 +289,10 @@ def _check_header(path: Path, header: dict, version: int) -> None:
         bad(f"occupancy must be true or false, got {header.get('occupancy')!r}")
     if not isinstance(header.get("config"), dict):
         bad("config is not a table of map options")
+    try:  # the one check of settings (MapConfig's), here too: `ndtom info` reads the header alone
+        MapConfig.from_dict(header["config"]).check_at(header["resolution"])
+    except (TypeError, ValueError) as exc:
+        bad(f"invalid map options: {exc}")
     if header.get("metadata") is not None and not isinstance(header["metadata"], dict):
         bad("metadata is not a table")
     lay = header.get("layout")
@@ -366,6 +377,8 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
         return unsorted
     if (gn < 1).any():
         bad("g_n holds Gaussians of fewer than one point")
+    if (gn > N_LIMIT).any():  # a map's updates cap N there: more points would wrap the kernels' int32
+        bad(f"g_n holds Gaussians of more than {N_LIMIT} points")
     half = 0.5 * resolution * (1.0 + 1e-6)
     if not (np.isfinite(mean).all() and (np.abs(mean) <= half).all()):
         bad("g_mean_rel holds means that are not finite or outside their cells")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .cellkeys import group, lookup_rows, pack, unpack
+from .config import N_LIMIT
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -64,9 +65,12 @@ def coarsen_state(st: dict, resolution: float, factor: int, n_max: int = 0) -> d
     for col, (a, b) in enumerate(_PAIRS):
         scat[:, col] = np.bincount(inv, weights=st["g_scatter"][:, col] + n * d[:, a] * d[:, b], minlength=G)
     n_int = ntot.astype(np.int64)
-    if n_max:
-        over = n_int > n_max
-        scat[over] *= ((n_max - 1) / (n_int[over] - 1))[:, None]
-        n_int[over] = n_max
+    # without n_max, N is still capped at N_LIMIT (as a map's updates cap it): the sum of
+    # the children's counts must fit the kernels' int32
+    cap = n_max or N_LIMIT
+    over = n_int > cap
+    if over.any():
+        scat[over] *= ((cap - 1) / (n_int[over] - 1))[:, None]
+        n_int[over] = cap
     out.update(g_index=uniq.astype(np.int32), g_n=n_int.astype(np.int32), g_mean_rel=mean, g_scatter=scat)
     return out

@@ -54,6 +54,7 @@ class _State:
 _state = _State()
 _lock = threading.Lock()
 _storages: dict = {}  # Layout -> Storage shared by all maps of that layout
+_used: set = set()  # the layouts whose storage has held a map
 
 
 def init(
@@ -112,7 +113,7 @@ def init(
             if memory_limit_GB is not None:
                 _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, None)
             if max_maps is not None and max_maps != _state.max_maps:
-                if _storages:
+                if _used:
                     raise RuntimeError("max_maps can only be set before the first map is made")
                 _state.max_maps = _check_max_maps(max_maps)
             return _state.arch
@@ -157,10 +158,20 @@ def init(
         if _state.arch == "cuda":
             _state.pool_limit = _check_limit(memory_limit_GB, _state.arch, pool_gb)
             _state.pool_max = 1 << 62
+        # Taichi adds a tree's code (its struct module) only from the thread that called
+        # ti.init: its default tree is materialized now, not by the first kernel launch,
+        # which may be a worker thread's (a reader's first known_cells() or save()).
+        from taichi.lang import impl
+
         from .compiling import fast_frontend
 
         fast_frontend()
-        return _state.arch
+        impl.get_runtime().materialize()
+    # Likewise the maps' storage (its trees are built when the first map is made, maybe in a
+    # worker thread): built now for the default layout. An unused one gives way to another
+    # layout or max_maps (storage()).
+    storage(None)
+    return _state.arch
 
 
 def _quiet(fn, *args, **kwargs):
@@ -303,13 +314,21 @@ def _check_max_maps(n) -> int:
 
 
 def storage(layout):
-    """The storage shared by all maps of ``layout`` (built on first use)."""
-    from ndtom_ti.kernels.layout import Storage
+    """The storage shared by all maps of ``layout`` (None: the default layout), built by
+    init() for the default layout, else on first use."""
+    from ndtom_ti.kernels.layout import Layout, Storage
 
     ensure_init()
+    layout = layout if layout is not None else Layout()
     with _lock:
         st = _storages.get(layout)
+        if st is not None and st.slots != _state.max_maps and layout not in _used:
+            del _storages[layout]  # built by init(), never used: init(max_maps=...) came since
+            st = None
         if st is None:
+            unused = [key for key in _storages if key not in _used]
+            for key in unused:  # init()'s default storage gives way to the layout of the first map
+                del _storages[key]
             if _storages:
                 raise ValueError(
                     "all maps in a process share one grid layout (Taichi's pool cannot hold "
@@ -323,6 +342,7 @@ def acquire_slot(layout):
     """(storage, slot) for a new map."""
     st = storage(layout)
     with _lock:
+        _used.add(st.layout)
         if not st.free_slots:
             raise NoFreeSlotError(
                 f"{st.slots} maps are open already, the most this process allows at once; close "

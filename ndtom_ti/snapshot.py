@@ -147,6 +147,7 @@ class MapSnapshot:
         object.__setattr__(self, "occupancy_enabled", bool(self.occupancy_enabled))
         if not isinstance(self.config, MapConfig):
             raise TypeError(f"config must be a MapConfig, got {type(self.config).__name__}")
+        self.config.check_at(self.resolution)
         if not isinstance(self.layout, Layout):
             raise TypeError(f"layout must be a Layout, got {type(self.layout).__name__}")
         if not isinstance(self.metadata, dict):

@@ -17,7 +17,21 @@ SIMWORLD = SHARED / "tools" / "simworld.py"
 sys.path.insert(0, str(TESTS))
 
 
+# What the tests read from ../shared: without it they skip, one by one. CI sets
+# NDTOM_REQUIRE_SHARED=1 (.ci/run): then a missing piece stops the run at once instead.
+SHARED_NEEDED = ("data/balm_hall_every4", "data/luminar_embag_test.bag", "data/norlab_outdoor_stationary_14.bag",
+                 "data/tum_fr2_pioneer_slam2_10f.bag", "tools/simworld.py")
+
+
 def pytest_configure(config):
+    if os.environ.get("NDTOM_REQUIRE_SHARED", "") not in ("", "0"):
+        missing = [p for p in SHARED_NEEDED if not (SHARED / p).exists()]
+        if missing:
+            raise pytest.UsageError(
+                f"NDTOM_REQUIRE_SHARED is set but {SHARED} lacks {', '.join(missing)}: the tests of real "
+                "recordings and simulated worlds would be skipped. Put the shared folder beside the "
+                "repository (or set NDTOM_SHARED to it), or unset NDTOM_REQUIRE_SHARED."
+            )
     import ndtom_ti
 
     ndtom_ti.init(os.environ.get("NDTOM_ARCH", "cpu"))

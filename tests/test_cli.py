@@ -335,7 +335,7 @@ def test_read_only_folder(bags, tmp_path: Path) -> None:  # pragma: no cover - n
     ro.mkdir()
     ro.chmod(0o555)
     try:
-        assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", ro / "m.ndtom"), "cannot write")
+        assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", ro / "m.ndtom"), "cannot write", code=1)
     finally:
         ro.chmod(0o755)
 

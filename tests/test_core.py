@@ -356,6 +356,23 @@ def test_gaussian_reset_when_logodds_falls_to_zero(block_cells, reload, tmp_path
 
 
 @pytest.mark.parametrize("block_cells", [None, 0])
+def test_gaussian_erased_when_logodds_falls_to_exactly_zero(block_cells):
+    """The boundary of eq. (12)'s reset, l <= 0, reached exactly: with p_o = 0.6 and p_e = 0.4
+    (l_free = -l_hit) three hits then three rays through the cell leave l == 0, and the
+    Gaussian goes (a reset at l < 0 only would keep it)."""
+    m = NdtOmMap(1.0, config=MapConfig(p_occupied=0.6, p_empty=0.4, miss_model="paper"))
+    set_block(m, block_cells)
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.5, 0.5]
+    m.insert_scan(np.array([[5.5, 0.5, 0.5], [5.2, 0.6, 0.4], [5.7, 0.3, 0.6]]) - T[:3, 3], T)
+    assert m.gaussians(min_probability=0.0)["index"].tolist() == [[5, 0, 0]]
+    rep = m.insert_scan(np.array([[9.5, 0.5, 0.5]] * 3) - T[:3, 3], T)  # three rays through cell 5
+    assert m.logodds_at(np.array([[5, 0, 0]]))[0] == 0.0
+    assert rep.gaussians_erased == 1
+    assert [5, 0, 0] not in m.gaussians(min_probability=0.0, min_points=1)["index"].tolist()
+
+
+@pytest.mark.parametrize("block_cells", [None, 0])
 def test_records_of_erased_gaussians_are_reused(block_cells):
     """Objects that come and go do not grow the records: a new Gaussian takes an erased
     one's record, also when a scan brings more new cells than there are free records."""

@@ -163,7 +163,7 @@ def test_default_output_and_min_probability(map_file: Path, tmp_path: Path) -> N
     (lambda t, m: m, ["-o", "{t}/nope/out.ply"], ["folder", "does not exist"]),
     (lambda t, m: m, ["--min-probability", "1.5"], ["--min-probability must be in [0, 1)"]),
     (lambda t, m: m, ["-f", "las"], ["Invalid value for '-f' / '--format'"]),
-    (lambda t, m: m, ["-f", "ply", "-o", "{m}"], ["is the map file itself"]),
+    (lambda t, m: m, ["-f", "ply", "-o", "{m}"], ["is the map file", "would destroy it"]),
     (lambda t, m: m, ["-o", "{t}/h.xyz"], ["cannot tell the export format", "'.xyz'", "--format"]),
     (lambda t, m: m, ["-o", "{t}/h"], ["cannot tell the export format", "no suffix"]),
     (lambda t, m: m, ["-f", "ply", "-o", "{t}/h.csv"], ["suffix of the csv format", "asked for is ply"]),

@@ -6,27 +6,33 @@ import math
 import numpy as np
 import pytest
 from conftest import DATA
-from reference import ndt_cov_floor, ndt_miss_term, ndt_om_logodds
-from test_core import BLOCKS, set_block
-
-from ndtom_ti import MapConfig, NdtOmMap
-from ndtom_ti.kernels.ndt import (
-    NBR_BACK,
-    NBR_COUNT,
-    NBR_FRESH,
+from reference import (
+    ETA,
     NDT_BACK_MISS,
+    NDT_COV_FLOOR,
     NDT_ERASED_NEIGHBOURS,
     NDT_FRESH_FLOOR,
+    NDT_LINE,
+    NDT_LINE_FLOOR,
+    NDT_LINE_POINTS,
     NDT_RESET,
     NDT_RESTART,
     NDT_RESTART_CLEAR,
+    NDT_SPARSE_SIGMA,
     NDT_WIDE,
+    ndt_cov_floor,
+    ndt_miss_term,
+    ndt_om_logodds,
 )
-from ndtom_ti.map import NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS, NDT_SPARSE_SIGMA
+from test_core import BLOCKS, set_block
+
+from ndtom_ti import MapConfig, NdtOmMap
+
+# the record's bit layout (not a documented value of the model)
+from ndtom_ti.kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
 
 NDT = dict(miss_model="ndt")
 HAND = dict(miss_model="ndt", sigma_s=3.0)  # hand cases: sigma_s fixed, whatever the cell
-ETA = MapConfig().eta
 FLOORS = (NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, NDT_LINE_POINTS)
 
 

@@ -242,6 +242,15 @@ SHIM = textwrap.dedent(
         return rep
 
     M.NdtOmMap.insert_scan = slow_insert
+    new_map_sleep = float(os.environ.get("TEST_NEW_MAP_SLEEP", "0"))
+    init = M.NdtOmMap.__init__
+
+    def slow_init(self, *args, **kwargs):
+        os.write(2, b"TEST: new map\\n")
+        time.sleep(new_map_sleep)  # a signal now comes before any scan
+        init(self, *args, **kwargs)
+
+    M.NdtOmMap.__init__ = slow_init
     atomic_write = F.atomic_write
 
     def slow_atomic_write(path, write):
@@ -399,13 +408,16 @@ def test_ctrl_c_twice_then_sigterm_on_a_real_recording(tmp_path):
 
 def test_sigterm_before_any_scan_writes_nothing(tmp_path, plane_bag):
     out = tmp_path / "m.ndtom"
-    run = Ndtom(tmp_path, plane_bag, out)
-    run.wait_for("Mapping")  # the recording is checked; Taichi is starting
+    out.write_bytes(b"an older file")  # not replaced: nothing was mapped
+    run = Ndtom(tmp_path, plane_bag, out, TEST_NEW_MAP_SLEEP="1.0")
+    run.wait_for("TEST: new map")  # the recording is checked, Taichi started; no scan yet
     run.send(signal.SIGTERM)
-    rc, _, err = run.finish()
-    assert rc in (143, 0), (rc, err)  # 0: the five scans were done before the signal
-    if rc == 143:
-        assert not out.exists() or read_header(out)["metadata"]["complete"] is False
+    rc, stdout, err = run.finish()
+    assert rc == 143, (rc, stdout, err)
+    assert "SIGTERM" in err and "Ctrl-C" not in err, err
+    assert "nothing was written" in err or "before any scan was mapped; no map written" in err, err
+    assert "TEST: scan" not in err and "TEST: saving" not in err
+    assert out.read_bytes() == b"an older file"
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
 
 

@@ -126,6 +126,15 @@ def test_guard_rules():
     assert g.check("/", {**ws, "Origin": "https://localhost:8080"})[0] == 403
     assert g.check("/", {**ws, "Origin": "http://localhost:8081"})[0] == 403
     assert g.check("/", ws) is None  # no Origin: not a web page (browsers always send one)
+    # the whole origin must match, not a prefix of it
+    bare = {"Upgrade": "websocket", "Host": "localhost"}
+    assert g.check("/", {**bare, "Origin": "http://localhost"}) is None
+    assert g.check("/", {**bare, "Origin": "http://localhost.evil.example"})[0] == 403
+    assert g.check("/", {**bare, "Origin": "http://localhost:8080"})[0] == 403
+    port80 = {"Upgrade": "websocket", "Host": "127.0.0.1:80"}
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:80"}) is None
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:8080"})[0] == 403
+    assert g.check("/", {**port80, "Origin": "http://127.0.0.1:80.evil.example"})[0] == 403
     assert is_loopback_host("127.0.0.1") and is_loopback_host("localhost") and is_loopback_host("::1")
     assert not is_loopback_host("0.0.0.0") and not is_loopback_host("192.0.2.1")
     wide = AccessGuard("0.0.0.0")
@@ -170,3 +179,18 @@ def test_wildcard_host_warns_and_prints_a_url_with_its_token(small_map, viewers,
     assert _status(_get(v.port, f"127.0.0.1:{v.port}", f"/?token={v.guard.token}")) == 200
     assert _status(_get(v.port, f"127.0.0.1:{v.port}")) == 401
     assert _status(_get(v.port, f"evil.example:{v.port}", f"/?token={v.guard.token}")) == 403
+
+
+@pytest.mark.parametrize("twice", ["Host: 127.0.0.1:{port}", "Origin: http://127.0.0.1:{port}", "Upgrade: websocket"])
+def test_repeated_headers_are_a_bad_request_not_a_server_error(small_map, viewers, twice, capsys):
+    """A request with two Host, Origin or Upgrade headers: 400, no traceback in the log;
+    the same request with the header once is served."""
+    v = _viewer(viewers, small_map, port=0)
+    host = f"127.0.0.1:{v.port}"
+    once = _upgrade(v.port, host, f"http://{host}")
+    assert _status(once) == 101, once[:200]
+    resp = _upgrade(v.port, host, f"http://{host}", extra=(twice.format(port=v.port),))
+    assert _status(resp) == 400, resp[:300]
+    assert b"more than one" in resp
+    err = capsys.readouterr()
+    assert "Traceback" not in err.err + err.out

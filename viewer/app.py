@@ -25,10 +25,8 @@ import contextlib
 import html
 import io
 import math
-import os
 import re
 import socket
-import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -117,7 +115,8 @@ def warm_up(m: NdtOmMap | MapSnapshot | None) -> None:
 
 def url_for(host: str, port: int, token: str | None = None) -> str:
     """The URL a browser opens: a wildcard bind is shown as this machine's address."""
-    shown = primary_address() if host in ("", "0.0.0.0", "::") else host
+    # ("::" listens on IPv6 only, as asyncio binds it: its URL is an IPv6 address)
+    shown = primary_address(ipv6=host == "::") if host in ("", "0.0.0.0", "::") else host
     if ":" in shown and not shown.startswith("["):
         shown = f"[{shown}]"
     return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
@@ -312,7 +311,8 @@ class MapViewer:
             )
         self._say(f"NDT-OM viewer: {self.url}")
         if self.host in ("", "0.0.0.0", "::"):
-            self._say(f"  (on this machine also: {url_for('127.0.0.1', self.port, self.guard.token)})")
+            local = "::1" if self.host == "::" else "127.0.0.1"
+            self._say(f"  (on this machine also: {url_for(local, self.port, self.guard.token)})")
 
     # ------------------------------------------------------------------ public API
 
@@ -380,26 +380,13 @@ class MapViewer:
     def save_html(self, path: str | Path) -> Path:
         """Write a standalone HTML page of the current scene (``scene.as_html()``), atomically:
         a failed write (full disk) leaves an existing file as it was."""
-        path = Path(path)
-        folder = path.parent if str(path.parent) else Path(".")
-        if not folder.is_dir():
-            raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
-        if path.exists() and not path.is_file():
-            raise IsADirectoryError(f"cannot write {path}: it exists and is not a regular file")
+        from ndtom_ti.atomic import atomic_write, check_target
+
+        # the target check of every writer (map saves too): a link is followed and stays,
+        # a folder, pipe or device is refused
+        path = check_target(path)
         data = with_panel(self.server.scene.as_html(), self.panel_html()).encode("utf-8")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-        return path
+        return atomic_write(path, lambda fh: fh.write(data))
 
     def panel_html(self) -> str:
         """The legend, statistics and notes of the live panel as one block of HTML (a written

@@ -3,12 +3,14 @@
 Exit codes are the command's (:mod:`ndtom_ti.exitcodes`): 0 done (Ctrl-C is the normal
 way to close the viewer); 1 failed (viser missing, the map could not be drawn, a snapshot
 that could not be written); 2 bad input (missing or corrupt map file, host that cannot be
-listened on, snapshot folder missing); 130 live mapping interrupted (what was mapped is saved).
+listened on, snapshot folder missing); 130 (Ctrl-C) or 143 (SIGTERM) live mapping interrupted
+(what was mapped is saved).
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import signal
 import sys
@@ -19,7 +21,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, signal_exit_code
 
 from ._deps import ViewerNotInstalledError, require_viser
 
@@ -194,13 +196,26 @@ class _StopSignals:
 
     def __init__(self) -> None:
         self.count = 0
+        self.signum: int | None = None  # the first signal: it names the stop and sets the exit code
         self.event = threading.Event()
         self.saving = False
         self.serving = False  # mapping is over, the viewer shows the map
+        self.phase = "mapping"  # (set by a finish that saves, as on pipeline.StopSignals)
         self._old: dict[int, Any] = {}
+
+    @property
+    def name(self) -> str:
+        return "SIGTERM" if self.signum == signal.SIGTERM else "Ctrl-C"
+
+    @property
+    def exit_code(self) -> int:
+        """130 after Ctrl-C, 143 after SIGTERM (the first signal decides)."""
+        return signal_exit_code(self.signum if self.signum is not None else signal.SIGINT)
 
     def handler(self, signum: int, frame: Any) -> None:
         self.count += 1
+        if self.signum is None:
+            self.signum = signum
         self.event.set()
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
         if self.saving:
@@ -237,14 +252,26 @@ def _serve_until_stopped(viewer: Any, stop: threading.Event) -> None:
     stop.wait()
 
 
-def _default_finish(save: Path | None) -> Callable[[Any, Any], int]:
-    def finish(m: Any, summary: Any) -> int:
+def _default_finish(save: Path | None) -> Callable[..., int]:
+    def finish(m: Any, summary: Any, signals: Any = None) -> int:
         if save is not None and summary.scans_used:
             m.save(save)
             print(f"Wrote {save} ({summary.scans_used} scans)", flush=True)
-        return EXIT_INTERRUPTED if summary.stopped == "interrupted" else EXIT_OK
+        if summary.stopped == "interrupted":
+            return signals.exit_code if signals is not None and signals.count else EXIT_INTERRUPTED
+        return EXIT_OK
 
     return finish
+
+
+def _call_finish(finish: Callable[..., int], m: Any, summary: Any, signals: _StopSignals) -> int:
+    """``finish(m, summary)``, given the stop signals too when it takes them (``signals=``:
+    which signal stopped mapping names the stop and sets the exit code, 130 or 143)."""
+    try:
+        takes = "signals" in inspect.signature(finish).parameters
+    except (TypeError, ValueError):
+        takes = False
+    return finish(m, summary, signals=signals) if takes else finish(m, summary)
 
 
 def live_command(
@@ -353,7 +380,7 @@ def live_command(
             with viewer.map_lock:  # the viewer's threads read the map meanwhile
                 _finish(m, summary)
                 _record_result(m, summary)
-                code = finish(m, summary)
+                code = _call_finish(finish, m, summary, sig)
             sig.saving = False
             if exc is not None and not isinstance(exc, MapMemoryError):
                 _error(f"live mapping stopped at scan {summary.scans_used + 1}: {summary.error}",

@@ -92,12 +92,23 @@ def machine_addresses() -> set[str]:
             for info in socket.getaddrinfo(name, None, type=socket.SOCK_STREAM):
                 out.add(str(info[4][0]).split("%")[0].lower())
     out.add(primary_address())
+    out.add(primary_address(ipv6=True))
     return {_strip(a) for a in out if a}
 
 
-def primary_address() -> str:
+def primary_address(ipv6: bool = False) -> str:
     """The address this machine reaches other machines from (no packet is sent), or its
-    host name's address; '127.0.0.1' when it has none."""
+    host name's address; '127.0.0.1' when it has none. ``ipv6``: its IPv6 address, '::1'
+    when it has none (a viewer bound to '::' listens on IPv6 only)."""
+    if ipv6:
+        with contextlib.suppress(OSError):
+            s = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+            try:
+                s.connect(("2001:db8::1", 9))  # the documentation prefix: only picks the interface
+                return str(s.getsockname()[0]).split("%")[0]
+            finally:
+                s.close()
+        return "::1"
     with contextlib.suppress(OSError):
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -161,6 +172,11 @@ class AccessGuard:
 
     def check(self, path: str, headers: Any) -> tuple[int, str] | None:
         """None when the request may proceed, else (HTTP status, reason)."""
+        get_all = getattr(headers, "get_all", None)  # (websockets' Headers: get() raises on repeats)
+        if get_all is not None:
+            for name in ("Host", "Origin", "Upgrade"):
+                if len(get_all(name)) > 1:
+                    return 400, f"more than one {name} header"
         host = headers.get("Host")
         if not self.host_allowed(host):
             return 403, f"Host {host!r} is not this viewer's address"

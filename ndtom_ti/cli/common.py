@@ -8,6 +8,7 @@ import contextlib
 import io
 import os
 import signal
+import stat
 import tempfile
 from collections.abc import Iterator
 from enum import Enum
@@ -19,6 +20,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from ..atomic import temp_prefix
 from ..config import check_resolution
 from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
 from ..io import RecordingError
@@ -172,14 +174,55 @@ def check_writable(path: Path, what: str = "output") -> Path:
     if not folder.is_dir():
         fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".check", dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".check", dir=folder)
         os.close(fd)
         os.unlink(tmp)
-    except OSError as exc:
-        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o")
+    except OSError as exc:  # a read-only or full file system: "could not write" is exit 1 however found
+        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o", EXIT_FAILURE)
     if path.exists() and not path.is_file():
         fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
     return path
+
+
+def _lies_in(path: Path, folder_stat: os.stat_result) -> bool:
+    """Whether ``path`` (resolved) or one of its folders is the folder of ``folder_stat``
+    (by device and inode: bind mounts and hard links too)."""
+    for p in (path, *path.parents):
+        try:
+            s = os.stat(p)
+        except OSError:
+            continue
+        if (s.st_dev, s.st_ino) == (folder_stat.st_dev, folder_stat.st_ino):
+            return True
+    return False
+
+
+def check_not_input(output: Path, inputs: dict[str, Path | None], option: str = "-o") -> None:
+    """Fail (exit 2, before any work) when ``output`` is one of ``inputs`` (named by what
+    they are) or lies inside one (a ROS2 bag folder): the same file or inode, symbolic links
+    resolved. Writing it would destroy the input."""
+    out = Path(os.path.realpath(output.expanduser()))
+    try:
+        out_stat: os.stat_result | None = os.stat(out)
+    except OSError:
+        out_stat = None
+    for what, given in inputs.items():
+        if given is None:
+            continue
+        src = Path(os.path.realpath(Path(given).expanduser()))
+        try:
+            src_stat = os.stat(src)
+        except OSError:
+            continue  # a missing input is refused by the command itself
+        same = out == src or (
+            out_stat is not None and (out_stat.st_dev, out_stat.st_ino) == (src_stat.st_dev, src_stat.st_ino)
+        )
+        if same:
+            fail(f"the output {output} is the {what} {given}: writing it would destroy it",
+                 f"choose another path with {option}")  # fmt: skip
+        if stat.S_ISDIR(src_stat.st_mode) and _lies_in(out.parent, src_stat):
+            fail(f"the output {output} lies inside the {what} {given}: writing it would change it",
+                 f"choose a path outside {given} with {option}")  # fmt: skip
 
 
 def fmt_mib(b: float) -> str:

@@ -9,13 +9,14 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
+from rich.markup import escape as _markup_escape
 from rich.text import Text
 from rich.tree import Tree
 
 from ..config import SIGMA_S_CELLS, SIGMA_S_MIN
 from .common import (
     Arch,
+    check_not_input,
     check_writable,
     console_err,
     console_out,
@@ -29,6 +30,14 @@ from .common import (
 from .root import app
 
 _MAGIC = b"NDTOMTI\n"  # the first bytes of a map file
+
+
+def escape(text: str) -> str:
+    """``text`` safe to print: rich markup escaped, and control characters (a terminal's
+    escape sequences in a map's metadata or a bag's topic names) shown as \\xNN, not sent."""
+    shown = "".join(c if c.isprintable() or c == " " else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}"
+                    for c in str(text))  # fmt: skip
+    return _markup_escape(shown)
 
 
 class Format(str, Enum):
@@ -48,9 +57,9 @@ def _info_map(path: Path) -> None:
     out = console_out()
     t = make_table(f"Map file {path}", "", "", header=False)
     md = h.get("metadata") or {}
-    t.add_row("format version", str(h.get("version")))
-    t.add_row("resolution", f"{h.get('resolution')} m")
-    t.add_row("occupancy", str(h.get("occupancy")))
+    t.add_row("format version", escape(str(h.get("version"))))
+    t.add_row("resolution", escape(f"{h.get('resolution')} m"))
+    t.add_row("occupancy", escape(str(h.get("occupancy"))))
     t.add_row("scans inserted", fmt_count(int(h.get("scans_inserted", 0))))
     t.add_row("points inserted", fmt_count(int(h.get("points_inserted", 0))))
     arrays = {a["name"]: a["shape"] for a in h.get("arrays", [])}
@@ -110,7 +119,7 @@ def _info_recording(path: Path) -> None:
         else:
             use = ""
         rate = f"{(ts.count - 1) / info.duration_s:.1f} Hz" if ts.count > 1 and info.duration_s > 0 else "-"
-        topics.add_row(escape(ts.name), ts.msgtype, fmt_count(ts.count), rate, escape(use))
+        topics.add_row(escape(ts.name), escape(ts.msgtype), fmt_count(ts.count), rate, escape(use))
     if not info.topics:
         topics.add_row("(none: the recording is empty)", "", "", "", "")
     out.print(topics)
@@ -278,12 +287,10 @@ def export(
             fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
         if map_file.is_dir():
             fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = check_writable(
-            output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name]), f"{fmt_name} file"
-        )
+        out_path = output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name])
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
-            if t.resolve() == map_file.resolve():
-                fail(f"the output {t} is the map file itself", "choose another path with -o")
+            check_not_input(t, {"map file": map_file})
+        out_path = check_writable(out_path, f"{fmt_name} file")
         from ..snapshot import MapSnapshot
 
         # a snapshot: numpy only, no map slot and no Taichi (--arch has nothing to choose)

@@ -28,6 +28,7 @@ from .common import (
     MAP_SUFFIX,
     Arch,
     MissModel,
+    check_not_input,
     check_writable,
     console_err,
     console_out,
@@ -403,7 +404,9 @@ def map_(
 
         mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range,
                                     miss_model=miss_model.value if miss_model else None)  # fmt: skip
-        out_path = check_writable(output if output is not None else default_output(bag), "map file")
+        out_path = output if output is not None else default_output(bag)
+        check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
+        out_path = check_writable(out_path, "map file")
         if view:
             need_extra("viser", "the live viewer (--view)")
             from ..viewer.cli import live_recording_command, parse_rate
@@ -419,7 +422,7 @@ def map_(
                         "every_distance": every_distance, "t_start": start, "t_end": end, "max_scans": max_scans},
                     occupancy=occupancy, config=mapcfg, host=host, port=port, speed=speed, wait_for_browser=not no_wait,
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
-                    progress=bar, finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                    progress=bar, finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
                 )  # fmt: skip
             finally:
                 bar.stop()
@@ -512,7 +515,7 @@ def demo(
                     "127.0.0.1", port, resolution=resolution, n_scans=scans, scans=data, speed=speed,
                     wait_for_browser=not no_wait, progress=bar,
                     metadata={"command": "ndtom demo --view", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
-                    finish=lambda m, summary: _finish_mapping(m, summary, out_path, bar),
+                    finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
                 )  # fmt: skip
             finally:
                 bar.stop()

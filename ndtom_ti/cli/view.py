@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import Arch, init_taichi, need_extra
+from .common import Arch, check_not_input, init_taichi, need_extra
 from .root import app
 
 
@@ -41,6 +41,8 @@ def view(
     """Look at a map in the browser: Gaussians as ellipsoids or splats, occupied and free
     cells, coarser levels, occupancy threshold. Prints the URL; Ctrl-C stops."""
     need_extra("viser", "ndtom view")
+    if html is not None:
+        check_not_input(html, {"map file": map_file, "comparison map": compare}, "--html")
     from ..viewer.cli import view_command
 
     init_taichi(arch)
