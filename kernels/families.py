@@ -1,9 +1,10 @@
 """The kernel families of a storage, built on first use and cached per frozen config.
 
 Each family is a factory ``build(storage, cfg) -> Bound`` (kernels/trace.py,
-kernels/update.py); a variant is compiled by Taichi at its first call (the map's warm-up,
-ndtom_ti/warmup.py, makes every variant a map can need at its first scan). Taichi kernels
-are shared by every KernelSet of a storage; a KernelSet decides how they are launched.
+kernels/update.py); a variant is compiled by Taichi at its first call, which on_compile's
+listeners hear of (a map's first scan compiles its path's kernels and the tree path's:
+ScanUpdate.compile_tree_path). Taichi kernels are shared by every KernelSet of a storage;
+a KernelSet decides how they are launched.
 """
 
 from __future__ import annotations

@@ -446,7 +446,7 @@ def test_interrupt_after_merge_does_not_hand_out_a_record_twice(monkeypatch):
         m.insert_scan(far, T)
     assert m.memory_report()["records_free"] == 1
 
-    interrupt_kernels(monkeypatch, "block_apply", "block_apply_all")  # after merge took the free record for (0, 3, 0)
+    interrupt_kernels(monkeypatch, "block_apply")  # after merge took the free record for (0, 3, 0)
     with pytest.raises(KeyboardInterrupt):
         m.insert_scan(blob + [0.0, 3.0, -0.5], T)
     monkeypatch.undo()
