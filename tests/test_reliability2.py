@@ -360,11 +360,24 @@ def test_property_config_files_give_a_clear_error_or_a_valid_config(tmp_path_fac
 
 
 # ---------------------------------------------------------------------------- the checksum
+@pytest.fixture(scope="module")
+def raw_good_file(tmp_path_factory, good_file) -> bytes:
+    """good_file as format version 3, whose arrays lie raw in the payload (format 4's
+    compressed frames have their own flip tests in test_reliability.py)."""
+    from ndtom_ti.mapfile import RAW_VERSION, save_snapshot
+
+    folder = tmp_path_factory.mktemp("raw")
+    (folder / "good.ndtom").write_bytes(good_file)
+    out = save_snapshot(MapSnapshot.load(folder / "good.ndtom"), folder / "raw.ndtom", version=RAW_VERSION)
+    return out.read_bytes()
+
+
 @pytest.mark.parametrize("name,column", [("g_mean_rel", 1), ("g_scatter", 0), ("occ_logodds", None)])
-def test_a_flipped_bit_inside_a_float_array_is_a_checksum_error(tmp_path, good_file, name, column):
+def test_a_flipped_bit_inside_a_float_array_is_a_checksum_error(tmp_path, raw_good_file, name, column):
     """A bit flip that leaves every value plausible (the lowest mantissa bit of one float:
     inside its cell, within the clamps, still positive semi-definite) passes every structural
     and value check; only the checksum finds it."""
+    good_file = raw_good_file
     header, arrays = r1.parse(good_file)
     entry = next(e for e in header["arrays"] if e["name"] == name)
     payload_at = len(good_file) - header["payload_bytes"]
@@ -604,7 +617,7 @@ def test_a_save_removes_the_temporaries_killed_saves_left(tmp_path, small_map_fi
 # ---------------------------------------------------------------------------- 11: checksum in bounded memory
 BIG_ZEROS = r"""
 import json, resource, struct, sys
-from ndtom_ti.mapfile import MapFileError, VERSION
+from ndtom_ti.mapfile import MapFileError, RAW_VERSION as VERSION  # raw arrays: a payload of zeros
 from ndtom_ti.snapshot import ARRAYS, MapSnapshot
 
 path, rows = sys.argv[1], int(sys.argv[2])
