@@ -4,7 +4,6 @@ signals, save targets, the viewer's headers and the terminal."""
 
 from __future__ import annotations
 
-import gc
 import hashlib
 import os
 import sys
@@ -12,25 +11,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_pipeline_bags as pb
 
 from ndtom_ti import NdtOmMap
-from ndtom_ti.cli import app
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
-
-
-def run_cli(*args: object):
-    r = CliRunner(env={"COLUMNS": "250"}).invoke(app, [str(a) for a in args])
-    assert "Traceback" not in r.output, r.output
-    return r
+# the first round's autouse fixture (maps freed after each test) and CLI runner
+from test_reliability import _free_maps, run_cli  # noqa: E402, F401
 
 
 def digest(path: Path) -> str:
