@@ -15,11 +15,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_pipeline_bags as pb
 
-from ndtom_ti import NdtOmMap
-
-
 # the first round's autouse fixture (maps freed after each test) and CLI runner
-from test_reliability import _free_maps, run_cli  # noqa: E402, F401
+from test_reliability import _free_maps, run_cli  # noqa: F401
+
+from ndtom_ti import NdtOmMap
 
 
 def digest(path: Path) -> str:
