@@ -150,11 +150,6 @@ def test_a_few_far_points_give_the_same_map(rng, model):
     assert_same_map(ref, m)
 
 
-def _compiled(st) -> dict:
-    """Compiled variants per kernel family and config of the storage."""
-    return {key: len(b.kernel._primal.compiled_kernels) for key, b in st.__dict__.get("kernel_cache", {}).items()}
-
-
 _COMPILES = """
 import json, sys
 import numpy as np
