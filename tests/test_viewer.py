@@ -152,8 +152,8 @@ def test_nothing_non_finite_is_drawn(maps, make_viewer):
     v.set_trajectory([[0, 0, 1], [np.nan, 0, 1], [1, 0, 1]])
     v.set_scan([[1, 2, 0.5], [np.nan, np.nan, np.nan], [2, 2, 0.5]])
     v.refresh()
-    scene_arrays = [v._handles["scan"].points, v._handles["trajectory"].points,
-                    v._handles["gaussians"].batched_positions]  # fmt: skip
+    scene_arrays = [v.scene.nodes["scan"].points, v.scene.nodes["trajectory"].points,
+                    v.scene.nodes["gaussians"].batched_positions]  # fmt: skip
     assert v.drawn["scan"] == 2 and all(np.isfinite(np.asarray(a)).all() for a in scene_arrays)
 
 
@@ -166,7 +166,7 @@ def test_viewer_draws_the_maps_gaussians_as_ellipsoids(maps, make_viewer):
     g = m.gaussians(min_probability=0.5)
     assert v.drawn["gaussians"] == len(g["n"]) > 500
     assert v.drawn["geometry"] == "ellipsoids"
-    h = v._handles["gaussians"]
+    h = v.scene.nodes["gaussians"]
     assert np.allclose(h.batched_positions, g["mean"].astype(np.float32))
     # coloured by height by default, on a scale fitted to the map's heights
     assert v.controls.color_mode.value == "height"
@@ -187,7 +187,7 @@ def test_threshold_slider_changes_the_number_of_gaussians(maps, make_viewer):
     v.controls.threshold.value = 0.85
     expected = len(m.gaussians(min_probability=0.85)["n"])
     assert v.drawn["gaussians"] == expected < before
-    assert len(v._handles["gaussians"].batched_positions) == expected
+    assert len(v.scene.nodes["gaussians"].batched_positions) == expected
     v.controls.threshold.value = 0.5
     assert v.drawn["gaussians"] == before
 
@@ -205,7 +205,7 @@ def test_resolution_dropdown_switches_to_coarsened_maps(maps, make_viewer):
     del c2
     for o in opts[2:4]:
         v.controls.resolution.value = o
-        assert len(v._cache) <= 2  # old levels are dropped: the process holds at most 8 maps
+        assert len(v.levels) <= 2  # old levels are dropped: the process holds at most 8 maps
     assert v.level == 4
     v.controls.resolution.value = opts[0]
     assert v.level == 1 and v.drawn["gaussians"] == len(m)
@@ -227,17 +227,17 @@ def test_the_resolution_chosen_is_drawn_and_auto_says_what_it_draws(maps, make_v
     assert 100 < n3 <= 1000, n3
     assert v.level == 3 and v.drawn["gaussians"] == n3 and v.drawn["geometry"] == "splats"
     assert res.value == res.options[2] and res.options[-1] == "auto"  # the selector shows what is drawn
-    assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and "respond slowly" in v.controls.notice.content
+    assert isinstance(v.scene.nodes["gaussians"], GaussianSplatHandle) and "respond slowly" in v.controls.notice.content
     # every splat at least 0.15 of a cell thick: line-thin Gaussians (a lidar's rings) stay visible from afar
-    cov = np.asarray(v._handles["gaussians"].covariances, np.float64)
+    cov = np.asarray(v.scene.nodes["gaussians"].covariances, np.float64)
     assert np.linalg.eigvalsh(cov).min() >= 0.99 * (0.15 * 3 * RES) ** 2
     assert not v.controls.redraw.visible
     # past max_chosen: the part around where the view looks
     res.value = res.options[0]
     assert v.level == 1 and v.drawn["gaussians"] == 1000 < n and v.controls.redraw.visible
     assert "nearest the view's centre" in v.controls.notice.content
-    drawn = np.asarray(v._handles["gaussians"].centers)
-    center = v._view_center(drawn)
+    drawn = np.asarray(v.scene.nodes["gaussians"].centers)
+    center = v.first_view.center  # no page connected: the view looks where the first view does
     g = m.gaussians(min_probability=0.5)
     d_all = np.sort(np.linalg.norm(g["mean"] - center, axis=1))
     assert np.linalg.norm(drawn - center, axis=1).max() <= d_all[999] + 1e-3
@@ -277,14 +277,14 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     from viser import GaussianSplatHandle
 
     v = make_viewer(m)
-    height_colors = np.array(v._handles["gaussians"].batched_colors)
+    height_colors = np.array(v.scene.nodes["gaussians"].batched_colors)
     v.controls.color_mode.value = "occupancy"  # one click away
     g = m.gaussians(min_probability=0.5)
     # the scale spans what is drawn (threshold .. highest p): the surest red, the least sure green
     prange = (0.5, float(g["p_occ"].max()))
     assert v.drawn["prange"] == prange
     expected = geo.occupancy_colors(g["p_occ"], prange)
-    assert np.array_equal(v._handles["gaussians"].batched_colors, expected)
+    assert np.array_equal(v.scene.nodes["gaussians"].batched_colors, expected)
     assert not np.array_equal(expected, height_colors)
     surest, least = np.argmax(g["p_occ"]), np.argmin(g["p_occ"])
     assert tuple(expected[surest]) == (200, 20, 30) and expected[least][1] > 150 and expected[least][0] < 100
@@ -293,7 +293,7 @@ def test_colour_mode_geometry_and_level_of_detail(maps, make_viewer):
     assert "occupancy probability" in legend and "height of" not in legend
     assert f"{100 * at_top:.0f}% of them at {prange[1]:.2f}" in legend and "least sure" in legend
     v.controls.geometry.value = "splats"
-    assert isinstance(v._handles["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
+    assert isinstance(v.scene.nodes["gaussians"], GaussianSplatHandle) and v.drawn["geometry"] == "splats"
 
     # auto: splats past max_ellipsoids; a coarser level past max_splats, said on screen
     lod = make_viewer(m, max_ellipsoids=100, max_splats=len(m) - 1)
@@ -307,7 +307,7 @@ def test_conflicting_cells_layer(maps, make_viewer):
     v = make_viewer(m, compare=r)
     expected = _keys(r.gaussians(min_probability=0.5)["index"]) - _keys(m.gaussians(min_probability=0.5)["index"])
     assert v.drawn["conflicts"] == len(expected) > 0  # the box taken away after scan 10
-    h = v._handles["conflicts"]
+    h = v.scene.nodes["conflicts"]
     assert tuple(np.asarray(h.batched_colors).reshape(-1, 3)[0]) == geo.CONFLICT_RGB
     assert f"{len(expected):,} conflicting cells" in v.controls.stats.content
     # each marker at least about a cell wide, flat Gaussians too: a few among thousands stay findable
@@ -532,7 +532,7 @@ def test_viewer_keeps_within_the_map_limit(maps, make_viewer):
     for _ in range(3):
         for o in opts:
             v.controls.resolution.value = o
-    assert len(v._cache) <= 2
+    assert len(v.levels) <= 2
     extra = [NdtOmMap(RES) for _ in range(3)]  # room is left for others
     del extra
 
@@ -629,12 +629,12 @@ def test_layers_are_offered_only_when_the_map_has_them(maps, make_viewer, room_s
 
 
 def test_free_cells_are_translucent_boxes(maps, make_viewer):
-    from ndtom_ti.viewer.app import FREE_OPACITY
+    from ndtom_ti.viewer.scene import FREE_OPACITY
 
     m, _ = maps
     v = make_viewer(m)
     v.controls.layers["free"].value = True
-    h = v._handles["free"]
+    h = v.scene.nodes["free"]
     assert 0.0 < h.opacity == FREE_OPACITY <= 0.3
     assert len(h.batched_positions) == v.drawn["free"] > 0
     assert "free cells" in v.controls.legend.content
@@ -645,18 +645,18 @@ def test_height_clip_hides_what_is_above_the_band(maps, make_viewer):
     v = make_viewer(m)
     g = m.gaussians(min_probability=0.5)
     z = g["mean"][:, 2]
-    zlo, zhi = v._zlimits
+    zlo, zhi = v.controls.zlimits
     assert zlo <= z.min() and zhi >= z.max()
     assert tuple(v.controls.zclip.value) == (zlo, zhi) and v.drawn["clip"] is None
     v.controls.zclip.value = (zlo, 1.0)  # below the room's ceiling and the walls' tops
     expected = int(((z >= zlo) & (z <= 1.0)).sum())
     assert v.drawn["gaussians"] == expected < len(z)
-    assert (np.asarray(v._handles["gaussians"].batched_positions)[:, 2] <= 1.0).all()
+    assert (np.asarray(v.scene.nodes["gaussians"].batched_positions)[:, 2] <= 1.0).all()
     # the colours refit to the clip: its lowest to its highest Gaussian span the whole colour bar
     assert v.drawn["zrange"] == geo.height_range(z[z <= 1.0]) != geo.height_range(z)
     assert "Height clip" in v.controls.legend.content and "between" in v.controls.stats.content
     v.controls.layers["occupied"].value = True
-    assert (np.asarray(v._handles["occupied"].points)[:, 2] <= 1.0 + RES).all()
+    assert (np.asarray(v.scene.nodes["occupied"].points)[:, 2] <= 1.0 + RES).all()
     v.controls.zclip.value = (zlo, zhi)
     assert v.drawn["gaussians"] == len(z)
 
@@ -666,11 +666,11 @@ def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
     v = make_viewer(m)
     g = m.gaussians(min_probability=0.5)
     lo, hi = g["mean"].min(axis=0), g["mean"].max(axis=0)
-    pos, look = (np.array(x) for x in v._camera_for(np.radians(50.0), 0.75))
+    pos, look = (np.array(x) for x in v.first_view.camera(np.radians(50.0), 0.75))
     assert np.all(np.abs(look - (lo + hi) / 2) < 0.15 * (hi - lo) + 1e-6)  # looks at the middle of its bulk
     assert pos[2] > hi[2]  # from above
     # a narrow view steps back further than a wide one (the whole map stays in view)
-    narrow, wide = (np.linalg.norm(np.array(v._camera_for(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))
+    narrow, wide = (np.linalg.norm(np.array(v.first_view.camera(np.radians(50.0), a)[0]) - look) for a in (0.5, 2.0))
     assert narrow > 1.5 * wide
 
     class FakeCamera:
@@ -689,7 +689,7 @@ def test_frame_button_returns_the_camera_to_the_first_view(maps, make_viewer):
 
     v.server.get_clients = lambda: {0: FakeClient()}
     v.controls.frame.value = True  # a click
-    expected = v._camera_for(np.radians(50.0), 0.5)
+    expected = v.first_view.camera(np.radians(50.0), 0.5)
     assert cam.moved == [("position", expected[0]), ("look_at", expected[1])]
 
 
@@ -706,7 +706,7 @@ def test_every_geometry_is_capped_with_a_notice(maps, make_viewer):
     # even the coarsest level exceeds the cap: an even subsample of it, said at the top
     tiny = make_viewer(m, max_ellipsoids=20, max_splats=20)
     assert tiny.drawn["gaussians"] == 20 < tiny.drawn["gaussians_total"]
-    assert len(tiny._handles["gaussians"].centers) == 20 and "showing an even 20" in tiny.controls.notice.content
+    assert len(tiny.scene.nodes["gaussians"].centers) == 20 and "showing an even 20" in tiny.controls.notice.content
     big = make_viewer(m)
     assert big.drawn["gaussians"] == n and big.level == 1 and not big.controls.notice.visible
 

@@ -245,7 +245,7 @@ def test_controls_a_person_uses(small_page, room, viewers):
     # upscaled floor's blurred edges then cover ~45% more pixels
     whole = _canvas(page, lambda c: c["drawn"] > 0.5 * full["drawn"], settled=True)
     n_whole = v.drawn["gaussians"]
-    lo, _ = v._zlimits
+    lo, _ = v.controls.zlimits
     v.controls.zclip.value = (lo, 0.3)
 
     def floor_only(c):
@@ -347,7 +347,7 @@ def test_indoor_first_view_is_below_the_ceiling_in_colours_of_the_clip(small_pag
     # (0.31 here; 0.76 with the ceiling)
     assert (bins > 0.03 * len(hues)).sum() >= 3 and clipped < 0.45, (bins, clipped)
     # negative control: with the ceiling drawn, it covers the view in the top colour
-    zlo, zhi = v._zlimits
+    zlo, zhi = v.controls.zlimits
     v.controls.zclip.value = (zlo, zhi)
     assert v.drawn["clip"] is None
     img = _render_until(client, lambda im: _drawn(im) > 3000 and red_share(im) > 0.6)
