@@ -22,7 +22,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -34,9 +34,32 @@ if TYPE_CHECKING:
     from ndtom_ti import NdtOmMap
     from ndtom_ti.snapshot import MapSnapshot
 
-    from .app import MapViewer
+    from .controls import Controls
 
-__all__ = ["LiveMapper", "scan_parts"]
+__all__ = ["LiveMapper", "LiveView", "scan_parts"]
+
+
+class LiveView(Protocol):
+    """What live mapping drives: a :class:`~ndtom_ti.viewer.MapViewer` (the mapper adds its
+    folder of controls to the viewer's panel)."""
+
+    server: Any  # viser's: the mapper's controls go into server.gui
+    controls: Controls  # the panel: the mapper keeps its handles there (play, pause, ... live_status)
+    last_refresh_s: float
+
+    @property
+    def map_lock(self) -> Any: ...  # held while inserting: the viewer reads the maps meanwhile
+
+    @property
+    def closed(self) -> bool: ...
+
+    def set_maps(self, m: Any, compare: Any = None) -> None: ...
+
+    def set_trajectory(self, positions: Any) -> None: ...
+
+    def set_scan(self, points_world: Any) -> None: ...
+
+    def refresh(self) -> None: ...
 
 
 def chart_series(times_ms: list[float], compare_ms: list[float] | None = None) -> tuple[tuple, str]:
@@ -73,7 +96,7 @@ class LiveMapper:
 
     def __init__(
         self,
-        viewer: MapViewer,
+        viewer: LiveView,
         scans: Any,
         m: NdtOmMap | MapSnapshot | None,
         *,
@@ -386,7 +409,7 @@ class LiveMapper:
                     self._update_gui()
                     v.refresh()
                 except Exception as exc:  # noqa: BLE001 - keep mapping; say what went wrong
-                    if v._closed:
+                    if v.closed:
                         return
                     self.error = self.error or f"drawing failed: {type(exc).__name__}: {exc}"
                 # throttle: at least refresh_interval, and never more than ~1/3 of the time drawing
