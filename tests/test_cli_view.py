@@ -27,6 +27,7 @@ def test_map_view_maps_the_recording_live_and_saves_it(tmp_path, monkeypatch):
 
     bag = write_plane_bag(tmp_path, "ros1")
     served = []
+    # private: the command's wait for Ctrl-C after mapping has no public hook
     monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: served.append(viewer.url))
     out = tmp_path / "live.ndtom"
     res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(out), "--view", "--no-wait",

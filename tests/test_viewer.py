@@ -460,7 +460,7 @@ def test_view_corrupt_map_file(map_file, tmp_path, capsys):
 
 def test_view_port_in_use_uses_the_next_and_prints_it(map_file, monkeypatch, capsys):
     pytest.importorskip("viser")
-    from ndtom_ti.viewer import cli
+    from ndtom_ti.viewer import MapViewer, cli
 
     busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     busy.bind(("127.0.0.1", 0))
@@ -473,7 +473,7 @@ def test_view_port_in_use_uses_the_next_and_prints_it(map_file, monkeypatch, cap
         with socket.create_connection(("127.0.0.1", viewer.port), timeout=5):
             seen["listening"] = True
 
-    monkeypatch.setattr(cli, "_block", block)
+    monkeypatch.setattr(MapViewer, "wait", block)  # the command serves until Ctrl-C: here, a connection
     try:
         assert cli.view_command(map_file, "127.0.0.1", port, None) == 0
     finally:
@@ -748,8 +748,10 @@ def test_html_snapshot_is_written_atomically(map_file, tmp_path, capsys, monkeyp
 
 def test_view_says_what_it_does_while_a_map_loads(map_file, monkeypatch, capsys):
     pytest.importorskip("viser")
-    from ndtom_ti.viewer import cli
+    from ndtom_ti.viewer import MapViewer, cli
 
+    # private names: the command's load, progress line and tick period have no public hook,
+    # and a big map's slow load is made here without a big map
     real_load = cli._load
     ticks = threading.Event()
 
@@ -773,7 +775,7 @@ def test_view_says_what_it_does_while_a_map_loads(map_file, monkeypatch, capsys)
     monkeypatch.setattr(cli, "_ticking", fast_ticking)
     monkeypatch.setattr(cli, "_say", say)
     seen = []
-    monkeypatch.setattr(cli, "_block", lambda viewer: seen.append(viewer.url))
+    monkeypatch.setattr(MapViewer, "wait", lambda viewer: seen.append(viewer.url))
     assert cli.view_command(map_file, "127.0.0.1", 0, None) == 0
     out = capsys.readouterr().out.splitlines()
     first = [i for i, line in enumerate(out) if line.startswith("Loading ")]

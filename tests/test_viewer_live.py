@@ -123,6 +123,7 @@ def test_parse_rate():
 def no_serving(monkeypatch):
     """After mapping the command would serve until Ctrl-C: record that it would, and return."""
     served = []
+    # private: the command's wait for Ctrl-C after mapping has no public hook
     monkeypatch.setattr(cli, "_serve_until_stopped", lambda viewer, stop: served.append(viewer.url))
     return served
 
@@ -136,7 +137,7 @@ def test_mapping_waits_for_the_first_browser(monkeypatch, tmp_path, no_serving, 
         seen.append((lm.scans_done, lm.playing))  # nothing mapped while nobody watches
         return True
 
-    monkeypatch.setattr(cli, "_wait_for_browser", browser_connects)
+    monkeypatch.setattr(cli, "_wait_for_browser", browser_connects)  # private: a browser connecting, no public hook
     out = tmp_path / "w.ndtom"
     assert cli.live_command(scans, RES, "127.0.0.1", 0, save=out, speed=None) == 0
     assert seen == [(0, False)]
@@ -152,6 +153,7 @@ def test_mapping_waits_for_the_first_browser(monkeypatch, tmp_path, no_serving, 
 
 
 def test_wait_for_browser_returns_on_a_client_or_a_stop():
+    # the command's private wait, alone: a real page connecting is test_viewer_browser's
     class Server:
         def __init__(self, answers):
             self.answers = list(answers)
