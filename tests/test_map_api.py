@@ -444,7 +444,7 @@ FILL = textwrap.dedent(
             d = rng.normal(size=(20000, 3))
             m.insert_scan(d / np.linalg.norm(d, axis=1, keepdims=True) * 8, T)
     except ndtom_ti.MapMemoryError as exc:
-        st = maps[0]._slot.storage
+        st = ndtom_ti.runtime.storage(maps[0].layout)
         ok = all(float(x.occupancy(np.zeros((1, 3)))[0]) >= 0 for x in maps)
         print("REFUSED", k, st.pool_bytes(), ok, str(exc)[:60])
     """
@@ -492,7 +492,9 @@ def test_batched_tracing_under_memory_pressure_gives_the_same_map(rng):
     b = NdtOmMap(0.1, metadata={"source": "test"})
     b.plan.one_pass = False  # traced in batches, each checked against the budget
     try:
-        runtime._state.pool_limit = st.pool_bytes(a._slot.node_counts())
+        rep = a.memory_report()
+        nodes = [rep[k] for k in ("occupancy_regions", "occupancy_leaves", "index_regions", "index_leaves")]
+        runtime._state.pool_limit = st.pool_bytes(np.array(nodes))
         batches = [b.insert_scan(pts, T).ray_batches for pts, T in scans]
     finally:
         runtime._state.pool_limit = old

@@ -58,7 +58,7 @@ REGIONS = """
         return d, T
 
     m = ndtom_ti.NdtOmMap(0.1)
-    st, res = m._slot.storage, 0.1
+    st, res = runtime.storage(m.layout), 0.1
     crossed, k = [], 0
     while st.pool_bytes() < target * 2**30:
         before = st.pool_bytes()
@@ -195,9 +195,14 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
         d *= 50.0 / np.linalg.norm(d, axis=1, keepdims=True)
         d[:, 2] *= 0.1
         m = ndtom_ti.NdtOmMap(0.05)
-        st = m._slot.storage
+        st = ndtom_ti.runtime.storage(m.layout)
+
+        def node_counts():
+            r = m.memory_report()
+            return [r[k] for k in ("occupancy_regions", "occupancy_leaves", "index_regions", "index_leaves")]
+
         m.insert_scan(d[:200] * 0.1, np.eye(4))  # some content before the refused scan
-        before, nodes = m.state(), m._slot.node_counts().tolist()
+        before, nodes = m.state(), node_counts()
         try:
             m.insert_scan(d, np.eye(4))
             print("BIG accepted")
@@ -205,7 +210,7 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
             print("BIG refused")
         after = m.state()
         same = all(np.array_equal(before[k], after[k]) for k in before)
-        print("NODES", m._slot.node_counts().tolist() == nodes, nodes[1] > 0, same, st.node_high_water[1] > 50000)
+        print("NODES", node_counts() == nodes, nodes[1] > 0, same, st.node_high_water[1] > 50000)
         small = rng.normal(size=(10, 3)) * 0.1 + [1.0, 0.0, 0.0]
         m.insert_scan(small, np.eye(4))
         m2 = ndtom_ti.NdtOmMap(0.05)
