@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ndtom_ti.mapfile import RAW_VERSION, VERSION, save_snapshot
+from ndtom_ti.mapfile import RAW_VERSION, VERSION
 from ndtom_ti.snapshot import MapSnapshot
 
 
@@ -51,13 +51,11 @@ def main() -> None:
                 m = ndtom_ti.NdtOmMap.from_snapshot(s)
             for _ in range(args.repeats):
                 for v, f in files.items():  # alternated: drifts of the machine hit both alike
-                    times.setdefault(f"save {v}", []).append(timed(lambda v=v, f=f, s=s: save_snapshot(s, f, version=v)))
+                    times.setdefault(f"save {v}", []).append(timed(lambda v=v, f=f, s=s: s.save(f, version=v)))
                     times.setdefault(f"load {v}", []).append(timed(lambda f=f: MapSnapshot.load(f)))
                     if m is not None:
-                        import ndtom_ti.mapfile as mf
-
                         times.setdefault(f"map save {v}", []).append(
-                            timed(lambda v=v, f=f, m=m: mf.save_snapshot(m.snapshot(), f, version=v))
+                            timed(lambda v=v, f=f, m=m: m.snapshot().save(f, version=v))
                         )
                         times.setdefault(f"map load {v}", []).append(timed(lambda f=f: ndtom_ti.NdtOmMap.load(f).close()))
             if m is not None:

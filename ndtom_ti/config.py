@@ -16,6 +16,27 @@ MISS_MODELS = ("ndt", "paper")
 # over their last metre or two whatever the cell (docs/quality.md).
 SIGMA_S_CELLS = 15.0
 SIGMA_S_MIN = 1.5
+# NDT miss model: variance added on every axis of a Gaussian's covariance before it is
+# inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * trace keeps
+# flat Gaussians invertible; a line-like one (l2 < NDT_LINE * l3: the points of one scan line
+# across the cell, at the ranges where a lidar's rings are a cell or more apart) gets up to
+# NDT_LINE_FLOOR * l3 more, so that it stands for the surface the line samples. Without it,
+# rays of the other rings never pass within the line's millimetre thickness and the
+# Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md). A line
+# spanning the cell (l3 ~ r^2 / 12) then stands for a surface spread evenly over the cell.
+# With n points the widening is scaled by min(1, NDT_LINE_POINTS / n): a line that stays a
+# line as points join it (a shelf's edge seen from many poses) is a thin structure, and rays
+# passing beside it are not evidence against it. NDT_COV_FLOOR (2% of the trace: ~1.2 cm
+# across a plane filling a 0.2 m cell) also makes rays that graze a face a few centimetres
+# off count a little, as through the flat top of an object that left.
+NDT_COV_FLOOR = 0.02
+NDT_LINE = 0.5
+NDT_LINE_FLOOR = 1.0
+NDT_LINE_POINTS = 4.0
+# NDT miss model, cells holding fewer than min_points points: their points' mean with this
+# standard deviation (metres) added on every axis, so that sparse floor cells are not erased
+# by rays grazing far above their points, while a ray passing close to them still clears them.
+NDT_SPARSE_SIGMA = 0.05
 # Bounds that keep every setting inside the kernels' types (one check, in MapConfig, for the
 # API, map files and --config). N_LIMIT: the most points a Gaussian holds; counts are int32
 # in the kernels, and the room above it takes a scan's hits without wrapping.
@@ -168,6 +189,18 @@ class MapConfig:
         x_ML lies within about half of sigma_s of the endpoint, p(x_ML|z) is near 1, and the
         ray runs along the surface it ends on (docs/quality.md)."""
         return math.floor(0.25 * self.sigma_s_at(resolution) / float(resolution) + 0.5)
+
+    def ndt_params(self, resolution: float) -> np.ndarray:
+        """The NDT miss model's kernel parameters at this resolution (kernels/args.py
+        NdtRecords.ndt_prm, read by kernels/ndt.py in this order)."""
+        return np.array([self.eta, 0.5 / self.sigma_s_at(resolution) ** 2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR,
+                         self.min_points, NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS, self.near_cells_at(resolution)])  # fmt: skip
+
+    @property
+    def ndt_min_points(self) -> int:
+        """Points a cell needs for the NDT miss model (1: every cell with points, those with
+        fewer than min_points under the sparse prior); 0: the paper's model (a kernel switch)."""
+        return 1 if self.ndt_misses else 0
 
     def to_dict(self) -> dict:
         d = asdict(self)

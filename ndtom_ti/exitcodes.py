@@ -1,5 +1,5 @@
 """Exit codes of the ``ndtom`` command, one set for all its commands (``ndtom_ti.cli``,
-``ndtom_ti.viewer.cli``) and for the mapping loop's stop signals (``ndtom_ti.pipeline``).
+``ndtom_ti.viewer.cli``) and for the stop signals of mapping (``ndtom_ti.signals``).
 
 - 0 ``EXIT_OK``: done (closing the viewer with Ctrl-C is the normal way to end ``ndtom view``).
 - 1 ``EXIT_FAILURE``: failed: mapping stopped early by the memory budget or a bad scan (what

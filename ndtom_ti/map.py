@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import weakref
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -11,42 +10,15 @@ from typing import Any
 import numpy as np
 
 from . import runtime
-from .budget import MemoryBudget
-from .cellkeys import lex_order
+from .atomic import check_target
 from .config import N_LIMIT, MapConfig, check_resolution
-from .kernels.families import kernel_set
-from .kernels.io import io_kernels
 from .kernels.layout import Layout
-from .kernels.ndt import C_EXPORT, CTR_SIZE
-from .persistence import load_into, state_of
-from .records import GaussianRecords
-from .runtime import MapMemoryError  # noqa: F401 - raised by the map's updates; imported from here by older code
+from .mapfile import MapFileError
 from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
-from .scaninput import as_pose, cell_box  # noqa: F401 - part of this module's interface
-from .snapshot import MapSnapshot, probability, select_gaussians
-
-# NDT miss model: variance added on every axis of a Gaussian's covariance before it is
-# inverted (kernels.ndt.ndt_floor; eigenvalues l1 <= l2 <= l3): NDT_COV_FLOOR * trace keeps
-# flat Gaussians invertible; a line-like one (l2 < NDT_LINE * l3: the points of one scan line
-# across the cell, at the ranges where a lidar's rings are a cell or more apart) gets up to
-# NDT_LINE_FLOOR * l3 more, so that it stands for the surface the line samples. Without it,
-# rays of the other rings never pass within the line's millimetre thickness and the
-# Gaussians of objects that left stay (benchmarks/quality.py; docs/quality.md). A line
-# spanning the cell (l3 ~ r^2 / 12) then stands for a surface spread evenly over the cell.
-# With n points the widening is scaled by min(1, NDT_LINE_POINTS / n): a line that stays a
-# line as points join it (a shelf's edge seen from many poses) is a thin structure, and rays
-# passing beside it are not evidence against it. NDT_COV_FLOOR (2% of the trace: ~1.2 cm
-# across a plane filling a 0.2 m cell) also makes rays that graze a face a few centimetres
-# off count a little, as through the flat top of an object that left.
-NDT_COV_FLOOR = 0.02
-NDT_LINE = 0.5
-NDT_LINE_FLOOR = 1.0
-NDT_LINE_POINTS = 4.0
-# NDT miss model, cells holding fewer than min_points points: their points' mean with this
-# standard deviation (metres) added on every axis, so that sparse floor cells are not erased
-# by rays grazing far above their points, while a ray passing close to them still clears them.
-NDT_SPARSE_SIGMA = 0.05
+from .scaninput import cell_box
+from .slot import MapSlot, release_dead
+from .snapshot import MapSnapshot, copy_metadata, probability, select_gaussians
 
 
 def _locked(method):
@@ -55,35 +27,11 @@ def _locked(method):
     @functools.wraps(method)
     def call(self, *args, **kwargs):
         with self._lock:
-            self._check_open()
-            if _dead_slots:
-                _release_dead()
+            self._slot.check_open()
+            release_dead()
             return method(self, *args, **kwargs)
 
     return call
-
-
-_dead_slots: list = []  # (storage, slot) of maps collected while another thread held the lock
-
-
-def _release_slot(st, slot: int) -> None:
-    """Empty a dead map's slot (a kernel: never while another thread's kernels run). The
-    garbage collector calls this in any thread, maybe inside another lock's holder: it
-    never waits; a slot it cannot empty now is emptied by the next map call."""
-    if not st.lock.acquire(blocking=False):
-        _dead_slots.append((st, slot))
-        return
-    try:
-        runtime.release_slot(st, slot)
-        _release_dead()
-    finally:
-        st.lock.release()
-
-
-def _release_dead() -> None:
-    while _dead_slots:
-        st, slot = _dead_slots.pop()
-        runtime.release_slot(st, slot)
 
 
 class NdtOmMap:
@@ -178,38 +126,18 @@ class NdtOmMap:
         self.scans_inserted = 0
         self.points_inserted = 0
 
-        with runtime.storage(self.layout).lock:
-            if _dead_slots:  # slots of maps collected while the lock was held: free them first
-                _release_dead()
-        self._st, self._slot = runtime.acquire_slot(self.layout)
-        self._lock = self._st.lock
-        with self._lock:
-            self._k = kernel_set(self._st)  # the update kernels (kernels/families.py)
-            self._io = io_kernels(self._st)  # queries, export, load
-        # Empty the slot for the next map (close(), or when the map is collected); nothing
-        # to do at interpreter exit.
-        self._release = weakref.finalize(self, _release_slot, self._st, self._slot)
-        self._release.atexit = False
-        self._ctr = np.zeros(CTR_SIZE, np.int64)  # export's counters
-        self._glo = np.array(self.layout.lo, np.int64)
-        self._ghi = np.array(self.layout.hi, np.int64)
         c = self.config
-        sigma_s = c.sigma_s_at(self.resolution)
-        self._ndt_prm = np.array([c.eta, 0.5 / sigma_s**2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR, c.min_points,
-                                  NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS, c.near_cells_at(self.resolution)])  # fmt: skip
-        # Points a cell needs for the NDT miss model (1: every cell with points, those with
-        # fewer than min_points under the prior above); 0: the paper's model (kernel switch).
-        self._ndt_minp = 1 if c.ndt_misses else 0
-        self._records = GaussianRecords(c.ndt_misses, self._ndt_prm, self._ndt_minp)
-        self._budget = MemoryBudget(self._st, self._slot, self._k, self.occupancy_enabled)
+        # The slot is emptied by close(), or when the map is collected.
+        self._slot = MapSlot(self.layout, ndt=c.ndt_misses, ndt_params=c.ndt_params(self.resolution),
+                             ndt_min_points=c.ndt_min_points, occupancy=self.occupancy_enabled)  # fmt: skip
+        self._lock = self._slot.lock
         # How the updates run (speed only). On CUDA a numpy block is copied to the device
         # and back at every launch: keep it to the 1M cells nearest the sensor there.
         self.plan = UpdatePlan(block_cells=BLOCK_CELLS if self.arch == "cpu" else 1 << 20)
         # Without n_max the updates still cap N at N_LIMIT: past 2**31 the kernels' int32
         # counts would wrap, and a Gaussian of a negative count is deleted.
         upd_cfg = self.config if self.config.n_max else replace(self.config, n_max=N_LIMIT)
-        self._update = ScanUpdate(st=self._st, slot=self._slot, kernels=self._k, records=self._records,
-                                  budget=self._budget, plan=self.plan, config=upd_cfg, resolution=self.resolution,
+        self._update = ScanUpdate(slot=self._slot, plan=self.plan, config=upd_cfg, resolution=self.resolution,
                                   occupancy=self.occupancy_enabled, arch=self.arch)  # fmt: skip
 
     # ------------------------------------------------------------------ properties
@@ -231,12 +159,7 @@ class NdtOmMap:
     def grid_extent(self) -> tuple[np.ndarray, np.ndarray]:
         """World-frame bounds (metres) of the grid the map can hold: (min corner, max
         corner). Points outside are dropped. For the part holding data: :meth:`data_extent`."""
-        return self._glo * self.resolution, self._ghi * self.resolution
-
-    @property
-    def extent(self) -> tuple[np.ndarray, np.ndarray]:
-        """The same as :attr:`grid_extent` (the grid, not the data; kept for older code)."""
-        return self.grid_extent
+        return self._slot.glo * self.resolution, self._slot.ghi * self.resolution
 
     def data_extent(self) -> tuple[np.ndarray, np.ndarray] | None:
         """World-frame bounds (metres) of the known cells, occupied or free: (min corner,
@@ -270,22 +193,17 @@ class NdtOmMap:
         """Give the map's slot and memory back now (a process holds ``init(max_maps=...)``
         maps at once; otherwise that happens when the map is garbage-collected). Any later
         use of the map raises ValueError; closing again does nothing."""
-        with self._lock:
-            self._release()  # runs once: the collector will not release the slot again
+        self._slot.close()
 
     @property
     def closed(self) -> bool:
-        return not self._release.alive
+        return self._slot.closed
 
     def __enter__(self) -> NdtOmMap:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    def _check_open(self) -> None:
-        if not self._release.alive:
-            raise ValueError("this map is closed (NdtOmMap.close()); make a new map or load one")
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
         """Insert one scan: ``points`` (N, 3) in the sensor frame (metres), and the pose
@@ -295,8 +213,8 @@ class NdtOmMap:
         are dropped and counted in the returned report. A call that raises leaves the map
         unchanged.
         """
-        with self._st.lock:  # the dense block is shared by the maps of the process
-            self._check_open()
+        with self._lock:  # the dense block is shared by the maps of the process
+            self._slot.check_open()
             # Kernels compile (or load from Taichi's offline cache) at their first call in
             # the process: a scan's time includes those its update needed first.
             rep = self._update.insert_guarded(points, T_world_sensor)
@@ -308,22 +226,23 @@ class NdtOmMap:
     def memory_bytes(self) -> int:
         """Bytes this map holds: nodes of its sparse trees (counted exactly by the
         kernels) plus its Gaussian records."""
-        return self._st.slot_bytes(self._slot) + self._records.nbytes()
+        return self._slot.node_bytes() + self._slot.records.nbytes()
 
     @_locked
     def memory_report(self) -> dict:
         """Memory held, by part, with bytes per known cell and per Gaussian."""
-        nodes = self._st.nodes(self._slot)
+        slot, recs = self._slot, self._slot.records
+        nodes = slot.node_counts()
         known = len(self.known_cells()["index"])
         gauss = len(self)
         total = self.memory_bytes()
         return {
             "total_bytes": total,
-            "node_bytes": self._st.slot_bytes(self._slot),
-            "record_bytes": self._records.nbytes(),
-            "records_held": self._records.capacity,
-            "records_in_use": self._records.in_use,
-            "records_free": self._records.nfree,
+            "node_bytes": slot.node_bytes(),
+            "record_bytes": recs.nbytes(),
+            "records_held": recs.capacity,
+            "records_in_use": recs.in_use,
+            "records_free": recs.nfree,
             "occupancy_regions": int(nodes[0]),
             "occupancy_leaves": int(nodes[1]),
             "index_regions": int(nodes[2]),
@@ -333,21 +252,12 @@ class NdtOmMap:
             "bytes_per_known_cell": total / known if known else float("nan"),
             "bytes_per_gaussian": total / gauss if gauss else float("nan"),
             # Scan scratch of all maps, outside the pool: the dense ray-count block.
-            "process_scratch_bytes": self._st.block_buf.nbytes + self._st.bflag_buf.nbytes,
-            "process_pool_bytes": self._st.pool_bytes(),
+            "process_scratch_bytes": slot.storage.block_buf.nbytes + slot.storage.bflag_buf.nbytes,
+            "process_pool_bytes": slot.storage.pool_bytes(),
             "process_pool_budget_bytes": runtime.pool_limit(),
         }
 
     # ------------------------------------------------------------------ queries
-
-    def _raw_gaussians(self) -> dict:
-        """Every record that holds points, sorted by cell index, with its log-odds."""
-        raw = self._records.holding_points()
-        idx = raw["index"]
-        lo = np.zeros(len(idx), np.float32)
-        if len(idx):
-            self._io.query(self._slot, idx, len(idx), lo)
-        return {**raw, "logodds": lo}
 
     @_locked
     def gaussians(self, min_points: int | None = None, min_probability: float = 0.5) -> dict:
@@ -362,7 +272,7 @@ class NdtOmMap:
         cells whose log-odds rays lowered short of the reset threshold (they keep their
         points for their next hit).
         """
-        raw = self._raw_gaussians()
+        raw = self._slot.gaussian_records()
         return select_gaussians(raw["index"], raw["n"], raw["mean_rel"], raw["scatter"], raw["logodds"],
                                 self.resolution, min_points, min_probability, self.config.min_points)  # fmt: skip
 
@@ -370,18 +280,9 @@ class NdtOmMap:
     def known_cells(self) -> dict:
         """Every cell with a non-zero log-odds (occupied and free), sorted by index:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
-        ctr = self._ctr
-        ctr[:] = 0
-        self._io.count_known(self._slot, ctr)
-        K = int(ctr[C_EXPORT])
-        idx = np.empty((K, 3), np.int32)
-        val = np.empty(K, np.float32)
-        if K:
-            ctr[:] = 0
-            self._io.export_known(self._slot, idx, val, ctr)
-        order = lex_order(idx)
-        lo = val[order].astype(np.float64)
-        return {"index": idx[order].astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
+        idx, val = self._slot.known()
+        lo = val.astype(np.float64)
+        return {"index": idx.astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
 
     @_locked
     def occupancy(self, points: Any, *, return_known: bool = False) -> Any:
@@ -400,7 +301,7 @@ class NdtOmMap:
         ok = np.isfinite(pts).all(axis=1)
         cells = np.zeros((len(pts), 3))
         cells[ok] = np.floor(pts[ok] / self.resolution)
-        ok &= ((cells >= self._glo) & (cells < self._ghi)).all(axis=1)
+        ok &= self._slot.in_grid(cells)
         if ok.any():
             lo = self.logodds_at(cells[ok].astype(np.int64))
             out[ok] = probability(lo)
@@ -415,26 +316,15 @@ class NdtOmMap:
         if idx.ndim != 2 or idx.shape[1] != 3 or not np.issubdtype(idx.dtype, np.integer):
             raise ValueError(f"index must be an integer (K, 3) array of cell indices, got {idx.dtype} {idx.shape}")
         out = np.zeros(len(idx))
-        ok = ((idx >= self._glo) & (idx < self._ghi)).all(axis=1)
+        ok = self._slot.in_grid(idx)
         if ok.any():
-            lo = np.empty(int(ok.sum()), np.float32)
-            self._io.query(self._slot, np.ascontiguousarray(idx[ok], np.int32), len(lo), lo)
-            out[ok] = lo
+            out[ok] = self._slot.logodds(idx[ok])
         return out
 
     @_locked
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
-        return int(np.count_nonzero(self._occupied_gaussian_mask()))
-
-    def _occupied_gaussian_mask(self) -> np.ndarray:
-        """Of the records with at least min_points points, which cells are occupied."""
-        cells = self._records.with_points(self.config.min_points)
-        if len(cells) == 0:
-            return np.zeros(0, bool)
-        lo = np.zeros(len(cells), np.float32)
-        self._io.query(self._slot, cells, len(cells), lo)
-        return lo > 0.0
+        return self._slot.occupied_gaussians(self.config.min_points)
 
     def __repr__(self) -> str:
         if self.closed:
@@ -449,31 +339,31 @@ class NdtOmMap:
 
     @_locked
     def state(self) -> dict:
-        """All cell state as numpy arrays (what ``save`` writes)."""
-        return state_of(self)
-
-    def _load_state(self, st: dict) -> None:
-        """Write cell state into this (empty) map (see persistence.load_into)."""
-        load_into(self, st)
+        """All cell state as numpy arrays (what ``save`` writes; ``cellstate.ARRAYS``)."""
+        return self._slot.state()
 
     def save(self, path: str | Path) -> Path:
         """Write the map to one versioned file, atomically (see ``ndtom_ti.mapfile``)."""
-        from .mapfile import save_map
-
-        return save_map(self, path)
+        path = check_target(path)  # before the work: a FIFO, device or folder is refused
+        return self.snapshot().save(path)
 
     @classmethod
     def load(cls, path: str | Path) -> NdtOmMap:
         """Read a map written by ``save``; broken or foreign files raise MapFileError."""
-        from .mapfile import load_map
-
-        return load_map(path)
+        s = MapSnapshot.load(path)
+        try:
+            return cls.from_snapshot(s)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapFileError(f"{path} has invalid settings: {exc}") from None
 
     @_locked
     def snapshot(self) -> MapSnapshot:
         """The map's content now as plain numpy arrays (:class:`~ndtom_ti.snapshot.MapSnapshot`):
         save, export, coarsen and view it without a map slot."""
-        return MapSnapshot.of(self)
+        settings = {"resolution": self.resolution, "occupancy_enabled": self.occupancy_enabled, "config": self.config,
+                    "layout": self.layout, "metadata": copy_metadata(self.metadata),
+                    "scans_inserted": self.scans_inserted, "points_inserted": self.points_inserted}  # fmt: skip
+        return MapSnapshot.adopt(settings, self._slot.state())
 
     @classmethod
     def from_snapshot(cls, s: MapSnapshot) -> NdtOmMap:
@@ -490,7 +380,7 @@ class NdtOmMap:
         )  # the map's metadata changes; the snapshot's must not
         try:
             with m._lock:
-                m._load_state(s.state())
+                m._slot.load_state(s.state())
                 m.scans_inserted = s.scans_inserted
                 m.points_inserted = s.points_inserted
         except BaseException:
@@ -519,7 +409,7 @@ class NdtOmMap:
             layout=self.layout,
             metadata={**self.metadata, "coarsened_from": self.resolution, "factor": f},
         )
-        out._load_state(coarsen_state(self.state(), self.resolution, f, self.config.n_max))
+        out._slot.load_state(coarsen_state(self.state(), self.resolution, f, self.config.n_max))
         out.scans_inserted = self.scans_inserted
         out.points_inserted = self.points_inserted
         return out

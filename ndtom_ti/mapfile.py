@@ -1,5 +1,9 @@
 """The map file: one versioned, checksummed file, written atomically.
 
+It holds a map's settings (resolution, occupancy, config, layout, metadata, counters) and
+its cell arrays (``cellstate.ARRAYS``); :class:`~ndtom_ti.snapshot.MapSnapshot` reads and
+writes it.
+
 Layout (little endian):
     8 bytes   magic  b"NDTOMTI\\n"
     4 bytes   format version (uint32)
@@ -20,27 +24,24 @@ import os
 import stat
 import struct
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn, TypeGuard
+from typing import NoReturn, TypeGuard
 
 import numpy as np
 
 from . import mapcodec
 from .atomic import atomic_write, check_target
+from .cellstate import ARRAYS, ROWS
 from .config import N_LIMIT, MapConfig, check_resolution
-from .snapshot import ARRAYS, ROWS
-
-if TYPE_CHECKING:
-    from .map import NdtOmMap
-    from .snapshot import MapSnapshot
+from .kernels.layout import Layout
 
 MAGIC = b"NDTOMTI\n"
 # 2: g_erased_near (version 1 files lack it: read as zeros).
 # 3: g_ndt_state (earlier files lack it: read as zeros).
 # 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
 VERSION = 4
-# The last version of raw arrays; save_snapshot(..., version=RAW_VERSION) still writes it.
+# The last version of raw arrays; write(..., version=RAW_VERSION) still writes it.
 RAW_VERSION = 3
-# The file's arrays are the snapshot's (ARRAYS: dtype and trailing dimensions, in file
+# The file's arrays are a map's cell state (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
 # Arrays that files of an older version may lack, by the version that added them.
@@ -54,19 +55,14 @@ class MapFileError(ValueError):
     """A map file that cannot be read: truncated, corrupt, foreign or too new."""
 
 
-def save_map(m: NdtOmMap, path: str | Path) -> Path:
-    """Write map ``m`` to ``path`` (its snapshot, taken under the map's lock)."""
-    path = check_target(path)  # before the work: a FIFO, device or folder is refused
-    return save_snapshot(m.snapshot(), path)
-
-
-def save_snapshot(s: MapSnapshot, path: str | Path, *, version: int = VERSION) -> Path:
-    """Write snapshot ``s`` to ``path``, atomically; ``version=RAW_VERSION`` writes the
-    uncompressed format that ndtom_ti before format 4 reads."""
+def write(path: str | Path, settings: dict, arrays: dict, *, version: int = VERSION) -> Path:
+    """Write a map's ``settings`` (as ``MapSnapshot.settings()`` gives them) and cell
+    ``arrays`` (``cellstate.ARRAYS``) to ``path``, atomically; ``version=RAW_VERSION``
+    writes the uncompressed format that ndtom_ti before format 4 reads."""
     path = check_target(path)
     if version not in (VERSION, RAW_VERSION):
         raise ValueError(f"map files are written as version {VERSION} or {RAW_VERSION}, not {version}")
-    hbytes, blobs = _encode(s, version)
+    hbytes, blobs = _encode(settings, arrays, version)
 
     def write(fh) -> None:
         fh.write(_PREFIX.pack(MAGIC, version, len(hbytes)))
@@ -78,9 +74,9 @@ def save_snapshot(s: MapSnapshot, path: str | Path, *, version: int = VERSION) -
     return path
 
 
-def _encode(s: MapSnapshot, version: int) -> tuple[bytes, list]:
+def _encode(s: dict, cells: dict, version: int) -> tuple[bytes, list]:
     """The header bytes and the payload's parts of a map file."""
-    arrays = {name: np.ascontiguousarray(getattr(s, name), dtype=dtype) for name, (dtype, _) in ARRAYS.items()}
+    arrays = {name: np.ascontiguousarray(cells[name], dtype=dtype) for name, (dtype, _) in ARRAYS.items()}
     if version >= 4:
         table, blobs = mapcodec.encode(arrays)
     else:
@@ -97,13 +93,13 @@ def _encode(s: MapSnapshot, version: int) -> tuple[bytes, list]:
     header = {
         "format": "ndtom_ti map",
         "version": version,
-        "resolution": s.resolution,
-        "occupancy": s.occupancy_enabled,
-        "config": s.config.to_dict(),
-        "layout": {"l1": list(s.layout.l1), "l2": s.layout.l2, "leaf": s.layout.leaf},
-        "scans_inserted": s.scans_inserted,
-        "points_inserted": s.points_inserted,
-        "metadata": s.metadata,
+        "resolution": s["resolution"],
+        "occupancy": s["occupancy_enabled"],
+        "config": s["config"].to_dict(),
+        "layout": {"l1": list(s["layout"].l1), "l2": s["layout"].l2, "leaf": s["layout"].leaf},
+        "scans_inserted": s["scans_inserted"],
+        "points_inserted": s["points_inserted"],
+        "metadata": s["metadata"],
         "arrays": table,
         "payload_bytes": offset,
         "payload_sha256": sha.hexdigest(),
@@ -197,12 +193,9 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
     return header, arrays, version
 
 
-def read_snapshot(path: str | Path) -> MapSnapshot:
-    """The map file at ``path`` as a :class:`MapSnapshot` (no Taichi, no map slot); every
-    fault of the file is a MapFileError."""
-    from .kernels.layout import Layout
-    from .snapshot import MapSnapshot
-
+def read(path: str | Path) -> tuple[dict, dict]:
+    """The map file at ``path``: its settings (as ``MapSnapshot.settings()`` gives them)
+    and its cell arrays, sorted by cell; every fault of the file is a MapFileError."""
     path = Path(path)
     header, arrays, version = _read(path)
     try:
@@ -220,21 +213,11 @@ def read_snapshot(path: str | Path) -> MapSnapshot:
                         "config": config, "layout": layout, "metadata": header.get("metadata") or {},
                         "scans_inserted": header["scans_inserted"],
                         "points_inserted": header["points_inserted"]}  # fmt: skip
-        return MapSnapshot._trusted(settings, arrays)
     except MapFileError:
         raise
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"{path} has invalid settings: {exc}") from None
-
-
-def load_map(path: str | Path) -> NdtOmMap:
-    from .map import NdtOmMap
-
-    s = read_snapshot(path)
-    try:
-        return NdtOmMap.from_snapshot(s)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise MapFileError(f"{path} has invalid settings: {exc}") from None
+    return settings, arrays
 
 
 def _open_regular(path: Path):

@@ -14,8 +14,12 @@ damaged message) once some scans are mapped. All return the map built so far, wi
 saying why; check ``summary.complete`` before trusting a map to cover the whole
 recording. Bad input before the first scan is mapped
 (:class:`~ndtom_ti.io.RecordingError`, ``ValueError``) raises, and no map is returned.
-A command that maps and then saves wraps both in :func:`stop_signals` (SIGINT and
-SIGTERM: the map is saved, and signals during the save wait for it).
+A command that maps and then saves wraps both in :func:`ndtom_ti.signals.stop_signals`
+(SIGINT and SIGTERM: the map is saved, and signals during the save wait for it).
+
+:func:`run_scans` is the one mapping loop: ``ndtom map``, the API and live mapping in the
+viewer run it, the viewer as its :class:`Observer` (kiss-icp's visualizer): it paces the
+scans, maps them under its lock and draws them; the default observer does nothing.
 
 Example::
 
@@ -30,35 +34,37 @@ Example::
 from __future__ import annotations
 
 import math
-import os
-import signal
 import sys
-import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .config import MapConfig, check_resolution
-from .exitcodes import signal_exit_code
+from .io.selection import ScanSelection
 from .map import NdtOmMap, ScanReport
 from .runtime import MapMemoryError
 from .scan import scan_parts
+from .signals import loop_signals
+
+if TYPE_CHECKING:
+    from .io import ScanStream
 
 __all__ = [
-    "Interrupted",
     "MappingSummary",
-    "StopSignals",
+    "Observer",
+    "RecordingRun",
     "config_with_ranges",
     "load_config_file",
     "map_recording",
     "map_scans",
-    "stop_signals",
+    "open_recording_run",
+    "run_scans",
     "version",
 ]
 
@@ -170,6 +176,49 @@ class MappingSummary:
         d["wall_seconds"] = round(self.wall_seconds, 3)
         return d
 
+    def metadata(self, extra: dict | None = None) -> dict:
+        """The metadata of the map this run makes: the version, the source, the settings
+        and options, and ``extra``."""
+        import datetime
+
+        md = {
+            "ndtom_ti_version": version(),
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "source": self.source,
+            "cloud_topic": self.cloud_topic,
+            "frame_id": self.frame_id,
+            "fixed_frame": self.fixed_frame,
+            "pose_source": self.pose_source,
+            "resolution": self.resolution,
+            "occupancy": self.occupancy,
+            "config": self.config,
+            "options": self.options,
+        }
+        md.update(extra or {})
+        return md
+
+    def count_map(self, m: NdtOmMap) -> None:
+        """Count the map's Gaussians, known cells and memory (once the loop ended)."""
+        rep = m.memory_report()
+        self.gaussians = int(rep["gaussians"])
+        self.known_cells = int(rep["known_cells"])
+        self.memory_bytes = int(rep["total_bytes"])
+        self.pool_bytes = int(rep["process_pool_bytes"])
+        self.pool_budget_bytes = int(rep["process_pool_budget_bytes"])
+
+    def record_in(self, m: NdtOmMap) -> None:
+        """Write whether the run was complete, and its summary, into the map's metadata."""
+        d = self.to_dict()
+        m.metadata["complete"] = self.complete
+        m.metadata["summary"] = {
+            k: d[k]
+            for k in (
+                "clouds_seen", "scans_used", "skipped", "points_in", "points_used", "free_rays", "dropped",
+                "gaussians", "known_cells", "memory_bytes", "ms_first_scan", "ms_per_scan_median", "ms_per_scan_p95",
+                "wall_seconds", "stopped", "error",
+            )
+        }  # fmt: skip
+
 
 # ---------------------------------------------------------------------------- configuration
 def load_config_file(path: str | Path) -> dict:
@@ -235,154 +284,62 @@ def config_with_ranges(
     return replace(base, **changes) if changes else base
 
 
-# ---------------------------------------------------------------------------- Ctrl-C, SIGTERM
-class Interrupted(KeyboardInterrupt):
-    """A stop signal (SIGINT or SIGTERM) at a point where there is no map to keep."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal_name(signum))
-        self.signum = signum
-
-
-def signal_name(signum: int | None) -> str:
-    return "SIGTERM" if signum == signal.SIGTERM else "Ctrl-C"
-
-
-class StopSignals:
-    """What SIGINT (Ctrl-C) and SIGTERM do while a map is made and saved.
-
-    ``phase`` is "idle" (no map yet: the first signal raises :class:`Interrupted`),
-    "mapping" (the first signal lets the scan in hand finish, then the loop stops;
-    another one stops a read that is under way, never an insert), "finished" (every scan
-    is mapped: signals are only told that the complete map is being saved), "saving" (signals
-    are counted and only told to wait until the map is on disk) or "done" (ignored). ``count`` and
-    ``signum`` (the first signal) say what arrived.
-    """
-
-    def __init__(self, phase: str = "mapping", say: Callable[[str], None] | None = None) -> None:
-        self.phase = phase
-        self.count = 0
-        self.signum: int | None = None
-        self.reading = False  # the loop is waiting for the next scan: a second signal may stop it
-        self._say = say
-
-    @property
-    def name(self) -> str:
-        return signal_name(self.signum)
-
-    @property
-    def exit_code(self) -> int:
-        """128 + the first signal's number (130 for Ctrl-C, 143 for SIGTERM)."""
-        return signal_exit_code(self.signum or signal.SIGINT)
-
-    def say(self, text: str) -> None:
-        if self._say is not None:
-            self._say(text)
-
-    def handler(self, signum: int, frame: Any) -> None:
-        self.count += 1
-        if self.signum is None:
-            self.signum = signum
-        name = signal_name(signum)
-        if self.phase == "idle":
-            raise Interrupted(signum)
-        if self.phase == "done":  # the map is on disk and the command is ending
-            return
-        if self.phase == "finished":  # every scan is in the map: nothing is cut short
-            self.say(f"{name}: every scan is mapped; saving the complete map.")
-        elif self.phase == "saving":
-            self.say(f"{name}: saving the map; wait, it is on disk in a moment.")
-        elif self.count == 1:
-            self.say(f"{name}: stopping after the scan in hand; what was mapped will be saved.")
-        elif self.reading:
-            self.reading = False  # raise at most once, and only out of a read
-            raise Interrupted(signum)
-        else:
-            self.say(f"{name}: finishing the scan in hand, then saving the map.")
-
-
-_active: StopSignals | None = None  # installed by stop_signals(); _run uses it when set
-
-
-def _stderr(text: str) -> None:
-    # os.write: a handler may run while the main thread is inside a print to stderr.
-    try:
-        os.write(2, (text + "\n").encode("utf-8", "replace"))
-    except OSError:
-        pass
-
-
-@contextmanager
-def stop_signals(
-    signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM),
-    phase: str = "idle",
-    say=_stderr,
-    restore: bool = True,
-) -> Iterator[StopSignals]:
-    """Handle ``signums`` with a :class:`StopSignals` for the whole block (a command that
-    maps, then saves): mapping loops inside it use this one. Outside the main thread
-    signals cannot be handled; the state is returned all the same. ``restore=False``
-    (a process that exits after the block) leaves the handler in place, in phase "done"
-    when the block ran through: a late signal cannot break the exit."""
-    global _active
-    state = StopSignals(phase, say)
-    old: dict = {}
-    if threading.current_thread() is threading.main_thread():
-        for signum in signums:
-            try:
-                old[signum] = signal.signal(signum, state.handler)
-            except (ValueError, OSError):  # pragma: no cover - embedded interpreters
-                pass
-    outer, _active = _active, state
-    try:
-        yield state
-        if not restore:
-            state.phase = "done"
-    finally:
-        _active = outer
-        for signum, handler in old.items():
-            if restore or state.phase != "done":
-                signal.signal(signum, handler)
-
-
-@contextmanager
-def _loop_signals() -> Iterator[StopSignals]:
-    """The active StopSignals, or SIGINT handled for the loop alone (API use)."""
-    if _active is not None:
-        _active.phase = "mapping"
-        yield _active
-        return
-    with stop_signals((signal.SIGINT,), phase="mapping", say=None) as state:
-        yield state
-
-
 # ---------------------------------------------------------------------------- the loop
-def _finish(m: NdtOmMap, summary: MappingSummary) -> None:
-    rep = m.memory_report()
-    summary.gaussians = int(rep["gaussians"])
-    summary.known_cells = int(rep["known_cells"])
-    summary.memory_bytes = int(rep["total_bytes"])
-    summary.pool_bytes = int(rep["process_pool_bytes"])
-    summary.pool_budget_bytes = int(rep["process_pool_budget_bytes"])
+class Observer:
+    """What the mapping loop tells a viewer of it, and asks it (kiss-icp's visualizer).
+    This one watches nothing and never waits; live mapping's (``viewer.live.LiveMapper``)
+    waits for Play and for the recording's pace, maps under the viewer's lock (and into a
+    comparison map), and draws each scan."""
+
+    def turn(self) -> bool:
+        """Before the next scan is read: wait for it to be wanted; False stops the loop."""
+        return True
+
+    def due(self, scan: Any) -> bool:
+        """The scan is read: wait until it is due; False stops the loop before it."""
+        return True
+
+    def insert(self, m: NdtOmMap, points: Any, T_world_sensor: Any) -> ScanReport | None:
+        """Insert the scan into ``m``; None stops the loop (nothing inserted)."""
+        return m.insert_scan(points, T_world_sensor)
+
+    def inserted(self, rep: ScanReport, scan: Any, points: Any, T_world_sensor: Any) -> None:
+        """The scan is in the map and counted in the summary."""
 
 
-def _run(
+def run_scans(
     m: NdtOmMap,
     scans: Iterable[Any],
     summary: MappingSummary,
-    progress: ProgressFn | None,
+    progress: ProgressFn | None = None,
     after_loop: Callable[[], None] | None = None,
-) -> None:
-    """Insert every (points, T_world_sensor) of ``scans`` into ``m``, filling ``summary``."""
+    observer: Observer | None = None,
+) -> bool:
+    """Insert every (points, T_world_sensor) of ``scans`` into ``m``, filling ``summary``;
+    ``observer`` (default: none) is asked before each scan and told after it. Returns
+    whether the scans ran out (every one was read). Stops and errors: see the module's
+    docstring. ``summary.wall_seconds`` leaves out the observer's waits; the caller counts
+    the map (``summary.count_map``) when it is done with it."""
     from .io import RecordingError
 
+    obs = observer if observer is not None else Observer()
     t0 = time.perf_counter()
+    waited = 0.0  # in the observer's turn() and due(): the pace, not the mapping
+
+    def wall() -> float:
+        return time.perf_counter() - t0 - waited
+
     end: Any = object()
     ran_out = False  # every scan was inserted: a signal after that stops nothing
-    with _loop_signals() as sig:
+    with loop_signals() as sig:
         it = iter(scans)
         try:
             while not sig.count:
+                t_wait = time.perf_counter()
+                go = obs.turn()
+                waited += time.perf_counter() - t_wait
+                if not go:
+                    break
                 sig.reading = True
                 try:
                     scan = next(it, end)
@@ -399,9 +356,14 @@ def _run(
                     break
                 if sig.count:
                     break
+                t_wait = time.perf_counter()
+                go = obs.due(scan)
+                waited += time.perf_counter() - t_wait
+                if not go:
+                    break
                 points, T = scan_parts(scan)
                 try:
-                    rep = m.insert_scan(points, T)
+                    rep = obs.insert(m, points, T)
                 except MapMemoryError as exc:
                     _stopped(summary, "memory", f"scan {summary.scans_used + 1} was refused: {exc}")
                     break
@@ -410,10 +372,13 @@ def _run(
                         raise
                     _stopped(summary, "error", f"scan {summary.scans_used + 1} could not be inserted: {exc}")
                     break
+                if rep is None:
+                    break
                 summary.add(rep)
-                summary.wall_seconds = time.perf_counter() - t0
+                summary.wall_seconds = wall()
                 if summary.scans_used == 1:
                     summary.wall_first_scan = summary.wall_seconds
+                obs.inserted(rep, scan, points, T)
                 if progress is not None:
                     progress(summary, rep)
         except KeyboardInterrupt:
@@ -421,48 +386,15 @@ def _run(
         if sig.count and summary.stopped is None and not ran_out:
             summary.stopped = "interrupted"
             summary.error = f"interrupted ({sig.name}) after {summary.scans_used} scans"
-    summary.wall_seconds = time.perf_counter() - t0
+    summary.wall_seconds = wall()
     if after_loop is not None:
         after_loop()
-    _finish(m, summary)
+    return ran_out
 
 
 def _stopped(summary: MappingSummary, why: str, text: str) -> None:
     summary.stopped = why
     summary.error = f"{text} The map holds the {summary.scans_used} scans before it."
-
-
-def _base_metadata(summary: MappingSummary, extra: dict | None) -> dict:
-    import datetime
-
-    md = {
-        "ndtom_ti_version": version(),
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "source": summary.source,
-        "cloud_topic": summary.cloud_topic,
-        "frame_id": summary.frame_id,
-        "fixed_frame": summary.fixed_frame,
-        "pose_source": summary.pose_source,
-        "resolution": summary.resolution,
-        "occupancy": summary.occupancy,
-        "config": summary.config,
-        "options": summary.options,
-    }
-    md.update(extra or {})
-    return md
-
-
-def _record_result(m: NdtOmMap, summary: MappingSummary) -> None:
-    d = summary.to_dict()
-    m.metadata["complete"] = summary.complete
-    m.metadata["summary"] = {
-        k: d[k]
-        for k in (
-            "clouds_seen", "scans_used", "skipped", "points_in", "points_used", "free_rays", "dropped",
-            "gaussians", "known_cells", "memory_bytes", "ms_first_scan", "ms_per_scan_median", "ms_per_scan_p95",
-            "wall_seconds", "stopped", "error",
-        )
-    }  # fmt: skip
 
 
 def map_scans(
@@ -489,63 +421,82 @@ def map_scans(
     )  # fmt: skip
     if progress is not None:
         progress(summary, None)
-    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, metadata))
+    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
     try:
-        _run(m, scans, summary, progress)
+        run_scans(m, scans, summary, progress)
+        summary.count_map(m)
     except BaseException:
-        del m  # free the map's slot now, not when the traceback goes
+        m.close()  # the slot back now, not when the traceback goes
         raise
     summary.clouds_seen = summary.scans_used
-    _record_result(m, summary)
+    summary.record_in(m)
     return m, summary
 
 
-def _expected_scans(
-    rec: Any, topic: str, every: int, t_start: float | None, t_end: float | None, max_scans: int | None
-) -> int | None:
-    count = next((c for n, _, c in rec.topics() if n == topic), None)
-    if not count:
-        return None
-    if t_start is not None or t_end is not None:
-        dur = rec.duration_ns / 1e9
-        if dur > 0:
-            lo = max(0.0, t_start or 0.0)
-            hi = min(dur, dur if t_end is None else t_end)
-            count = max(0, round(count * max(0.0, hi - lo) / dur)) + 1
-    count = math.ceil(count / every)
-    if max_scans is not None:
-        count = min(count, max_scans)
-    return count
+@dataclass
+class RecordingRun:
+    """A recording opened for mapping (:func:`open_recording_run`): the selected scans, the
+    summary they fill, and what the map's metadata adds to the summary's (``extra``: the
+    recording, the caller's metadata)."""
+
+    stream: ScanStream
+    summary: MappingSummary
+    extra: dict
+
+    def count_clouds(self) -> None:
+        """Copy the stream's counts of clouds seen and skipped into the summary (the loop's end)."""
+        self.summary.clouds_seen = self.stream.total_seen
+        self.summary.skipped = dict(Counter(self.stream.skipped).most_common())
+        self.summary.skip_notes = list(self.stream.notes)
+
+
+@contextmanager
+def open_recording_run(
+    path: str | Path,
+    resolution: float,
+    selection: ScanSelection,
+    *,
+    occupancy: bool = True,
+    config: MapConfig,
+    metadata: dict | None = None,
+) -> Iterator[RecordingRun]:
+    """The recording at ``path`` opened, its scans selected (topic and pose source resolved:
+    problems raise here), and the run's summary made (``metadata``: more for the map's)."""
+    from .io import open_recording
+
+    with open_recording(path) as rec:
+        stream = rec.scans(selection)
+        summary = MappingSummary(
+            source=str(Path(path).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
+            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
+            occupancy=bool(occupancy), config=config.to_dict(), options=selection.options(),
+            scans_expected=selection.expected_scans(rec, stream.cloud_topic),
+        )  # fmt: skip
+        extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
+        extra.update(metadata or {})
+        yield RecordingRun(stream, summary, extra)
 
 
 def map_recording(
     path: str | Path,
     resolution: float,
+    selection: ScanSelection | None = None,
     *,
-    cloud_topic: str | None = None,
-    fixed_frame: str | None = None,
-    pose_topic: str | None = None,
-    poses_file: str | Path | None = None,
-    sensor_frame_only: bool = False,
-    every: int = 1,
-    every_distance: float | None = None,
-    t_start: float | None = None,
-    t_end: float | None = None,
-    max_scans: int | None = None,
     occupancy: bool = True,
     config: MapConfig | dict | None = None,
     min_range: float | None = None,
     max_range: float | None = None,
     metadata: dict | None = None,
     progress: ProgressFn | None = None,
+    **options: Any,
 ) -> tuple[NdtOmMap, MappingSummary]:
     """Map a ROS1 bag or ROS2 bag folder at ``resolution`` metres.
 
-    The options are those of :meth:`ndtom_ti.io.Recording.scans` (cloud topic, pose
-    source, scan selection; ``t_start``/``t_end`` in seconds from the bag start) and of
-    the map (``occupancy``, ``config``; ``min_range``/``max_range`` override the
-    config's). ``progress(summary, report)`` is called before the first scan (report
-    None) and after each one.
+    ``selection``: a :class:`~ndtom_ti.io.ScanSelection` (cloud topic, pose source, scan
+    selection; ``t_start``/``t_end`` in seconds from the bag start), or its fields as
+    keyword ``options``. The map's options: ``occupancy``, ``config``;
+    ``min_range``/``max_range`` override the config's. ``progress(summary, report)`` is
+    called before the first scan (report None) and after each one.
 
     Returns ``(map, summary)``; the map's ``metadata`` records the recording, topic,
     pose source, options, settings, the ndtom_ti version and the summary. Raises
@@ -554,45 +505,21 @@ def map_recording(
     stopped by Ctrl-C or by the memory budget returns the map so far (see
     ``summary.stopped``).
     """
-    from .io import open_recording
-
     resolution = check_resolution(resolution)
-    if every_distance is not None and every > 1:
+    selection = replace(selection or ScanSelection(), **options)
+    if selection.every_distance is not None and selection.every > 1:
         raise ValueError("give either every (keep every N-th cloud) or every_distance, not both")
     cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)
-    options = {
-        "cloud_topic": cloud_topic, "fixed_frame": fixed_frame, "pose_topic": pose_topic,
-        "poses_file": str(Path(poses_file).resolve()) if poses_file is not None else None,
-        "sensor_frame_only": sensor_frame_only, "every": every, "every_distance": every_distance,
-        "start": t_start, "end": t_end, "max_scans": max_scans,
-    }  # fmt: skip
-    with open_recording(path) as rec:
-        stream = rec.scans(
-            cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic, poses_file=poses_file,
-            sensor_frame_only=sensor_frame_only, every=every, every_distance=every_distance,
-            t_start=t_start, t_end=t_end, max_scans=max_scans,
-        )  # fmt: skip
-        summary = MappingSummary(
-            source=str(Path(path).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
-            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
-            occupancy=bool(occupancy), config=cfg.to_dict(), options=options,
-            scans_expected=_expected_scans(rec, stream.cloud_topic, every, t_start, t_end, max_scans),
-        )  # fmt: skip
-        extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
-        extra.update(metadata or {})
+    with open_recording_run(path, resolution, selection, occupancy=occupancy, config=cfg, metadata=metadata) as run:
+        summary = run.summary
         if progress is not None:
             progress(summary, None)  # before the map (and Taichi) is made: the recording is fine
-        m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, extra))
-
-        def counts() -> None:
-            summary.clouds_seen = stream.total_seen
-            summary.skipped = dict(Counter(stream.skipped).most_common())
-            summary.skip_notes = list(stream.notes)
-
+        m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(run.extra))
         try:
-            _run(m, stream, summary, progress, after_loop=counts)
+            run_scans(m, run.stream, summary, progress, after_loop=run.count_clouds)
+            summary.count_map(m)
         except BaseException:
-            del m  # free the map's slot now, not when the traceback goes
+            m.close()  # the slot back now, not when the traceback goes
             raise
-    _record_result(m, summary)
+    summary.record_in(m)
     return m, summary

@@ -34,6 +34,7 @@ from .kernels.ndt import (
 from .kernels.trace import RaysConfig
 from .kernels.update import FreeConfig, MergeConfig
 from .scaninput import as_points, as_pose, cell_box
+from .slot import MapSlot
 
 # Dense scan-local ray counts over the scan's cell box, at most this many cells (2 or 4 B):
 # counting there is several times cheaper than in the sparse tree. Past it the block keeps
@@ -119,15 +120,14 @@ class PreparedRays:
 
 
 class ScanUpdate:
-    """Runs the updates of one map (its slot ``slot`` of storage ``st``)."""
+    """Runs the updates of one map (in its :class:`~ndtom_ti.slot.MapSlot` ``slot``)."""
 
-    def __init__(self, *, st, slot, kernels, records, budget, plan: UpdatePlan, config, resolution: float,
-                 occupancy: bool, arch: str):  # fmt: skip
-        self.st, self.slot, self.k = st, slot, kernels
-        self.records, self.budget, self.plan = records, budget, plan
+    def __init__(self, *, slot: MapSlot, plan: UpdatePlan, config, resolution: float, occupancy: bool, arch: str):
+        self.st, self.slot, self.k = slot.storage, slot.index, slot.kernels
+        self.records, self.budget, self.plan = slot.records, slot.budget, plan
         self.config, self.resolution, self.occupancy, self.arch = config, resolution, occupancy, arch
         self.ndt = bool(config.ndt_misses)
-        self.layout = st.layout
+        self.layout = slot.layout
         self.glo = np.array(self.layout.lo, np.int64)
         self.ghi = np.array(self.layout.hi, np.int64)
         self.ctr = np.zeros(CTR_SIZE, np.int64)

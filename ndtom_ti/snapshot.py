@@ -24,32 +24,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from . import mapfile
 from .cellkeys import lookup_rows, pack
+from .cellstate import ARRAYS, ROWS
 from .config import MapConfig, check_gaussian_filter, check_resolution
 from .kernels.layout import Layout
 
 if TYPE_CHECKING:
     from .export import Exported
-    from .map import NdtOmMap
 
 __all__ = ["ARRAYS", "MapSnapshot"]
 
-# name -> (dtype, trailing shape): the cell arrays of a snapshot, as the map file stores them
-ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
-    "occ_index": ("<i4", (3,)),
-    "occ_logodds": ("<f4", ()),
-    "g_index": ("<i4", (3,)),
-    "g_n": ("<i4", ()),
-    "g_mean_rel": ("<f8", (3,)),
-    "g_scatter": ("<f8", (6,)),
-    "g_erased_near": ("<i4", ()),
-    "g_ndt_state": ("|u1", ()),
-}
-# The arrays that describe the same cells, by the array of their cell indices.
-ROWS: dict[str, tuple[str, ...]] = {
-    "occ_index": ("occ_index", "occ_logodds"),
-    "g_index": ("g_index", "g_n", "g_mean_rel", "g_scatter", "g_erased_near", "g_ndt_state"),
-}
+SETTINGS = ("resolution", "occupancy_enabled", "config", "layout", "metadata", "scans_inserted", "points_inserted")
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
@@ -83,7 +69,7 @@ def select_gaussians(index, n, mean_rel, scatter, logodds, resolution: float, mi
     return {"index": idx, "mean": mean, "cov": cov, "n": cnt, "p_occ": p[keep], "logodds": lo[keep]}
 
 
-def _copy(metadata: dict) -> dict:
+def copy_metadata(metadata: dict) -> dict:
     """A copy the map's later changes do not reach (one level deep for values that
     cannot be copied deeply: saving refuses those anyway)."""
     try:
@@ -195,18 +181,10 @@ class MapSnapshot:
     # ------------------------------------------------------------------ making one
 
     @classmethod
-    def of(cls, m: NdtOmMap) -> MapSnapshot:
-        """The content of map ``m`` now (taken under the map's lock; ``m`` stays usable)."""
-        with m._lock:
-            st = m.state()  # raises ValueError for a closed map
-            settings = {"resolution": m.resolution, "occupancy_enabled": m.occupancy_enabled, "config": m.config,
-                            "layout": m.layout, "metadata": _copy(m.metadata), "scans_inserted": m.scans_inserted,
-                            "points_inserted": m.points_inserted}  # fmt: skip
-        return cls._trusted(settings, st)
-
-    @classmethod
-    def _trusted(cls, settings: dict, arrays: dict) -> MapSnapshot:
-        """A snapshot of arrays nobody else holds (made read-only in place, not copied)."""
+    def adopt(cls, settings: dict, arrays: dict) -> MapSnapshot:
+        """A snapshot of ``settings`` (the fields before the arrays, by name) and cell
+        ``arrays`` nobody else holds: made read-only in place, not copied, and taken as
+        sorted (a map's slot and the map file give them so)."""
         own = {}
         for name, (dtype, _) in ARRAYS.items():
             if name not in arrays:  # (coarsened maps: no erasures to carry)
@@ -220,18 +198,20 @@ class MapSnapshot:
     def load(cls, path: str | Path) -> MapSnapshot:
         """Read a map file (written by ``NdtOmMap.save`` or :meth:`save`), checked as
         ``NdtOmMap.load`` checks it: broken or foreign files raise MapFileError."""
-        from .mapfile import read_snapshot
-
-        return read_snapshot(path)
+        settings, arrays = mapfile.read(path)
+        try:
+            return cls.adopt(settings, arrays)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise mapfile.MapFileError(f"{path} has invalid settings: {exc}") from None
 
     # ------------------------------------------------------------------ writing
 
-    def save(self, path: str | Path) -> Path:
+    def save(self, path: str | Path, *, version: int = mapfile.VERSION) -> Path:
         """Write a map file, atomically, byte for byte as ``NdtOmMap.save`` of the same
-        map writes it (``NdtOmMap.load`` and :meth:`load` read it)."""
-        from .mapfile import save_snapshot
-
-        return save_snapshot(self, path)
+        map writes it (``NdtOmMap.load`` and :meth:`load` read it); ``version=RAW_VERSION``
+        (``ndtom_ti.mapfile``) writes the uncompressed format that ndtom_ti before format 4
+        reads."""
+        return mapfile.write(path, self.settings(), self.state(), version=version)
 
     def export(self, path: str | Path, fmt: str | None = None, **options: Any) -> Exported:
         """Export as ``ndtom_ti.export.export_file`` does (ply, pcd, npz, csv, bt, grid)."""
@@ -242,8 +222,12 @@ class MapSnapshot:
     # ------------------------------------------------------------------ queries
 
     def state(self) -> dict:
-        """The six cell arrays by name (read-only; what the map file stores)."""
+        """The cell arrays by name (read-only; what the map file stores)."""
         return {name: getattr(self, name) for name in ARRAYS}
+
+    def settings(self) -> dict:
+        """The settings and counters by name (the fields before the arrays)."""
+        return {name: getattr(self, name) for name in SETTINGS}
 
     def cell_center(self, index: Any) -> np.ndarray:
         """World centres of cells (N, 3) from integer indices."""
@@ -316,6 +300,6 @@ class MapSnapshot:
         f = int(factor)
         settings = {"resolution": self.resolution * f, "occupancy_enabled": self.occupancy_enabled,
                         "config": self.config, "layout": self.layout,
-                        "metadata": {**_copy(self.metadata), "coarsened_from": self.resolution, "factor": f},
+                        "metadata": {**copy_metadata(self.metadata), "coarsened_from": self.resolution, "factor": f},
                         "scans_inserted": self.scans_inserted, "points_inserted": self.points_inserted}  # fmt: skip
-        return MapSnapshot._trusted(settings, coarsen_state(self.state(), self.resolution, f, self.config.n_max))
+        return MapSnapshot.adopt(settings, coarsen_state(self.state(), self.resolution, f, self.config.n_max))

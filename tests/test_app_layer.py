@@ -21,7 +21,8 @@ from ndtom_ti.demo import make_scans
 from ndtom_ti.evaluation import load_scans, run_experiments, sweep
 from ndtom_ti.evaluation.er_baseline import ErrorRefinementMap
 from ndtom_ti.evaluation.metrics import batch_ndt
-from ndtom_ti.pipeline import StopSignals, map_recording, map_scans
+from ndtom_ti.pipeline import map_recording, map_scans
+from ndtom_ti.signals import StopSignals
 from ndtom_ti.scan import Scan, scan_parts
 
 PACKAGE = Path(ndtom_ti.__file__).resolve().parent

@@ -22,7 +22,7 @@ def scan(rng):
 def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
     m = NdtOmMap(0.5)
     m.insert_scan(*scan(rng))
-    st, slot = m._st, m._slot
+    st, slot = m._slot.storage, m._slot.index
     assert slot not in st.free_slots and st.nodes(slot).sum() > 0
     m.close()
     assert m.closed and slot in st.free_slots and st.nodes(slot).sum() == 0
@@ -40,9 +40,9 @@ def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
 def test_with_closes_the_map_even_on_an_error(rng):
     with NdtOmMap(0.5) as m:
         m.insert_scan(*scan(rng))
-        slot = m._slot
+        slot = m._slot.index
         assert len(m) > 0
-    assert m.closed and slot in m._st.free_slots
+    assert m.closed and slot in m._slot.storage.free_slots
     with pytest.raises(RuntimeError, match="boom"), NdtOmMap(0.5) as m2:
         raise RuntimeError("boom")
     assert m2.closed

@@ -85,3 +85,60 @@ def test_pyright(tmp_path: Path) -> None:
         found.append(f"{path}:{line}: {d['severity']}: {d['message']} ({d.get('rule', '')})")
     assert report["summary"]["filesAnalyzed"] > 30
     assert not [f for f in found if ": error: " in f], "\n".join(found)
+
+
+def _module_imports() -> dict[str, set[str]]:
+    """Each module of the package (installed names) -> the package's modules it imports,
+    anywhere in its source: at the top, inside functions and for type checking alike."""
+    import ast
+
+    files = {}
+    for src, rel in INSTALLED.items():
+        for f in (ROOT / src).rglob("*.py"):
+            parts = [rel.replace("/", "."), *f.relative_to(ROOT / src).with_suffix("").parts]
+            if src == "ndtom_ti" and parts[1:2] in (["kernels"], ["viewer"]):
+                continue
+            files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+    edges: dict[str, set[str]] = {name: set() for name in files}
+    for name, f in files.items():
+        package = name if f.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = package
+                for _ in range(node.level - 1):
+                    base = base.rpartition(".")[0]
+                mod = (base + "." + node.module if node.module else base) if node.level else (node.module or "")
+                targets = [mod] + [f"{mod}.{a.name}" for a in node.names]
+            else:
+                continue
+            for t in targets:
+                while t and t not in files:
+                    t = t.rpartition(".")[0]
+                # a module's own package is imported with it anyway
+                if t and t != name and not name.startswith(t + "."):
+                    edges[name].add(t)
+    return edges
+
+
+def test_no_import_cycles() -> None:
+    """No module imports, through others, a module that imports it: loading a file or a
+    map climbs one way through the layers."""
+    edges = _module_imports()
+    assert "ndtom_ti.map" in edges and "ndtom_ti.viewer.live" in edges and "ndtom_ti.kernels.layout" in edges
+    cycles, done = [], set()
+
+    def walk(name: str, path: list[str]) -> None:
+        if name in path:
+            cycles.append(" -> ".join([*path[path.index(name) :], name]))
+            return
+        if name in done:
+            return
+        for t in sorted(edges[name]):
+            walk(t, [*path, name])
+        done.add(name)
+
+    for name in sorted(edges):
+        walk(name, [])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)

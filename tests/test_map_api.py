@@ -18,7 +18,7 @@ import ndtom_ti
 from ndtom_ti import MapConfig, MapFileError, MapMemoryError, NdtOmMap, NoFreeSlotError
 from ndtom_ti import runtime
 from ndtom_ti.kernels.layout import RECORD_BYTES
-from ndtom_ti.map import BLOCK_CELLS
+from ndtom_ti.scan_update import BLOCK_CELLS
 
 
 def scene_scans(rng, scans=4):
@@ -351,7 +351,7 @@ def test_n_max_caps_the_count_and_scales_the_scatter(rng):
 def test_leaf_counters_are_exact_and_slots_are_emptied(rng):
     st = runtime.storage(ndtom_ti.Layout())
     m, _ = scene_map(rng, scans=3)
-    slot = m._slot
+    slot = m._slot.index
     cells = np.zeros((st.slots, 2), np.int64)
     st.kernels.count_leaf_cells(cells)
     assert (cells // st.layout.leaf_cells == st.leaf_count).all()
@@ -374,13 +374,13 @@ def test_cached_node_counts_follow_the_regions_of_reused_slots(rng):
                 np.count_nonzero(st.gidx_regions[slot]), st.leaf_count[slot, 1]]  # fmt: skip
 
     m, _ = scene_map(rng, scans=2)
-    slot = m._slot
+    slot = m._slot.index
     assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
     del m
     gc.collect()
     assert st.nodes(slot).tolist() == [0, 0, 0, 0]
     m = NdtOmMap(0.5)  # the emptied slot again, far from the last scene
-    assert m._slot == slot
+    assert m._slot.index == slot
     m.insert_scan(rng.normal(size=(500, 3)) * 3.0 + [300.0, -200.0, 5.0], np.eye(4))
     assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
 
@@ -444,7 +444,7 @@ FILL = textwrap.dedent(
             d = rng.normal(size=(20000, 3))
             m.insert_scan(d / np.linalg.norm(d, axis=1, keepdims=True) * 8, T)
     except ndtom_ti.MapMemoryError as exc:
-        st = maps[0]._st
+        st = ndtom_ti.runtime.storage(maps[0].layout)
         ok = all(float(x.occupancy(np.zeros((1, 3)))[0]) >= 0 for x in maps)
         print("REFUSED", k, st.pool_bytes(), ok, str(exc)[:60])
     """
@@ -492,7 +492,9 @@ def test_batched_tracing_under_memory_pressure_gives_the_same_map(rng):
     b = NdtOmMap(0.1, metadata={"source": "test"})
     b.plan.one_pass = False  # traced in batches, each checked against the budget
     try:
-        runtime._state.pool_limit = st.pool_bytes(st.nodes(a._slot))
+        rep = a.memory_report()
+        nodes = [rep[k] for k in ("occupancy_regions", "occupancy_leaves", "index_regions", "index_leaves")]
+        runtime._state.pool_limit = st.pool_bytes(np.array(nodes))
         batches = [b.insert_scan(pts, T).ray_batches for pts, T in scans]
     finally:
         runtime._state.pool_limit = old

@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 from ndtom_ti import MapFileError, MapMemoryError, NdtOmMap, mapcodec
-from ndtom_ti.mapfile import RAW_VERSION, read_header, save_snapshot
+from ndtom_ti.mapfile import RAW_VERSION, read_header
 
 EXAMPLES = int(os.environ.get("NDTOM_FUZZ_EXAMPLES", "150"))
 OUTCOMES: Counter = Counter()
@@ -46,7 +46,7 @@ def _build_bases() -> dict[str, bytes]:
                 m.insert_scan(rng.normal(size=(400, 3)) * [2.0, 1.5, 0.3] + [3.0, 0.0, 0.0], T)
             out[name] = m.save(Path(tmp) / f"{name}.ndtom").read_bytes()
             # the same map in the raw format of version 3 (older files must keep loading)
-            out[f"{name} v3"] = save_snapshot(m.snapshot(), Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
+            out[f"{name} v3"] = m.snapshot().save(Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
             del m
     gc.collect()
     return out

@@ -16,6 +16,7 @@ import ndtom_ti
 from ndtom_ti import NdtOmMap, runtime
 from ndtom_ti.cellkeys import group, pack, unpack
 from ndtom_ti.multires import coarsen_state
+from ndtom_ti.snapshot import MapSnapshot
 
 NORLAB = DATA / "norlab_outdoor_stationary_14.bag"
 
@@ -57,7 +58,7 @@ REGIONS = """
         return d, T
 
     m = ndtom_ti.NdtOmMap(0.1)
-    st, res = m._st, 0.1
+    st, res = runtime.storage(m.layout), 0.1
     crossed, k = [], 0
     while st.pool_bytes() < target * 2**30:
         before = st.pool_bytes()
@@ -194,9 +195,14 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
         d *= 50.0 / np.linalg.norm(d, axis=1, keepdims=True)
         d[:, 2] *= 0.1
         m = ndtom_ti.NdtOmMap(0.05)
-        st = m._st
+        st = ndtom_ti.runtime.storage(m.layout)
+
+        def node_counts():
+            r = m.memory_report()
+            return [r[k] for k in ("occupancy_regions", "occupancy_leaves", "index_regions", "index_leaves")]
+
         m.insert_scan(d[:200] * 0.1, np.eye(4))  # some content before the refused scan
-        before, nodes = m.state(), st.nodes(m._slot).tolist()
+        before, nodes = m.state(), node_counts()
         try:
             m.insert_scan(d, np.eye(4))
             print("BIG accepted")
@@ -204,7 +210,7 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
             print("BIG refused")
         after = m.state()
         same = all(np.array_equal(before[k], after[k]) for k in before)
-        print("NODES", st.nodes(m._slot).tolist() == nodes, nodes[1] > 0, same, st.node_high_water[1] > 50000)
+        print("NODES", node_counts() == nodes, nodes[1] > 0, same, st.node_high_water[1] > 50000)
         small = rng.normal(size=(10, 3)) * 0.1 + [1.0, 0.0, 0.0]
         m.insert_scan(small, np.eye(4))
         m2 = ndtom_ti.NdtOmMap(0.05)
@@ -240,7 +246,7 @@ GAP = """
             state = "accepted"
         except ndtom_ti.MapMemoryError:
             state = "refused"
-        print("SCAN", state, m._st.pool_bytes(), ndtom_ti.runtime.pool_limit())
+        print("SCAN", state, m.memory_report()["process_pool_bytes"], ndtom_ti.runtime.pool_limit())
         del m
 """
 
@@ -271,7 +277,7 @@ def test_norlab_first_scan_at_fine_resolution_stays_within_the_budget():
             state = "accepted"
         except ndtom_ti.MapMemoryError:
             state = "refused"
-        print("SCAN0", state, m._st.pool_bytes() <= ndtom_ti.runtime.pool_limit())
+        print("SCAN0", state, m.memory_report()["process_pool_bytes"] <= ndtom_ti.runtime.pool_limit())
         """.replace("import numpy as np", "import sys, numpy as np"),
         str(NORLAB),
     )
@@ -299,12 +305,17 @@ def big_state(rng, cells: int, gaussians: int) -> dict:
             "g_mean_rel": rng.uniform(-0.05, 0.05, (gaussians, 3)), "g_scatter": scat}  # fmt: skip
 
 
+def snapshot_of(state: dict, resolution: float) -> MapSnapshot:
+    """Cell arrays (as big_state makes them) with a new map's settings, to load into a map."""
+    return MapSnapshot(resolution=resolution, occupancy_enabled=True, config=ndtom_ti.MapConfig(),
+                       layout=ndtom_ti.Layout(), metadata={}, scans_inserted=0, points_inserted=0, **state)  # fmt: skip
+
+
 def test_a_multi_million_cell_map_saves_loads_and_coarsens(rng, tmp_path, capsys):
     """3 M known cells, 300 k Gaussians: load, known_cells, gaussians and coarsen give the
     same state as written (times printed; numpy's unique(axis=0) took tens of seconds)."""
     st = big_state(rng, 3_000_000, 300_000)
-    m = NdtOmMap(0.1)
-    m._load_state(st)
+    m = NdtOmMap.from_snapshot(snapshot_of(st, 0.1))
     path = m.save(tmp_path / "big.ndtom")
     del m
     gc.collect()

@@ -124,8 +124,8 @@ def test_grid_and_data_extents() -> None:
     m = NdtOmMap(0.5)
     assert m.data_extent() is None
     lo, hi = m.grid_extent
-    np.testing.assert_array_equal(lo, m.extent[0])
-    np.testing.assert_array_equal(hi, m.extent[1])
+    np.testing.assert_array_equal(lo, m.grid_extent[0])
+    np.testing.assert_array_equal(hi, m.grid_extent[1])
     assert (hi - lo).min() > 1000  # the grid: kilometres
     T = np.eye(4)
     T[:3, 3] = [1.0, 2.0, 3.0]

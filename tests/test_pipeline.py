@@ -134,18 +134,19 @@ def test_ctrl_c_after_the_last_scan_says_the_map_is_complete(monkeypatch) -> Non
     """Ctrl-C once every scan is mapped (while the summary is made, before the save):
     nothing is cut short, so the map is complete (exit 0) and the message says so, not
     "stopping after the scan in hand"."""
-    import ndtom_ti.pipeline as P
+    from ndtom_ti.pipeline import MappingSummary
+    from ndtom_ti.signals import stop_signals
 
-    finish = P._finish
+    count_map = MappingSummary.count_map
 
-    def finish_after_ctrl_c(m, summary):
+    def count_after_ctrl_c(summary, m):
         os.kill(os.getpid(), signal.SIGINT)
-        finish(m, summary)
+        count_map(summary, m)
 
-    monkeypatch.setattr(P, "_finish", finish_after_ctrl_c)
+    monkeypatch.setattr(MappingSummary, "count_map", count_after_ctrl_c)
     said: list[str] = []
     scans = [(pb.sensor_points(k, np.random.default_rng(k)), pb.T_map_lidar(k)) for k in range(2)]
-    with P.stop_signals((signal.SIGINT,), phase="idle", say=said.append) as sig:
+    with stop_signals((signal.SIGINT,), phase="idle", say=said.append) as sig:
         m, s = map_scans(scans, pb.RES)
     assert sig.count == 1 and s.complete and s.stopped is None and s.scans_used == 2
     assert said == ["Ctrl-C: every scan is mapped; saving the complete map."], said

@@ -196,11 +196,11 @@ def test_two_maps_in_two_threads():
 def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
     """The garbage collector may drop a map in any thread, even inside another lock's
     holder; its slot is then emptied later instead of waiting for the map lock."""
-    from ndtom_ti import map as map_module
+    from ndtom_ti import slot as slot_module
 
     m = NdtOmMap(0.5)
     m.insert_scan(np.random.default_rng(0).normal(size=(300, 3)) + [3, 0, 0], np.eye(4))
-    st, slot = m._st, m._slot
+    st, slot = m._slot.storage, m._slot.index
     holding, release = threading.Event(), threading.Event()
 
     def hold():
@@ -212,12 +212,12 @@ def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
     t.start()
     assert holding.wait(10)
     del m  # the finalizer runs here, while the other thread holds the lock
-    pending = [s for _, s in map_module._dead_slots]
+    pending = [s for _, s in slot_module._dead_slots]
     release.set()
     t.join(10)
     assert pending == [slot] and slot not in st.free_slots
     fresh = NdtOmMap(0.5)  # frees the pending slot first
-    assert not map_module._dead_slots and (fresh._slot == slot or slot in st.free_slots)
+    assert not slot_module._dead_slots and (fresh._slot.index == slot or slot in st.free_slots)
     assert len(fresh.known_cells()["index"]) == 0  # the slot was emptied
 
 
@@ -742,16 +742,16 @@ def zstd(raw: bytes, **kw) -> bytes:
 
 
 def test_maps_are_saved_in_format_4_and_load_bit_for_bit(tmp_path, good_file):
-    from ndtom_ti.mapfile import read_snapshot, save_snapshot
+    from ndtom_ti.snapshot import MapSnapshot
 
     header, payload = split4(good_file)
     assert struct.unpack("<I", good_file[8:12])[0] == VERSION == 4 and header["version"] == 4
     assert {e["coding"] for e in header["arrays"]} <= {"delta", "raw", "planes"}
-    s = read_snapshot(_write(tmp_path / "a.ndtom", good_file))
-    raw = save_snapshot(s, tmp_path / "v3.ndtom", version=RAW_VERSION)
+    s = MapSnapshot.load(_write(tmp_path / "a.ndtom", good_file))
+    raw = s.save(tmp_path / "v3.ndtom", version=RAW_VERSION)
     assert len(good_file) * 3 < raw.stat().st_size  # (tens of times smaller on real maps: docs/large-maps.md)
-    for path in (raw, save_snapshot(s, tmp_path / "again.ndtom")):
-        back = read_snapshot(path)
+    for path in (raw, s.save(tmp_path / "again.ndtom")):
+        back = MapSnapshot.load(path)
         for name in mapcodec.CODING.keys() | {"occ_index", "g_index"}:
             a, b = getattr(s, name), getattr(back, name)
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
@@ -766,7 +766,7 @@ def _write(path: Path, data: bytes) -> Path:
 def test_a_byte_flip_in_compressed_data_is_a_checksum_error(tmp_path, good_file):
     """Any byte of any frame changed: the file's SHA-256 says so; with the checksum made to
     match, zstd's own checksum or the frame's structure still refuses it."""
-    from ndtom_ti.mapfile import read_snapshot
+    from ndtom_ti.snapshot import MapSnapshot
 
     header, payload = split4(good_file)
     rng = np.random.default_rng(3)
@@ -776,9 +776,9 @@ def test_a_byte_flip_in_compressed_data_is_a_checksum_error(tmp_path, good_file)
             bad = bytearray(payload)
             bad[pos] ^= 0x40
             with pytest.raises(MapFileError, match="checksum"):
-                read_snapshot(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad), fix_sha=False)))
+                MapSnapshot.load(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad), fix_sha=False)))
             with pytest.raises(MapFileError, match="corrupt"):
-                read_snapshot(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad))))
+                MapSnapshot.load(_write(tmp_path / "flip.ndtom", join4(header, bytes(bad))))
             tried += 1
     assert tried > 30
     r = run_cli("export", tmp_path / "flip.ndtom", "-o", tmp_path / "x.ply")
@@ -792,7 +792,7 @@ def test_decompression_never_inflates_past_the_declared_size(tmp_path, good_file
     no zstd frame can reach."""
     import tracemalloc
 
-    from ndtom_ti.mapfile import read_snapshot
+    from ndtom_ti.snapshot import MapSnapshot
 
     header, payload = split4(good_file)
     st = next(e for e in header["arrays"] if e["name"] == "g_ndt_state")["streams"][0]
@@ -802,7 +802,7 @@ def test_decompression_never_inflates_past_the_declared_size(tmp_path, good_file
     tracemalloc.start()
     try:
         with pytest.raises(MapFileError, match="declared"):
-            read_snapshot(path)
+            MapSnapshot.load(path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -812,7 +812,7 @@ def test_decompression_never_inflates_past_the_declared_size(tmp_path, good_file
                            (zstd(raw) + b"\0" * 8, "trailing|not a zstd frame|decompress"),
                            (zstd(raw[:-1] + b"\x07"), "g_ndt_state")):  # fmt: skip
         with pytest.raises(MapFileError, match=message):
-            read_snapshot(_write(tmp_path / "f.ndtom", restream(header, payload, "g_ndt_state", 0, frame, len(raw))))
+            MapSnapshot.load(_write(tmp_path / "f.ndtom", restream(header, payload, "g_ndt_state", 0, frame, len(raw))))
     # a table that declares more rows than a frame of its size can hold: refused unread
     h = json.loads(json.dumps(header))
     for e in h["arrays"]:
@@ -851,13 +851,13 @@ CRAFTED4 = {
 
 @pytest.mark.parametrize("case", sorted(CRAFTED4))
 def test_crafted_format_4_streams_are_map_file_errors(tmp_path, good_file, case):
-    from ndtom_ti.mapfile import read_snapshot
+    from ndtom_ti.snapshot import MapSnapshot
 
     fn, message = CRAFTED4[case]
     header, payload = split4(good_file)
     path = _write(tmp_path / "c.ndtom", fn(header, payload))
     with pytest.raises(MapFileError, match=message):
-        read_snapshot(path)
+        MapSnapshot.load(path)
     r = run_cli("info", path)
     assert "internal error" not in r.output and "Traceback" not in r.output, r.output
 

@@ -352,11 +352,11 @@ def test_property_config_files_give_a_clear_error_or_a_valid_config(tmp_path_fac
 def raw_good_file(tmp_path_factory, good_file) -> bytes:
     """good_file as format version 3, whose arrays lie raw in the payload (format 4's
     compressed frames have their own flip tests in test_reliability.py)."""
-    from ndtom_ti.mapfile import RAW_VERSION, save_snapshot
+    from ndtom_ti.mapfile import RAW_VERSION
 
     folder = tmp_path_factory.mktemp("raw")
     (folder / "good.ndtom").write_bytes(good_file)
-    out = save_snapshot(MapSnapshot.load(folder / "good.ndtom"), folder / "raw.ndtom", version=RAW_VERSION)
+    out = MapSnapshot.load(folder / "good.ndtom").save(folder / "raw.ndtom", version=RAW_VERSION)
     return out.read_bytes()
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_map_api import _corrupt, scene_map, scene_scans, state_equal
-from test_memory import big_state
+from test_memory import big_state, snapshot_of
 from typer.testing import CliRunner
 
 from ndtom_ti import Layout, MapConfig, MapFileError, NdtOmMap, NoFreeSlotError, runtime
@@ -279,11 +279,11 @@ def _rewrite(path: Path, out: Path, header_edit=None, arrays_edit=None) -> Path:
 
 
 def test_cells_stored_out_of_order_load_sorted_as_the_map_reads_them(rng, tmp_path):
-    from ndtom_ti.mapfile import RAW_VERSION, save_snapshot
+    from ndtom_ti.mapfile import RAW_VERSION
 
     m, _ = scene_map(rng, scans=2)
     # format 3 (raw arrays) can list cells in any order; format 4's coding keeps them sorted
-    path = save_snapshot(m.snapshot(), tmp_path / "m.ndtom", version=RAW_VERSION)
+    path = m.snapshot().save(tmp_path / "m.ndtom", version=RAW_VERSION)
 
     def shuffle(a):
         p, q = rng.permutation(len(a["occ_index"])), rng.permutation(len(a["g_index"]))
@@ -303,8 +303,7 @@ def test_a_multi_million_cell_file_opens_as_a_snapshot(rng, tmp_path, capsys):
     """3 M known cells, 300 k Gaussians (the fast-load test's map): the snapshot holds the
     file's cells, sorted, and answers as the loaded map (times printed, paired)."""
     st = big_state(rng, 3_000_000, 300_000)
-    m = NdtOmMap(0.1)
-    m._load_state(st)
+    m = NdtOmMap.from_snapshot(snapshot_of(st, 0.1))
     path = m.save(tmp_path / "big.ndtom")
     m.close()
     t0 = time.perf_counter()

@@ -243,3 +243,20 @@ def test_demo_view_writes_its_map_and_the_summary(tmp_path, no_serving, monkeypa
     m = NdtOmMap.load(out)
     assert m.scans_inserted == 4 and m.metadata["command"] == "ndtom demo --view" and m.metadata["complete"]
     assert len(no_serving) == 1
+
+
+def test_a_bad_scan_mid_run_stops_live_mapping_as_it_stops_ndtom_map(tmp_path, no_serving):
+    """The one loop's behaviour (ndtom_ti.pipeline): a scan that cannot be inserted after
+    others were stops mapping; the map keeps the scans before it, the summary says why,
+    and the command fails (1), as `ndtom map` does."""
+    scans = _scans([0.0, 0.01, 0.02, 0.03])
+    bad = scans[2]
+    scans[2] = StampedScan(bad.points, np.full((4, 4), np.nan), bad.stamp_ns)  # a pose with NaN
+    out = tmp_path / "bad.ndtom"
+    code = cli.live_command(scans, RES, "127.0.0.1", 0, save=out, speed=None, wait_for_browser=False, compare=False)
+    assert code == 1
+    m = NdtOmMap.load(out)
+    summary = m.metadata["summary"]
+    assert m.scans_inserted == 2 and m.metadata["complete"] is False and summary["stopped"] == "error"
+    assert "scan 3 could not be inserted" in summary["error"] and "holds the 2 scans" in summary["error"]
+    assert no_serving == []  # an incomplete run closes the viewer

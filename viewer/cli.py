@@ -12,18 +12,20 @@ from __future__ import annotations
 import contextlib
 import inspect
 import math
-import signal
 import sys
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, signal_exit_code
+from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from ndtom_ti.signals import LiveSignals
 
 from ._deps import ViewerNotInstalledError, require_viser
+
+if TYPE_CHECKING:
+    from ndtom_ti.io import ScanSelection
 
 __all__ = ["live_command", "live_demo_command", "live_recording_command", "view_command"]
 
@@ -190,55 +192,6 @@ def parse_rate(text: str) -> float | None:
     return v
 
 
-class _StopSignals:
-    """Ctrl-C (SIGINT) and SIGTERM while mapping live: the first asks mapping to stop after
-    the scan in hand; during the save, further ones wait until the map is on disk."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.signum: int | None = None  # the first signal: it names the stop and sets the exit code
-        self.event = threading.Event()
-        self.saving = False
-        self.serving = False  # mapping is over, the viewer shows the map
-        self.phase = "mapping"  # (set by a finish that saves, as on pipeline.StopSignals)
-        self._old: dict[int, Any] = {}
-
-    @property
-    def name(self) -> str:
-        return "SIGTERM" if self.signum == signal.SIGTERM else "Ctrl-C"
-
-    @property
-    def exit_code(self) -> int:
-        """130 after Ctrl-C, 143 after SIGTERM (the first signal decides)."""
-        return signal_exit_code(self.signum if self.signum is not None else signal.SIGINT)
-
-    def handler(self, signum: int, frame: Any) -> None:
-        self.count += 1
-        if self.signum is None:
-            self.signum = signum
-        self.event.set()
-        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        if self.saving:
-            print(f"{name}: saving the map, please wait until it is on disk ...", file=sys.stderr, flush=True)
-        elif self.serving:
-            print(f"{name}: closing the viewer", file=sys.stderr, flush=True)
-        elif self.count == 1:
-            print(f"{name}: stopping after the scan in hand, then saving ...", file=sys.stderr, flush=True)
-
-    def __enter__(self) -> _StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                with contextlib.suppress(ValueError, OSError):
-                    self._old[sig] = signal.signal(sig, self.handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, old in self._old.items():
-            with contextlib.suppress(ValueError, OSError, TypeError):
-                signal.signal(sig, old)
-        self._old.clear()
-
-
 def _wait_for_browser(viewer: Any, stop: threading.Event) -> bool:
     """Block until a browser shows the viewer (True) or a stop signal came (False)."""
     while not viewer.server.get_clients():
@@ -259,12 +212,12 @@ def _default_finish(save: Path | None) -> Callable[..., int]:
             print(f"Wrote {save} ({summary.scans_used} scans)", flush=True)
         if summary.stopped == "interrupted":
             return signals.exit_code if signals is not None and signals.count else EXIT_INTERRUPTED
-        return EXIT_OK
+        return EXIT_FAILURE if summary.stopped == "error" else EXIT_OK
 
     return finish
 
 
-def _call_finish(finish: Callable[..., int], m: Any, summary: Any, signals: _StopSignals) -> int:
+def _call_finish(finish: Callable[..., int], m: Any, summary: Any, signals: LiveSignals) -> int:
     """``finish(m, summary)``, given the stop signals too when it takes them (``signals=``:
     which signal stopped mapping names the stop and sets the exit code, 130 or 143)."""
     try:
@@ -313,14 +266,7 @@ def live_command(
         _error(str(exc))
         return EXIT_FAILURE
     from ndtom_ti import NdtOmMap
-    from ndtom_ti.pipeline import (
-        MappingSummary,
-        _base_metadata,
-        _finish,
-        _record_result,
-        config_with_ranges,
-    )
-    from ndtom_ti.runtime import MapMemoryError
+    from ndtom_ti.pipeline import MappingSummary, config_with_ranges
 
     from .app import MapViewer
 
@@ -329,27 +275,20 @@ def live_command(
         summary = MappingSummary(source="scans", resolution=float(resolution), occupancy=bool(occupancy),
                                  config=cfg.to_dict(), scans_expected=total)  # fmt: skip
     finish = finish or _default_finish(save)
-    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=_base_metadata(summary, metadata))
+    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
     try:
         viewer = MapViewer(m, host=host, port=port, progress=_say)
     except ValueError as exc:
         _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine")
         return EXIT_USAGE
 
-    def on_scan(rep: Any, item: Any) -> None:
-        summary.add(rep)
-        if lm is not None:
-            summary.wall_seconds = lm.work_seconds
-        if progress is not None:
-            progress(summary, rep)
-
     code = EXIT_OK
     lm = None
     try:
-        with _StopSignals() as sig:
+        with LiveSignals() as sig:
             lm = viewer.live(scans, m, compare=compare, play=False, total=total or summary.scans_expected,
-                             speed=speed if speed is not None else math.inf, rate_hz=rate_hz,
-                             on_scan=on_scan)  # fmt: skip
+                             speed=speed if speed is not None else math.inf, rate_hz=rate_hz, summary=summary,
+                             progress=progress, after_loop=after_loop)  # fmt: skip
             started = True
             if wait_for_browser:
                 _say(f"Waiting for a browser at {viewer.url} (mapping starts when one connects; --no-wait starts "
@@ -362,27 +301,22 @@ def live_command(
                 while not lm.wait(0.2) and not sig.event.is_set():
                     pass
             lm.stop()  # after the scan in hand
-            if after_loop is not None:
+            exc = lm.exception
+            if not (lm.finished and exc is None) and after_loop is not None:  # the loop did not count the clouds
                 after_loop()
             summary.clouds_seen = max(summary.clouds_seen, summary.scans_used)
-            summary.wall_seconds = lm.work_seconds
-            exc = lm.exception
-            if isinstance(exc, MapMemoryError):
-                summary.stopped = "memory"
-                summary.error = (f"scan {summary.scans_used + 1} was refused: {exc} "
-                                 f"The map holds the {summary.scans_used} scans before it.")  # fmt: skip
-            elif exc is not None:
+            if exc is not None:  # not a bad scan mid-run (the loop stops at those): mapping failed
                 summary.stopped, summary.error = "error", f"{type(exc).__name__}: {exc}"
-            elif not lm.completed:
+            elif summary.stopped is None and not lm.completed:
                 summary.stopped = "interrupted"
                 summary.error = f"interrupted after {summary.scans_used} scans"
             sig.saving = True
             with viewer.map_lock:  # the viewer's threads read the map meanwhile
-                _finish(m, summary)
-                _record_result(m, summary)
+                summary.count_map(m)
+                summary.record_in(m)
                 code = _call_finish(finish, m, summary, sig)
             sig.saving = False
-            if exc is not None and not isinstance(exc, MapMemoryError):
+            if exc is not None:
                 _error(f"live mapping stopped at scan {summary.scans_used + 1}: {summary.error}",
                        f"the {summary.scans_used} scans before it are in the map" if summary.scans_used else None)  # fmt: skip
                 code = EXIT_USAGE if isinstance(exc, (ValueError, TypeError, LookupError)) else EXIT_FAILURE
@@ -401,48 +335,23 @@ def live_recording_command(
     bag: Path,
     resolution: float,
     *,
-    scan_options: dict,
+    selection: ScanSelection,
     occupancy: bool = True,
     config: Any = None,
     metadata: dict | None = None,
     **live: Any,
 ) -> int:
-    """``ndtom map BAG --view``: the recording's scans (``scan_options`` as for
+    """``ndtom map BAG --view``: the recording's scans (``selection``, as for
     ``Recording.scans``) mapped live; the summary and metadata are those of ``ndtom map``.
     Raises RecordingError / ValueError for a recording that cannot be mapped."""
-    from ndtom_ti.io import open_recording
-    from ndtom_ti.pipeline import MappingSummary, _expected_scans, config_with_ranges
+    from ndtom_ti.pipeline import config_with_ranges, open_recording_run
 
     cfg = config_with_ranges(config)
-    o = scan_options
-    options = {
-        "cloud_topic": o.get("cloud_topic"), "fixed_frame": o.get("fixed_frame"), "pose_topic": o.get("pose_topic"),
-        "poses_file": str(Path(o["poses_file"]).resolve()) if o.get("poses_file") is not None else None,
-        "sensor_frame_only": o.get("sensor_frame_only", False), "every": o.get("every", 1),
-        "every_distance": o.get("every_distance"), "start": o.get("t_start"), "end": o.get("t_end"),
-        "max_scans": o.get("max_scans"),
-    }  # fmt: skip
-    with open_recording(bag) as rec:
-        stream = rec.scans(**scan_options)
-        summary = MappingSummary(
-            source=str(Path(bag).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
-            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
-            occupancy=bool(occupancy), config=cfg.to_dict(), options=options,
-            scans_expected=_expected_scans(rec, stream.cloud_topic, o.get("every", 1), o.get("t_start"),
-                                           o.get("t_end"), o.get("max_scans")),
-        )  # fmt: skip
-        extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
-        extra.update(metadata or {})
-
-        def counts() -> None:
-            summary.clouds_seen = stream.total_seen
-            summary.skipped = dict(Counter(stream.skipped).most_common())
-            summary.skip_notes = list(stream.notes)
-
+    with open_recording_run(bag, resolution, selection, occupancy=occupancy, config=cfg, metadata=metadata) as run:
         # no Recursive NDT map beside it by default: a recording's map costs what `ndtom map` costs
         live.setdefault("compare", False)
-        return live_command(stream, resolution, occupancy=occupancy, config=cfg, summary=summary, metadata=extra,
-                            after_loop=counts, **live)  # fmt: skip
+        return live_command(run.stream, resolution, occupancy=occupancy, config=cfg, summary=run.summary,
+                            metadata=run.extra, after_loop=run.count_clouds, **live)  # fmt: skip
 
 
 def live_demo_command(

@@ -1,11 +1,13 @@
 """LiveMapper: build a map in a worker thread while the viewer shows it grow.
 
-The worker thread reads the next scan (so a slow reader does not block the GUI),
-inserts it into the NDT-OM map and, when given, the Recursive NDT map (under the
-viewer's ``map_lock``; nothing else waits on it), and records the time per scan, the
-pose and the scan's points. A second thread redraws the viewer at most every
-``refresh_interval`` seconds (longer when a redraw takes long), so drawing never holds
-up mapping.
+The worker thread runs the mapping loop (:func:`ndtom_ti.pipeline.run_scans`, as
+``ndtom map`` does) with the LiveMapper as its observer: it reads the next scan (so a slow
+reader does not block the GUI), inserts it into the NDT-OM map and, when given, the
+Recursive NDT map (under the viewer's ``map_lock``; nothing else waits on it), and records
+the time per scan, the pose and the scan's points. A bad scan stops mapping as it stops
+``ndtom map`` (the maps keep the scans before it). A second thread redraws the viewer at
+most every ``refresh_interval`` seconds (longer when a redraw takes long), so drawing
+never holds up mapping.
 
 Pacing: with ``speed`` the scans play at their recording's own rate (their ``stamp_ns``)
 times ``speed``; a scan that is late (mapping slower than the recording) goes at once
@@ -26,17 +28,17 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from ndtom_ti.scan import scan_parts
+from ndtom_ti.pipeline import MappingSummary, Observer, ProgressFn, run_scans
 
 from .geometry import cap_rows
 
 if TYPE_CHECKING:
-    from ndtom_ti import NdtOmMap
+    from ndtom_ti import NdtOmMap, ScanReport
     from ndtom_ti.snapshot import MapSnapshot
 
     from .controls import Controls
 
-__all__ = ["LiveMapper", "LiveView", "scan_parts"]
+__all__ = ["LiveMapper", "LiveView"]
 
 
 class LiveView(Protocol):
@@ -84,14 +86,18 @@ def chart_series(times_ms: list[float], compare_ms: list[float] | None = None) -
     return (x[start:], *(r[start:] for r in rows)), note
 
 
-class LiveMapper:
-    """Insert ``scans`` into ``m`` (and a Recursive NDT map) while ``viewer`` shows it.
+class LiveMapper(Observer):
+    """Insert ``scans`` into ``m`` (and a Recursive NDT map) while ``viewer`` (a
+    ``MapViewer``) shows it.
 
     Starts paused: :meth:`play`, :meth:`pause`, :meth:`step` (or the GUI buttons).
     ``scans_done``, ``times_ms`` (NDT-OM insert time per scan), ``finished`` and
     ``error`` (``exception``) report progress; :meth:`wait` blocks until the scans run
     out. ``on_scan(report, scan)`` is called from the worker thread after each insert.
     ``work_seconds``: time spent reading and inserting (not waiting for the pace).
+    ``summary`` (a :class:`~ndtom_ti.pipeline.MappingSummary`, made when not given) is
+    filled as ``ndtom map`` fills it, ``progress(summary, report)`` called after each scan
+    and ``after_loop()`` when mapping ends.
     """
 
     def __init__(
@@ -110,6 +116,9 @@ class LiveMapper:
         on_scan: Callable[[Any, Any], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], bool] | None = None,
+        summary: MappingSummary | None = None,
+        progress: ProgressFn | None = None,
+        after_loop: Callable[[], None] | None = None,
     ):
         from ndtom_ti import NdtOmMap
         from ndtom_ti.snapshot import MapSnapshot
@@ -144,6 +153,11 @@ class LiveMapper:
         self.paced_by_stamps = speed is not None
         self.max_gap_s = float(max_gap_s)
         self.on_scan = on_scan
+        self.summary = summary if summary is not None else MappingSummary(
+            source="scans", resolution=m.resolution, occupancy=m.occupancy_enabled, config=m.config.to_dict(),
+            scans_expected=total)  # fmt: skip
+        self._progress = progress
+        self._after_loop = after_loop
         self._clock = clock
         self._sleep = sleep if sleep is not None else self._stop_wait
         self._anchor: tuple[float, int] | None = None  # (clock, stamp_ns) the pace is measured from
@@ -159,7 +173,12 @@ class LiveMapper:
         self.error: str | None = None
         self.reports: list = []
 
-        self._it = iter(scans)
+        self._scans = scans
+        self._t_read = 0.0  # when the scan in hand was asked for
+        self._t_ins = 0.0  # when it went to the maps
+        self._work = 0.0  # reading it
+        self._last = -math.inf  # when the last scan went (rate_hz)
+        self._compare_rep: ScanReport | None = None
         self._positions: list[np.ndarray] = []
         self._playing = threading.Event()
         self._wake = threading.Event()
@@ -348,46 +367,58 @@ class LiveMapper:
                 return not self._sleep(wait)
         return True
 
-    def _run(self) -> None:
+    # ------------------------------------------------------------------ the loop's observer
+
+    def turn(self) -> bool:
+        ok = self._take_turn()
+        self._t_read = self._clock()
+        return ok
+
+    def due(self, scan: Any) -> bool:
+        self._work = self._clock() - self._t_read
+        if not self._pace(scan, self._last):
+            return False
+        self._last = self._clock()
+        self._t_ins = self._clock()
+        return True
+
+    def insert(self, m: NdtOmMap, points: Any, T_world_sensor: Any) -> ScanReport | None:
+        with self.viewer.map_lock:
+            if self.map is None:  # the viewer was closed
+                return None
+            rep = m.insert_scan(points, T_world_sensor)
+            self._compare_rep = self.compare.insert_scan(points, T_world_sensor) if self.compare is not None else None
+        return rep
+
+    def inserted(self, rep: ScanReport, scan: Any, points: Any, T_world_sensor: Any) -> None:
         v = self.viewer
-        last = -math.inf
+        self.work_seconds += self._work + (self._clock() - self._t_ins)
+        self.reports.append(rep)
+        self.times_ms.append(rep.seconds * 1e3)
+        if self._compare_rep is not None:
+            self.compare_times_ms.append(self._compare_rep.seconds * 1e3)
+        self.points_used.append(rep.points_used)
+        # pose and the scan's points for the viewer (world frame, capped)
+        T = T_world_sensor
+        P = np.asarray(points, np.float64)
+        P = P[np.isfinite(P).all(axis=1)]
+        P = P[cap_rows(len(P), self.max_scan_points)]
+        world = (P @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        self._positions.append(T[:3, 3].copy())
+        v.set_trajectory(np.array(self._positions))
+        v.set_scan(world)
+        self.scans_done += 1
+        if self.on_scan is not None:
+            self.on_scan(rep, scan)
+        self._dirty.set()
+
+    def _run(self) -> None:
         try:
-            while self._take_turn():
-                t_read = self._clock()
-                try:
-                    item = next(self._it)
-                except StopIteration:
-                    self.completed = True
-                    break
-                work = self._clock() - t_read
-                if not self._pace(item, last):
-                    break
-                last = self._clock()
-                pts, T = scan_parts(item)
-                t_ins = self._clock()
-                with v.map_lock:
-                    if self.map is None:  # the viewer was closed
-                        break
-                    rep = self.map.insert_scan(pts, T)
-                    rep2 = self.compare.insert_scan(pts, T) if self.compare is not None else None
-                self.work_seconds += work + (self._clock() - t_ins)
-                self.reports.append(rep)
-                self.times_ms.append(rep.seconds * 1e3)
-                if rep2 is not None:
-                    self.compare_times_ms.append(rep2.seconds * 1e3)
-                self.points_used.append(rep.points_used)
-                # pose and the scan's points for the viewer (world frame, capped)
-                P = np.asarray(pts, np.float64)
-                P = P[np.isfinite(P).all(axis=1)]
-                P = P[cap_rows(len(P), self.max_scan_points)]
-                world = (P @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-                self._positions.append(T[:3, 3].copy())
-                v.set_trajectory(np.array(self._positions))
-                v.set_scan(world)
-                self.scans_done += 1
-                if self.on_scan is not None:
-                    self.on_scan(rep, item)
-                self._dirty.set()
+            m = self.map
+            if m is not None:
+                self.completed = run_scans(m, self._scans, self.summary, self._progress, self._after_loop, self)
+            if self.summary.stopped in ("error", "memory"):  # a bad or refused scan, as `ndtom map` stops
+                self.error = self.summary.error
         except Exception as exc:  # noqa: BLE001 - shown on screen; the maps keep what was inserted
             self.exception = exc
             self.error = f"{type(exc).__name__}: {exc}"

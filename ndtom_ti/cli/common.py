@@ -118,7 +118,7 @@ def user_errors(*, recording: str | None = None, map_file: str | None = None) ->
     except (ValueError, TypeError) as exc:
         fail(str(exc), "`ndtom COMMAND --help` lists the options and their ranges")
     except KeyboardInterrupt as exc:
-        from ..pipeline import signal_name
+        from ..signals import signal_name
 
         signum = getattr(exc, "signum", signal.SIGINT)
         fail(f"interrupted ({signal_name(signum)}); nothing was written", None, signal_exit_code(signum))

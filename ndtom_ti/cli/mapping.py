@@ -375,7 +375,9 @@ def map_(
     Gaussians, memory, time per scan). Ctrl-C (or SIGTERM) stops after the current scan
     and saves what was mapped (exit 130, or 143).
     """
-    from ..pipeline import load_config_file, map_recording, stop_signals
+    from .. import pipeline
+    from ..io.selection import ScanSelection
+    from ..signals import stop_signals
 
     code = EXIT_OK
     with user_errors():
@@ -399,14 +401,15 @@ def map_(
                     f"--memory-limit {memory_limit:g} GiB is more than this machine's "
                     f"{physical_memory() / 2**30:.1f} GiB of memory"
                 )
-        cfg = load_config_file(config) if config is not None else None
-        from ..pipeline import config_with_ranges
-
-        mapcfg = config_with_ranges(cfg, min_range=min_range, max_range=max_range,
+        cfg = pipeline.load_config_file(config) if config is not None else None
+        mapcfg = pipeline.config_with_ranges(cfg, min_range=min_range, max_range=max_range,
                                     miss_model=miss_model.value if miss_model else None)  # fmt: skip
         out_path = output if output is not None else default_output(bag)
         check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
         out_path = check_writable(out_path, "map file")
+        selection = ScanSelection(cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
+                                  poses_file=poses, sensor_frame_only=sensor_frame, every=every,
+                                  every_distance=every_distance, t_start=start, t_end=end, max_scans=max_scans)  # fmt: skip
         if view:
             need_extra("viser", "the live viewer (--view)")
             from ..viewer.cli import live_recording_command, parse_rate
@@ -416,11 +419,8 @@ def map_(
             bar = _Bar(arch, progress, memory_limit)
             try:
                 code = live_recording_command(
-                    bag, resolution, scan_options={
-                        "cloud_topic": cloud_topic, "fixed_frame": fixed_frame, "pose_topic": pose_topic,
-                        "poses_file": poses, "sensor_frame_only": sensor_frame, "every": every,
-                        "every_distance": every_distance, "t_start": start, "t_end": end, "max_scans": max_scans},
-                    occupancy=occupancy, config=mapcfg, host=host, port=port, speed=speed, wait_for_browser=not no_wait,
+                    bag, resolution, selection=selection, occupancy=occupancy, config=mapcfg, host=host, port=port,
+                    speed=speed, wait_for_browser=not no_wait,
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
                     progress=bar, finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
                 )  # fmt: skip
@@ -432,10 +432,8 @@ def map_(
         # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit
         with stop_signals(restore=not own_process()) as sig:
             try:
-                m, summary = map_recording(
-                    bag, resolution, cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
-                    poses_file=poses, sensor_frame_only=sensor_frame, every=every, every_distance=every_distance,
-                    t_start=start, t_end=end, max_scans=max_scans, occupancy=occupancy, config=mapcfg,
+                m, summary = pipeline.map_recording(
+                    bag, resolution, selection, occupancy=occupancy, config=mapcfg,
                     metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
                     progress=bar,
                 )  # fmt: skip
@@ -477,7 +475,8 @@ def demo(
     """Map a built-in synthetic room (walls, floor, boxes, one box that is taken away
     halfway) and check the map against the exact ground truth. Writes OUT/demo.ndtom."""
     from .. import demo as demo_scene
-    from ..pipeline import map_scans, stop_signals
+    from ..pipeline import map_scans
+    from ..signals import stop_signals
 
     code = EXIT_OK
     with user_errors():

@@ -86,7 +86,7 @@ Progress = Callable[[str], None]
 # ============================================================================ helpers
 def _world_hits(points: np.ndarray, T: np.ndarray, cfg: MapConfig) -> np.ndarray:
     """World-frame endpoints the maps insert as hits (finite, within [min_range,
-    max_range]), transformed exactly as ``NdtOmMap._prepare`` does."""
+    max_range]), transformed exactly as ``ScanUpdate.prepare`` does."""
     pts = np.asarray(points, np.float64)
     ok = np.isfinite(pts).all(axis=1)
     rng = np.full(len(pts), np.inf)

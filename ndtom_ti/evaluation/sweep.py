@@ -16,8 +16,9 @@ import numpy as np
 
 from .. import runtime
 from ..config import MapConfig, check_resolution
-from ..map import NdtOmMap, as_pose
+from ..map import NdtOmMap
 from ..scan import scan_parts
+from ..scaninput import as_pose
 
 # A scan inside a sweep: (points (N, 3) float32 sensor frame, T_world_sensor (4, 4) float64).
 _Pair = tuple[np.ndarray, np.ndarray]

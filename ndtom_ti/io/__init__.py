@@ -18,6 +18,7 @@ from .recording import (
     TopicSummary,
     open_recording,
 )
+from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge
 from .transforms import PoseTrack, invert, make_transform, quat_to_rot, rot_to_quat, slerp
 
@@ -28,6 +29,7 @@ __all__ = [
     'RecordingError',
     'RecordingInfo',
     'Scan',
+    'ScanSelection',
     'ScanStream',
     'TfBuffer',
     'TfEdge',

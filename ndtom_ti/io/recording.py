@@ -6,7 +6,7 @@ import difflib
 import re
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -20,6 +20,7 @@ from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
 from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points
 from .posefile import load_pose_file
+from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
 from .transforms import PoseTrack
 
@@ -684,33 +685,29 @@ class Recording:
 
     def scans(
         self,
+        selection: ScanSelection | None = None,
         *,
-        cloud_topic: str | None = None,
-        fixed_frame: str | None = None,
-        pose_topic: str | None = None,
-        poses_file: str | Path | PoseTrack | None = None,
-        sensor_frame_only: bool = False,
-        every: int = 1,
-        every_distance: float | None = None,
-        t_start: float | None = None,
-        t_end: float | None = None,
-        max_scans: int | None = None,
         extrapolation_s: float = 0.05,
         depth_stride: int = 1,
+        **options: Any,
     ) -> ScanStream:
         """Scans of one cloud topic with their poses; see :class:`ScanStream`.
 
-        The topic and pose source are resolved now (so problems raise here); the
-        clouds are read lazily while iterating. Pose source preference: TF chain
-        from ``fixed_frame`` (default: root of the cloud frame's tree) when it has
-        a moving edge; else the single pose topic that fits (composed with the TF
-        offset from its body frame to the cloud frame); overridden by
-        ``pose_topic``, ``poses_file`` (TUM/KITTI path or a PoseTrack) or
-        ``sensor_frame_only`` (identity poses). ``t_start``/``t_end`` are seconds
-        from the bag start (record time); ``every`` keeps cloud indices divisible
-        by k; ``every_distance`` keeps a cloud once the sensor moved that far from
-        the last kept one; ``max_scans`` stops after that many kept scans.
+        ``selection``: a :class:`ScanSelection`; or give its fields here by keyword
+        (``options``; given with ``selection``, they replace its fields). The topic and
+        pose source are resolved now (so problems raise here); the clouds are read lazily
+        while iterating. Pose source preference: TF chain from ``fixed_frame`` (default:
+        root of the cloud frame's tree) when it has a moving edge; else the single pose
+        topic that fits (composed with the TF offset from its body frame to the cloud
+        frame); overridden by ``pose_topic``, ``poses_file`` (TUM/KITTI path or a
+        PoseTrack) or ``sensor_frame_only`` (identity poses). ``t_start``/``t_end`` are
+        seconds from the bag start (record time); ``every`` keeps cloud indices divisible
+        by k; ``every_distance`` keeps a cloud once the sensor moved that far from the
+        last kept one; ``max_scans`` stops after that many kept scans.
         """
+        sel = replace(selection or ScanSelection(), **options)
+        every, every_distance, max_scans = sel.every, sel.every_distance, sel.max_scans
+        t_start, t_end = sel.t_start, sel.t_end
         if every < 1:
             raise ValueError(f'every must be >= 1, got {every}')
         if every_distance is not None and every_distance < 0:
@@ -721,7 +718,7 @@ class Recording:
             raise ValueError(f't_end ({t_end}) is before t_start ({t_start})')
         if depth_stride < 1:
             raise ValueError(f'depth_stride must be >= 1, got {depth_stride}')
-        topic, kind = self._resolve_cloud_topic(cloud_topic)
+        topic, kind = self._resolve_cloud_topic(sel.cloud_topic)
         first = self._first_message(topic)
         if first is None:
             raise RecordingError(f'{topic} has no messages')
@@ -730,10 +727,10 @@ class Recording:
         choice = self._pose_choice(
             frame,
             stamp_ns(first[1].header.stamp),
-            fixed_frame=fixed_frame,
-            pose_topic=pose_topic,
-            poses_file=poses_file,
-            sensor_frame_only=sensor_frame_only,
+            fixed_frame=sel.fixed_frame,
+            pose_topic=sel.pose_topic,
+            poses_file=sel.poses_file,
+            sensor_frame_only=sel.sensor_frame_only,
             tol=tol,
             what=topic,
         )
@@ -758,11 +755,7 @@ class Recording:
             choice,
             frame,
             infos,
-            every=every,
-            every_distance=every_distance,
-            t_start=t_start,
-            t_end=t_end,
-            max_scans=max_scans,
+            selection=sel,
             depth_stride=depth_stride,
         )
 
@@ -788,11 +781,7 @@ class ScanStream:
         frame_id: str,
         camera_infos: list[tuple[int, Any]],
         *,
-        every: int,
-        every_distance: float | None,
-        t_start: float | None,
-        t_end: float | None,
-        max_scans: int | None,
+        selection: ScanSelection,
         depth_stride: int,
     ) -> None:
         self._rec = rec
@@ -804,11 +793,12 @@ class ScanStream:
         self.pose_range_ns = choice.range_ns
         self._pose = choice.fn
         self._infos = camera_infos
-        self._every = every
-        self._every_distance = every_distance
+        self._every = selection.every
+        self._every_distance = selection.every_distance
+        t_start, t_end = selection.t_start, selection.t_end
         self._lo = None if t_start is None else rec.start_ns + round(t_start * 1e9)
         self._hi = None if t_end is None else rec.start_ns + round(t_end * 1e9)
-        self._max = max_scans
+        self._max = selection.max_scans
         self._stride = depth_stride
         self.skipped: Counter[str] = Counter()
         self.total_seen = 0

@@ -1,0 +1,66 @@
+"""ScanSelection: which clouds of a recording are mapped, and where their poses come from.
+
+One frozen object for the scan-selection options: the ``ndtom map`` command builds it, and
+the pipeline, the live viewer and :meth:`Recording.scans` take it whole.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .transforms import PoseTrack
+
+
+@dataclass(frozen=True)
+class ScanSelection:
+    """The clouds of one topic to map, and their poses (see :meth:`Recording.scans`).
+
+    ``cloud_topic``: the topic (None: the one point-cloud or depth topic); pose source:
+    ``fixed_frame`` (the TF chain's root), ``pose_topic``, ``poses_file`` (TUM/KITTI path
+    or a PoseTrack) or ``sensor_frame_only`` (identity poses); ``every`` keeps cloud
+    indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
+    (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
+    stops after that many kept scans.
+    """
+
+    cloud_topic: str | None = None
+    fixed_frame: str | None = None
+    pose_topic: str | None = None
+    poses_file: str | Path | PoseTrack | None = None
+    sensor_frame_only: bool = False
+    every: int = 1
+    every_distance: float | None = None
+    t_start: float | None = None
+    t_end: float | None = None
+    max_scans: int | None = None
+
+    def options(self) -> dict:
+        """The selection as a map's metadata records it (``start``/``end``; a pose file's
+        absolute path)."""
+        poses = self.poses_file
+        return {
+            "cloud_topic": self.cloud_topic, "fixed_frame": self.fixed_frame, "pose_topic": self.pose_topic,
+            "poses_file": str(Path(poses).resolve()) if poses is not None else None,  # type: ignore[arg-type]
+            "sensor_frame_only": self.sensor_frame_only, "every": self.every, "every_distance": self.every_distance,
+            "start": self.t_start, "end": self.t_end, "max_scans": self.max_scans,
+        }  # fmt: skip
+
+    def expected_scans(self, rec: Any, topic: str) -> int | None:
+        """About how many scans of ``topic`` in recording ``rec`` this selection keeps (for a
+        progress bar; None: unknown)."""
+        count = next((c for n, _, c in rec.topics() if n == topic), None)
+        if not count:
+            return None
+        if self.t_start is not None or self.t_end is not None:
+            dur = rec.duration_ns / 1e9
+            if dur > 0:
+                lo = max(0.0, self.t_start or 0.0)
+                hi = min(dur, dur if self.t_end is None else self.t_end)
+                count = max(0, round(count * max(0.0, hi - lo) / dur)) + 1
+        count = math.ceil(count / self.every)
+        if self.max_scans is not None:
+            count = min(count, self.max_scans)
+        return count
