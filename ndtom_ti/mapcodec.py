@@ -73,18 +73,41 @@ def _rows(a: np.ndarray) -> np.ndarray:
 def _planes(a: np.ndarray) -> np.ndarray:
     """Bytes of ``a`` (rows first) regrouped as (bytes of a row, rows): plane p holds byte p
     of every row."""
-    return np.ascontiguousarray(_rows(a).T)
+    r = _rows(a)
+    rows, width = r.shape
+    if width % 4 or not rows:
+        return np.ascontiguousarray(r.T)
+    # 4-byte words first, then the bytes of each word: ~1.7x faster than numpy's byte transpose
+    words = np.ascontiguousarray(r.view(np.uint32).T)
+    planes = np.ascontiguousarray(words.view(np.uint8).reshape(width // 4, rows, 4).transpose(0, 2, 1))
+    return planes.reshape(width, rows)
+
+
+def _unplane(raw: bytes, dtype: np.dtype, shape: list, rows: int) -> np.ndarray:
+    """The (rows, *shape[1:]) array of ``dtype`` whose planes (:func:`_planes`) ``raw`` holds."""
+    width = dtype.itemsize * math.prod(shape[1:])
+    planes = np.frombuffer(raw, np.uint8).reshape(width, rows)
+    if width % 4 or not rows:
+        r = np.ascontiguousarray(planes.T)
+    else:
+        words = np.ascontiguousarray(planes.reshape(width // 4, 4, rows).transpose(0, 2, 1))
+        r = np.ascontiguousarray(words.view(np.uint32).reshape(width // 4, rows).T)
+    return r.view(dtype).reshape(rows, *shape[1:])
 
 
 def _nonzero(a: np.ndarray) -> list[np.ndarray]:
     """The ``nonzero`` coding's two streams: a bit for each row that is not all zero bits
     (-0.0 is not zero here), and those rows in planes."""
     r = _rows(a)
-    if r.shape[1] % 8 == 0:  # whole words: 8x fewer comparisons than bytes
-        keep = r.view(np.uint64).any(axis=1)
-    else:
+    if r.shape[1] % 8 or not r.shape[1]:
         keep = r.any(axis=1)
-    return [np.packbits(keep, bitorder="little"), _planes(r[keep])]
+        return [np.packbits(keep, bitorder="little"), _planes(r[keep])]
+    words = r.view(np.uint64)  # whole words, OR-ed column by column (any(axis=1) is ~4x slower)
+    bits = words[:, 0].copy()
+    for c in range(1, words.shape[1]):
+        bits |= words[:, c]
+    keep = bits != 0
+    return [np.packbits(keep, bitorder="little"), _planes(words[keep])]  # (rows of words: a faster gather)
 
 
 def _keys(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -215,12 +238,6 @@ def _inflate(blob: memoryview, size: int, what: str, bad: Bad) -> bytes:
     if len(out) != size or not dobj.eof or dobj.unused_data:
         bad(f"{what} decompresses to {len(out)} bytes with trailing data, {size} declared")
     return out
-
-
-def _unplane(raw: bytes, dtype: np.dtype, shape: list, rows: int) -> np.ndarray:
-    row_bytes = dtype.itemsize * math.prod(shape[1:])
-    planes = np.frombuffer(raw, np.uint8).reshape(row_bytes, rows)
-    return np.ascontiguousarray(planes.T).view(dtype).reshape(rows, *shape[1:])
 
 
 def decode(table: list[dict], payload: bytes, bad: Bad) -> dict[str, np.ndarray]:
