@@ -84,15 +84,10 @@ def _planes(a: np.ndarray) -> np.ndarray:
 
 
 def _unplane(raw: bytes, dtype: np.dtype, shape: list, rows: int) -> np.ndarray:
-    """The (rows, *shape[1:]) array of ``dtype`` whose planes (:func:`_planes`) ``raw`` holds."""
-    width = dtype.itemsize * math.prod(shape[1:])
-    planes = np.frombuffer(raw, np.uint8).reshape(width, rows)
-    if width % 4 or not rows:
-        r = np.ascontiguousarray(planes.T)
-    else:
-        words = np.ascontiguousarray(planes.reshape(width // 4, 4, rows).transpose(0, 2, 1))
-        r = np.ascontiguousarray(words.view(np.uint32).reshape(width // 4, rows).T)
-    return r.view(dtype).reshape(rows, *shape[1:])
+    """The (rows, *shape[1:]) array of ``dtype`` whose planes (:func:`_planes`) ``raw`` holds
+    (numpy's byte transpose: this way round ~3x faster than through words)."""
+    planes = np.frombuffer(raw, np.uint8).reshape(dtype.itemsize * math.prod(shape[1:]), rows)
+    return np.ascontiguousarray(planes.T).view(dtype).reshape(rows, *shape[1:])
 
 
 def _nonzero(a: np.ndarray) -> list[np.ndarray]:
@@ -269,7 +264,7 @@ def decode(table: list[dict], payload: bytes, bad: Bad) -> dict[str, np.ndarray]
             if len(raws[1]) != n * row_bytes:
                 bad(f"array {name!r} holds {len(raws[1])} bytes of rows for {n} rows that are not zero")
             a = np.zeros(shape, dtype)
-            a[keep] = _unplane(raws[1], dtype, shape, n)
+            a[np.flatnonzero(keep)] = _unplane(raws[1], dtype, shape, n)
             out[name] = a
             continue
         d = np.frombuffer(raws[0], np.uint8).astype(np.int64)
