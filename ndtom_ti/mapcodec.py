@@ -193,7 +193,7 @@ def check_table(table: list[dict], payload_bytes: int, bad: Bad) -> None:
                 bad(f"array {name!r} declares {raw} bytes in a {nb}-byte stream: more than zstd can hold")
             total += nb
         first = streams[0]["raw_nbytes"]
-        need = {"delta": rows, "nonzero": (rows + 7) // 8}.get(coding, rows * row_bytes)
+        need = rows if coding == "delta" else (rows + 7) // 8 if coding == "nonzero" else rows * row_bytes
         if first != need:
             bad(f"array {name!r} of shape {shape} declares {first} bytes in its first stream")
         if coding == "nonzero":
