@@ -1,5 +1,5 @@
-"""Map file size and save/load time: format 4 (compressed) against format 3 (raw arrays),
-paired in one process on the same maps.
+"""Map file size and save/load time: formats 5 and 4 (compressed) against format 3 (raw
+arrays), paired in one process on the same maps.
 
     ndtom map ../shared/data/norlab_outdoor_stationary_14.bag -r 0.2 -o norlab.ndtom
     python benchmarks/mapfile_size.py norlab.ndtom [more.ndtom ...] --repeats 5
@@ -41,7 +41,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.maps:
             s = MapSnapshot.load(path)
-            files = {v: Path(tmp) / f"v{v}.ndtom" for v in (RAW_VERSION, VERSION)}
+            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, VERSION})}
             times: dict[str, list[float]] = {}
             m = None
             if args.map:
@@ -69,9 +69,10 @@ def main() -> None:
                 print(f"  format {v}: {size[v] / 2**20:.1f} MiB, {size[v] / max(known, 1):.2f} bytes a known cell")
             for what in ("save", "load", "map save", "map load"):
                 if f"{what} {VERSION}" in med:
-                    a, b = med[f"{what} {RAW_VERSION}"], med[f"{what} {VERSION}"]
-                    print(f"  {what}: format {RAW_VERSION} {a:.3f} s, format {VERSION} {b:.3f} s, ratio {b / a:.2f}"
-                          f" (medians of {args.repeats})")
+                    a = med[f"{what} {RAW_VERSION}"]
+                    print(f"  {what}: format {RAW_VERSION} {a:.3f} s, " + ", ".join(
+                        f"format {v} {med[f'{what} {v}']:.3f} s (ratio {med[f'{what} {v}'] / a:.2f})"
+                        for v in files if v != RAW_VERSION) + f" (medians of {args.repeats})")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ Layout (little endian):
     4 bytes   format version (uint32)
     8 bytes   header length H (uint64)
     H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256
-    payload   version 4: each array's zstd frames, back to back (``mapcodec``; the table
+    payload   versions 4-5: each array's zstd frames, back to back (``mapcodec``; the table
               gives name, dtype, shape, coding and the frames' sizes); versions 1-3: the
               arrays' raw bytes (the table gives name, dtype, shape, offset, nbytes)
 """
@@ -38,9 +38,12 @@ MAGIC = b"NDTOMTI\n"
 # 2: g_erased_near (version 1 files lack it: read as zeros).
 # 3: g_ndt_state (earlier files lack it: read as zeros).
 # 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
-VERSION = 4
+# 5: scatter matrices without their rows of zeros (mapcodec's "nonzero" coding).
+VERSION = mapcodec.VERSION
 # The last version of raw arrays; write(..., version=RAW_VERSION) still writes it.
 RAW_VERSION = 3
+# The versions write() writes (4 and 3 for older readers).
+_WRITES = (VERSION, 4, RAW_VERSION)
 # The file's arrays are a map's cell state (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
@@ -58,10 +61,11 @@ class MapFileError(ValueError):
 def write(path: str | Path, settings: dict, arrays: dict, *, version: int = VERSION) -> Path:
     """Write a map's ``settings`` (as ``MapSnapshot.settings()`` gives them) and cell
     ``arrays`` (``cellstate.ARRAYS``) to ``path``, atomically; ``version=RAW_VERSION``
-    writes the uncompressed format that ndtom_ti before format 4 reads."""
+    writes the uncompressed format that ndtom_ti before format 4 reads, ``version=4``
+    format 4."""
     path = check_target(path)
-    if version not in (VERSION, RAW_VERSION):
-        raise ValueError(f"map files are written as version {VERSION} or {RAW_VERSION}, not {version}")
+    if version not in _WRITES:
+        raise ValueError(f"map files are written as version {', '.join(map(str, _WRITES))}, not {version}")
     hbytes, blobs = _encode(settings, arrays, version)
 
     def write(fh) -> None:
@@ -78,7 +82,7 @@ def _encode(s: dict, cells: dict, version: int) -> tuple[bytes, list]:
     """The header bytes and the payload's parts of a map file."""
     arrays = {name: np.ascontiguousarray(cells[name], dtype=dtype) for name, (dtype, _) in ARRAYS.items()}
     if version >= 4:
-        table, blobs = mapcodec.encode(arrays)
+        table, blobs = mapcodec.encode(arrays, version)
     else:
         table, blobs, offset = [], [], 0
         for name, a in arrays.items():

@@ -45,7 +45,8 @@ def _build_bases() -> dict[str, bytes]:
                 T[:3, 3] = [0.3 * k, -0.2 * k, 0.1]
                 m.insert_scan(rng.normal(size=(400, 3)) * [2.0, 1.5, 0.3] + [3.0, 0.0, 0.0], T)
             out[name] = m.save(Path(tmp) / f"{name}.ndtom").read_bytes()
-            # the same map in the raw format of version 3 (older files must keep loading)
+            # the same map in format 4 and in the raw format of version 3 (older files must keep loading)
+            out[f"{name} v4"] = m.snapshot().save(Path(tmp) / "v4.ndtom", version=4).read_bytes()
             out[f"{name} v3"] = m.snapshot().save(Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
             del m
     gc.collect()
@@ -89,10 +90,12 @@ def arrays_of(header: dict, payload: bytes, head: bytes) -> dict[str, np.ndarray
 
 
 def repack(header: dict, arrays: dict[str, np.ndarray], head: bytes) -> bytes:
-    """Write ``arrays`` back to back with a table that describes them exactly (version 4:
-    compressed; an index that cannot be coded, unsorted or repeated, raises)."""
-    if struct.unpack("<I", head[8:12])[0] >= 4:
-        table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]})
+    """Write ``arrays`` back to back with a table that describes them exactly (versions 4
+    and 5: compressed as that version is; an index that cannot be coded, unsorted or
+    repeated, raises)."""
+    version = struct.unpack("<I", head[8:12])[0]
+    if version >= 4:
+        table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]}, version)
         header["arrays"] = table
         payload = b"".join(frames)
         header["payload_bytes"] = len(payload)
@@ -353,7 +356,7 @@ def teardown_module(module):
         print(f"\nmap file fuzz ({EXAMPLES} examples asked): {dict(OUTCOMES)}")
 
 
-@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v3", "rndt v3"])
+@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v4", "ndtom v3", "rndt v3"])
 def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
     """Deterministic companion: each array one row short (checksum valid) is refused."""
     head, header, payload = split(bases()[name])
@@ -367,3 +370,81 @@ def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
         path.write_bytes(join(head, h, repack(h, arrays, head)))
         with pytest.raises(MapFileError, match="rows"):
             NdtOmMap.load(path)
+
+
+# ---------------------------------------------------------------------------- the codec alone
+_SPECIAL = [0.0, -0.0, np.nan, -np.nan, np.inf, -np.inf, 5e-324, -5e-324, 2.2250738585072014e-308, 1.0, -1e300]
+_F64 = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64), st.sampled_from(_SPECIAL))
+
+
+@st.composite
+def codec_arrays(draw) -> dict[str, np.ndarray]:
+    """Arrays of every name the codec knows, of one row count per group: sorted distinct
+    cells, float64 values of any bits (NaN with payloads, -0.0, infinities, subnormals),
+    rows of the scatter all zero or zero but for one -0.0."""
+    def cells(n: int) -> np.ndarray:
+        base = draw(st.sampled_from([0, -(2**31) + 1, 2**31 - 2**20 - 1, -12345]))  # (the key bounds: |lo| < 2**31)
+        rows = draw(st.sets(st.tuples(st.integers(0, 2**20), st.integers(0, 300), st.integers(0, 300)), max_size=n))
+        return (np.array(sorted(rows), np.int64).reshape(-1, 3) + base).astype(np.int32)
+
+    occ = cells(draw(st.integers(0, 40)))
+    g = cells(draw(st.integers(0, 40)))
+    k, n = len(occ), len(g)
+
+    def f64(shape) -> np.ndarray:
+        a = np.array(draw(st.lists(_F64, min_size=math.prod(shape), max_size=math.prod(shape))), np.float64)
+        bits = a.view(np.uint64)
+        bits ^= np.array(draw(st.lists(st.integers(0, 7), min_size=a.size, max_size=a.size)), np.uint64)  # NaN payloads
+        return a.reshape(shape)
+
+    scatter = f64((n, 6))
+    for r in range(n):
+        how = draw(st.sampled_from(["values", "zeros", "minus zero"]))
+        if how != "values":
+            scatter[r] = 0.0
+        if how == "minus zero":
+            scatter[r, draw(st.integers(0, 5))] = -0.0
+    ints = st.integers(-(2**31), 2**31 - 1)
+    return {
+        "occ_index": occ,
+        "occ_logodds": np.array(draw(st.lists(st.floats(width=32, allow_nan=True), min_size=k, max_size=k)), "<f4"),
+        "g_index": g,
+        "g_n": np.array(draw(st.lists(ints, min_size=n, max_size=n)), "<i4"),
+        "g_mean_rel": f64((n, 3)),
+        "g_scatter": scatter,
+        "g_erased_near": np.array(draw(st.lists(ints, min_size=n, max_size=n)), "<i4"),
+        "g_ndt_state": np.array(draw(st.lists(st.integers(0, 255), min_size=n, max_size=n)), "|u1"),
+    }
+
+
+@settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=EXAMPLES <= 500,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(arrays=codec_arrays(), version=st.sampled_from([4, mapcodec.VERSION]))
+def test_codec_round_trip_is_bit_for_bit(arrays, version):
+    """Whatever bits the arrays hold, encode then decode gives them back exactly (dtype,
+    shape and every byte, NaN payloads and -0.0 included), in either compressed version."""
+    table, frames = mapcodec.encode(arrays, version)
+    assert [e["name"] for e in table] == list(arrays)
+    assert {e["name"]: e["coding"] for e in table if e["name"] in mapcodec.CODING} == mapcodec.CODINGS[version]
+    payload = b"".join(frames)
+    mapcodec.check_table(table, len(payload), _raise)
+    back = mapcodec.decode(table, payload, _raise)
+    for name, a in arrays.items():
+        b = back[name]
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+
+
+def test_codec_leaves_out_rows_of_zero_scatter():
+    """Format 5 stores a scatter row of zeros as one bit: a million Gaussians of one point
+    (zero scatter) cost a few hundred bytes of scatter, where format 4 held their zeros."""
+    n = 10**6
+    scatter = np.zeros((n, 6))
+    scatter[::1000] = np.random.default_rng(1).random((n // 1000 + (n % 1000 > 0), 6))
+    scatter[7, 3] = -0.0  # not zero bits: kept
+    arrays = {"g_scatter": scatter}
+    sizes = {v: sum(s["nbytes"] for s in mapcodec.encode(arrays, v)[0][0]["streams"]) for v in (4, mapcodec.VERSION)}
+    table, frames = mapcodec.encode(arrays)
+    back = mapcodec.decode(table, b"".join(frames), _raise)["g_scatter"]
+    assert back.tobytes() == scatter.tobytes()
+    assert sizes[mapcodec.VERSION] < 60 * 1001 + 1000, sizes  # the kept rows (~48 B each) and the bits
+    assert sizes[mapcodec.VERSION] < sizes[4], sizes
