@@ -6,6 +6,17 @@ NDT-OM with the paper's eq. (12), and OctoMap (when pyoctomap is installed) on t
 Scenes are made by shared/tools/simworld.py (60 scans one second apart by default; a static
 twin of each scene, same seed, for the conflicting cells). Metrics: ndtom_ti.quality.
 Writes quality.csv, one top view per scene (quality_<scene>.png) and prints a table.
+
+Scene settings (vehicle speed, mount roll and pitch, range noise, scan stride) take a list
+each; the grid is their cross product over seeds, scenes and resolutions:
+
+    python benchmarks/quality.py --scene hall --seed 1001 1002 --speed 1 2 --pitch 0 5
+
+or a given list of combinations, each starting from the defaults:
+
+    python benchmarks/quality.py --seed 1001 --combo default speed=2 pitch=5 noise=0.05
+
+A second table puts the three mappers side by side, with ndtom's ghosts over OctoMap's.
 """
 
 from __future__ import annotations
@@ -16,6 +27,8 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import asdict, dataclass
+from itertools import product
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +42,48 @@ SIMWORLD = ROOT.parent / "shared" / "tools" / "simworld.py"
 MAPPERS = ("ndtom-ndt", "ndtom-paper", "octomap")
 
 
-def make_scene(simworld: Path, out: Path, scene: str, seed: int, scans: int, static: bool) -> Path:
-    name = f"{scene}_s{seed}_n{scans}{'_static' if static else ''}"
+@dataclass(frozen=True)
+class Settings:
+    """The simulator's motion and sensor settings of a scene (simworld's defaults but the stride)."""
+
+    speed: float = 1.0  # m/s
+    roll: float = 0.0  # mount roll, degrees
+    pitch: float = 0.0  # mount pitch, degrees
+    noise: float = 0.02  # range noise std, m
+    stride: int = 10  # every stride-th scan of the 10 Hz stream
+
+    def tag(self) -> str:
+        """File-name suffix naming the settings that differ from the defaults ('' for none)."""
+        short = {"speed": "v", "roll": "r", "pitch": "p", "noise": "e", "stride": "k"}
+        d = Settings()
+        return "".join(f"_{short[k]}{getattr(self, k):g}" for k in short if getattr(self, k) != getattr(d, k))
+
+    def label(self) -> str:
+        return self.tag().lstrip("_").replace("_", " ") or "default"
+
+
+def parse_combo(text: str) -> Settings:
+    """'speed=2,pitch=5' (or 'default') -> Settings; unnamed settings keep their defaults."""
+    if text == "default":
+        return Settings()
+    kw = {}
+    for part in text.split(","):
+        key, _, val = part.partition("=")
+        if key not in Settings.__dataclass_fields__ or not val:
+            raise ValueError(f"bad setting {part!r} (keys: {', '.join(Settings.__dataclass_fields__)})")
+        kw[key] = int(val) if key == "stride" else float(val)
+    return Settings(**kw)
+
+
+def make_scene(simworld: Path, out: Path, scene: str, seed: int, scans: int, static: bool,
+               settings: Settings = Settings()) -> Path:  # fmt: skip
+    name = f"{scene}_s{seed}_n{scans}{settings.tag()}{'_static' if static else ''}"
     npz = out / f"{name}.npz"
     if not npz.exists():
+        st = settings
         args = [sys.executable, str(simworld), "--variant", scene, "--seed", str(seed), "--scans", str(scans),
-                "--stride", "10", "--no-bags", "--name", name, "--out", str(out)]  # fmt: skip
+                "--stride", str(st.stride), "--speed", f"{st.speed:g}", "--sigma", f"{st.noise:g}",
+                "--mount-rpy", f"{st.roll:g},{st.pitch:g},0", "--no-bags", "--name", name, "--out", str(out)]  # fmt: skip
         if static:
             args.append("--static")
         subprocess.run(args, check=True, capture_output=True)
@@ -62,7 +111,7 @@ def read_scene(npz: Path) -> tuple[list[q.LabelledScan], float, tuple[np.ndarray
                 dyn_hi=z["dyn_hi"][i][present],
             )
         )
-    return scans, float(params.get("sigma", 0.02)), (z["static_lo"], z["static_hi"])
+    return scans, float(params.get("range_sigma", 0.02)), (z["static_lo"], z["static_hi"])
 
 
 def local_points(sc: q.LabelledScan) -> np.ndarray:
@@ -93,7 +142,8 @@ def build_octree(scans, res: float):
     return tree, np.array(times)
 
 
-def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: float, octomap: bool) -> tuple[list[dict], dict]:
+def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: float, octomap: bool,
+             seed: int = 7, settings: Settings = Settings()) -> tuple[list[dict], dict]:  # fmt: skip
     cand = q.mark_observed(q.ghost_candidates(dyn, res, 3.0 * sigma, boxes), dyn, res)
     ref = q.static_reference(dyn, res)
     rows, left = [], {}
@@ -121,7 +171,7 @@ def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: floa
         gc.collect()
         left[mapper] = qual.ghosts_left
         rows.append({
-            "scene": scene, "resolution": res, "mapper": mapper, "scans": len(dyn),
+            "scene": scene, "seed": seed, **asdict(settings), "resolution": res, "mapper": mapper, "scans": len(dyn),
             "ghosts_pct": 100 * qual.ghosts, "ghost_cells_observed": qual.ghost_cells,
             "static_kept_pct": 100 * qual.static_kept, "static_cells": qual.static_cells,
             "conflicting_static_pct": None if conf is None else 100 * conf,
@@ -129,6 +179,9 @@ def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: floa
         })  # fmt: skip
     del rcu
     gc.collect()
+    octo = next((r["ghosts_pct"] for r in rows if r["mapper"] == "octomap"), None)
+    for r in rows:
+        r["ghosts_vs_octomap"] = r["ghosts_pct"] / octo if octo and r["mapper"] != "octomap" else None
     return rows, {"candidates": cand, "static": ref, "left": left}
 
 
@@ -166,12 +219,44 @@ def print_table(rows: list[dict]) -> None:
               f"{r['static_kept_pct']:>10.1f}% {conf:>11} {r['ms_median']:>8.1f}")  # fmt: skip
 
 
+def print_grid(rows: list[dict]) -> None:
+    """One line per scene, seed, settings and resolution: the mappers side by side."""
+    head = (f"{'scene':5} {'seed':>5} {'settings':14} {'res':>4} | {'ghosts % ndt / paper / octo':>27} {'ndt/octo':>8} | "
+            f"{'static kept % ndt / paper / octo':>32} | {'conflicting % ndt / paper':>25}")  # fmt: skip
+    print(head)
+    print("-" * len(head))
+    keys = ("scene", "seed", *Settings.__dataclass_fields__, "resolution")
+    groups: dict[tuple, dict] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in keys), {})[r["mapper"]] = r
+    for key, g in groups.items():
+        st = Settings(**{k: key[2 + i] for i, k in enumerate(Settings.__dataclass_fields__)})
+        ratio = g.get("ndtom-ndt", {}).get("ghosts_vs_octomap")
+        print(f"{key[0]:5} {key[1]:>5} {st.label():14} {key[-1]:>4g} | {_side(g, MAPPERS, 'ghosts_pct'):>27} "
+              f"{'-' if ratio is None else f'{ratio:.2f}x':>8} | {_side(g, MAPPERS, 'static_kept_pct'):>32} | "
+              f"{_side(g, MAPPERS[:2], 'conflicting_static_pct'):>25}")  # fmt: skip
+
+
+def _side(group: dict, mappers, field: str) -> str:
+    vals = (group.get(m, {}).get(field) for m in mappers)
+    return " / ".join("-" if v is None else f"{v:.1f}" for v in vals)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", nargs="+", default=["hall", "yard"], choices=["hall", "yard"])
-    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--seed", type=int, nargs="+", default=[7])
     ap.add_argument("--scans", type=int, default=60)
     ap.add_argument("--res", type=float, nargs="+", default=[0.2])
+    d = Settings()
+    ap.add_argument("--speed", type=float, nargs="+", default=[d.speed], help="vehicle speed, m/s")
+    ap.add_argument("--roll", type=float, nargs="+", default=[d.roll], help="mount roll, degrees")
+    ap.add_argument("--pitch", type=float, nargs="+", default=[d.pitch], help="mount pitch, degrees")
+    ap.add_argument("--noise", type=float, nargs="+", default=[d.noise], help="range noise std, m")
+    ap.add_argument("--stride", type=int, nargs="+", default=[d.stride], help="every K-th scan of the 10 Hz stream")
+    ap.add_argument("--combo", nargs="+", metavar="K=V[,K=V]",
+                    help="these combinations of settings (each from the defaults; 'default' for none) "
+                         "instead of the cross product of the lists")  # fmt: skip
     ap.add_argument("--out", type=Path, default=Path("quality"))
     ap.add_argument("--simworld", type=Path, default=SIMWORLD, help="path of simworld.py")
     ap.add_argument("--no-octomap", action="store_true", help="skip OctoMap even when pyoctomap is installed")
@@ -186,27 +271,40 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             print("pyoctomap not installed: OctoMap skipped (pip install -e '.[bench]')", file=sys.stderr)
             octomap = False
+    try:
+        grid = ([parse_combo(c) for c in a.combo] if a.combo else
+                [Settings(*v) for v in product(a.speed, a.roll, a.pitch, a.noise, a.stride)])  # fmt: skip
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     a.out.mkdir(parents=True, exist_ok=True)
     ndtom_ti.init()
-    rows = []
-    for scene in a.scene:
-        dyn, sigma, boxes = read_scene(make_scene(a.simworld, a.out, scene, a.seed, a.scans, False))
-        static, _, _ = read_scene(make_scene(a.simworld, a.out, scene, a.seed, a.scans, True))
+    rows, views = [], 0
+    for scene, seed, st in product(a.scene, a.seed, grid):
+        dyn, sigma, boxes = read_scene(make_scene(a.simworld, a.out, scene, seed, a.scans, False, st))
+        static, _, _ = read_scene(make_scene(a.simworld, a.out, scene, seed, a.scans, True, st))
         for res in a.res:
-            r, detail = evaluate(scene, dyn, static, sigma, boxes, res, octomap)
+            r, detail = evaluate(scene, dyn, static, sigma, boxes, res, octomap, seed, st)
             rows += r
-            if res == a.res[0]:
-                top_view(a.out / f"quality_{scene}.png", scene, res, detail)
+            if res == a.res[0] and seed == a.seed[0]:
+                top_view(a.out / f"quality_{scene}{st.tag()}.png", scene, res, detail)
+                views += 1
+        # Partial results survive a long grid stopped part way.
+        write_csv(a.out / "quality.csv", rows)
+    print_table(rows)
+    print()
+    print_grid(rows)
+    print(f"wrote {a.out / 'quality.csv'} and {views} top views in {a.out}")
+    return 0
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
     import csv
 
-    with open(a.out / "quality.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]) + ["seed"])
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
-        for r in rows:
-            w.writerow({**r, "seed": a.seed})
-    print_table(rows)
-    print(f"wrote {a.out / 'quality.csv'} and {len(a.scene)} top views in {a.out}")
-    return 0
+        w.writerows(rows)
 
 
 if __name__ == "__main__":

@@ -108,3 +108,52 @@ def test_quality_benchmark_end_to_end(tmp_path):
     # The NDT miss model keeps more of the static surface than the paper's constant rate.
     assert float(rows[0]["static_kept_pct"]) > float(rows[1]["static_kept_pct"])
     assert (out / "quality_hall.png").stat().st_size > 10_000
+
+
+def load_benchmark():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("quality_bench", ROOT / "benchmarks" / "quality.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_quality_benchmark_settings_parse_and_name_scenes():
+    b = load_benchmark()
+    assert b.parse_combo("default") == b.Settings() and b.Settings().tag() == ""
+    st = b.parse_combo("speed=2,pitch=5,stride=1")
+    assert (st.speed, st.pitch, st.stride, st.noise) == (2.0, 5.0, 1, 0.02) and isinstance(st.stride, int)
+    assert st.tag() == "_v2_p5_k1" and st.label() == "v2 p5 k1"
+    with pytest.raises(ValueError, match="bad setting"):
+        b.parse_combo("yaw=3")
+
+
+@pytest.mark.skipif(not SIMWORLD.exists(), reason="simworld not found")
+def test_quality_benchmark_grid_reaches_simworld(tmp_path):
+    """Grid mode: each combination's settings reach the simulator, and the CSV has a row per
+    mapper and combination with the settings as columns."""
+    import json
+
+    out = tmp_path / "g"
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"), "--scene", "hall", "--scans", "3",
+                        "--res", "0.4", "--seed", "5", "--no-octomap", "--out", str(out), "--simworld", str(SIMWORLD),
+                        "--combo", "default", "speed=2,roll=1,pitch=3,noise=0.04,stride=5"],
+                       check=False, capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    info = json.loads((out / "hall_s5_n3_v2_r1_p3_e0.04_k5_info.json").read_text())["params"]
+    assert (info["speed"], info["range_sigma"], info["stride"], info["seed"]) == (2.0, 0.04, 5, 5)
+    assert list(info["mount_rpy_deg"]) == [1.0, 3.0, 0.0]
+    assert json.loads((out / "hall_s5_n3_info.json").read_text())["params"]["speed"] == 1.0
+    assert (out / "hall_s5_n3_v2_r1_p3_e0.04_k5_static_info.json").exists()
+    with open(out / "quality.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    for col in ("scene", "seed", "speed", "roll", "pitch", "noise", "stride", "resolution", "mapper", "ghosts_pct",
+                "static_kept_pct", "conflicting_static_pct", "ghosts_vs_octomap"):  # fmt: skip
+        assert col in rows[0]
+    assert [(x["speed"], x["pitch"], x["stride"], x["mapper"]) for x in rows] == [
+        ("1.0", "0.0", "10", "ndtom-ndt"), ("1.0", "0.0", "10", "ndtom-paper"),
+        ("2.0", "3.0", "5", "ndtom-ndt"), ("2.0", "3.0", "5", "ndtom-paper")]  # fmt: skip
+    assert all(x["ghosts_vs_octomap"] == "" for x in rows)  # no OctoMap, no ratio
+    assert "ndt/octo" in r.stdout and "v2 r1 p3 e0.04 k5" in r.stdout
