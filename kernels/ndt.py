@@ -331,8 +331,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     r = gslot[at(slot, nb)] - 1
                     # (a count already past the threshold stays there: the state bits above it)
                     if r >= 0 and rec_n[r] >= minp and rec_nbr[r] & NBR_COUNT < NDT_ERASED_NEIGHBOURS:
-                        if (ti.atomic_add(rec_nbr[r], 1) & NBR_COUNT) + 1 == NDT_ERASED_NEIGHBOURS:
+                        # Threads that saw 5 at once may add past 6: each add that did takes
+                        # itself back, so the count ends at min(6, its sum) in any order (it
+                        # is saved), and the one add that reached 6 widens.
+                        k = (ti.atomic_add(rec_nbr[r], 1) & NBR_COUNT) + 1
+                        if k == NDT_ERASED_NEIGHBOURS:
                             wide(r, rec_icov)
+                        elif k > NDT_ERASED_NEIGHBOURS:
+                            ti.atomic_sub(rec_nbr[r], 1)
 
     @ti.func
     def wide(r, rec_icov: ti.template()):
