@@ -128,12 +128,14 @@ class TreeSums(Group):
 
 @dataclass(frozen=True)
 class GroupedHits(Group):
-    """Hit cells whose points hits_dense grouped in the dense block (merge sums them)."""
+    """Hit cells whose points hits_dense grouped in the dense block, or hits_group in the
+    tree after hits_count (merge sorts and sums them, cell_sums)."""
 
     hcnt: np.ndarray  # [H] i32: points per hit cell
     off: np.ndarray  # [H] i32: where each hit cell's points start in ``order``
-    order: np.ndarray  # [N] i32: the hit points grouped by cell
+    order: np.ndarray  # [N] i32: the hit points grouped by cell (merge sorts each cell's)
     pts: np.ndarray  # [N, 3] f64: world points of the hits
+    in_tree: int  # 1: counted in the tree (hits_count; merge clears its counts), 0: in the block (hits_dense)
 
 
 def _empty(dtype, ndim: int) -> np.ndarray:
@@ -144,7 +146,7 @@ def _empty(dtype, ndim: int) -> np.ndarray:
 EMPTY: dict[type, Group] = {
     NdtRecords: NdtRecords(_empty(np.int64, 1), _empty(np.float64, 2), np.zeros(5), 0, _empty(np.int32, 1)),
     TreeSums: TreeSums(_empty(np.float64, 2)),
-    GroupedHits: GroupedHits(_empty(np.int32, 1), _empty(np.int32, 1), _empty(np.int32, 1), _empty(np.float64, 2)),
+    GroupedHits: GroupedHits(_empty(np.int32, 1), _empty(np.int32, 1), _empty(np.int32, 1), _empty(np.float64, 2), 0),
 }
 
 

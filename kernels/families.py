@@ -18,7 +18,7 @@ from .trace import RaysConfig
 from .update import FreeConfig, MergeConfig
 
 # Kernels of every scan get the lighter call (launch.py); the rest keep Taichi's.
-_PER_SCAN = {"prepare", "hits_count", "hits_sum", "hits_dense", "merge", "rays", "mark_gaussians", "block_apply",
+_PER_SCAN = {"prepare", "hits_count", "hits_sum", "hits_group", "hits_dense", "merge", "rays", "mark_gaussians", "block_apply",
              "apply_marked", "apply_free", "apply_free_all", "reset_rays"}  # fmt: skip
 
 
@@ -88,6 +88,9 @@ class KernelSet:
 
     def hits_sum(self):
         return self._get(update.hits_sum, None)
+
+    def hits_group(self):
+        return self._get(update.hits_group, None)
 
     def hits_dense(self, bt: str):
         return self._get(update.hits_dense, bt)

@@ -8,9 +8,11 @@ Per scan, in this order:
                      cells (mode "dense" when it holds them all), in the tree past it
                      with a compact list of the cells touched there.
 2. ``hits_count``:   points per hit cell (integer atomics), and a compact hit list.
-3. ``hits_sum``:     scan-local sums relative to the cell centre, one slot per hit cell.
-   (``hits_dense`` instead, on the CPU when the block holds every cell of the scan: the
-   points grouped by hit cell in the block, summed by merge.)
+3. ``hits_group``:   on the CPU, the points grouped by hit cell, for merge to sum each
+                     cell's in their order in the scan (the map does not depend on the
+                     threads); ``hits_dense`` instead of 2 and 3 when the block holds every
+                     cell of the scan (the points grouped in the block). A GPU sums them by
+                     float64 atomic adds instead (``hits_sum``).
 4. ``merge``:        one thread per hit cell merges the scan's Gaussian into the cell's
                      record with the RCU (a new record for a cell's first points), then
                      applies eq. (12) to the cell and clears its ray count.
@@ -331,8 +333,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     r = gslot[at(slot, nb)] - 1
                     # (a count already past the threshold stays there: the state bits above it)
                     if r >= 0 and rec_n[r] >= minp and rec_nbr[r] & NBR_COUNT < NDT_ERASED_NEIGHBOURS:
-                        if (ti.atomic_add(rec_nbr[r], 1) & NBR_COUNT) + 1 == NDT_ERASED_NEIGHBOURS:
+                        # Threads that saw 5 at once may add past 6: each add that did takes
+                        # itself back, so the count ends at min(6, its sum) in any order (it
+                        # is saved), and the one add that reached 6 widens.
+                        k = (ti.atomic_add(rec_nbr[r], 1) & NBR_COUNT) + 1
+                        if k == NDT_ERASED_NEIGHBOURS:
                             wide(r, rec_icov)
+                        elif k > NDT_ERASED_NEIGHBOURS:
+                            ti.atomic_sub(rec_nbr[r], 1)
 
     @ti.func
     def wide(r, rec_icov: ti.template()):

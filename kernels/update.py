@@ -58,11 +58,42 @@ HIT_CHUNK = 64  # hit cells a thread takes from merge's queue at a time
 COLUMN_CHUNK = 32  # block columns a thread takes from block_apply's queue at a time
 
 
+@ti.func
+def cell_sums(order: ti.template(), o, cnt, pts: ti.template(), centre):
+    """A hit cell's point sums relative to its centre (sum q (3), sum q q^T (6)), its
+    points order[o : o + cnt] first sorted by their index in the scan: the threads that
+    grouped them wrote them in any order, and float sums depend on it. Sorted, the sums
+    are one sequence whatever the threads, their number, or the path that grouped them
+    (hits_dense in the block, the ordered hits_sum in the tree). The threads' runs leave
+    a cell's points mostly in order: insertion sort does little more than read them."""
+    for j in range(o + 1, o + cnt):
+        v = order[j]
+        k = j - 1
+        while k >= o:
+            if order[k] <= v:
+                break
+            order[k + 1] = order[k]
+            k -= 1
+        order[k + 1] = v
+    sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+    ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
+    for j in range(o, o + cnt):
+        i = order[j]
+        x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
+        sv += x
+        ss += ti.Vector([x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]])
+    return ti.Vector([sv[0], sv[1], sv[2], ss[0], ss[1], ss[2], ss[3], ss[4], ss[5]], dt=ti.f64)
+
+
 @dataclass(frozen=True)
 class MergeConfig:
     """One variant of ``merge``. grouped: the hits were grouped by hits_dense in the
-    dense block (GroupedHits), else counted and summed in the tree (TreeSums). ndt: the
-    NDT miss model (the merge clears a record's miss sum and refreshes what rays read)."""
+    dense block or by hits_group in the tree (GroupedHits: merge sums each cell's points
+    in their order in the scan; the CPU), else counted and summed in the tree by atomic
+    adds (TreeSums; a GPU). Both CPU paths run the one variant, so that they compile to
+    the same arithmetic: two variants of a kernel may round differently (fast math
+    reassociates each as it finds it). ndt: the NDT miss model (the merge clears a
+    record's miss sum and refreshes what rays read)."""
 
     bt: str = "u16"
     grouped: bool = False
@@ -159,7 +190,8 @@ def hits_count(f: Storage, _cfg=None) -> Bound:
 
 
 def hits_sum(f: Storage, _cfg=None) -> Bound:
-    """Scan-local sums relative to the cell centre, one slot per hit cell."""
+    """Scan-local sums relative to the cell centre, one slot per hit cell, by float64
+    atomic adds: in the threads' order (a GPU; the CPU groups the points, hits_group)."""
     F = device_funcs(f)
     hslot, row, at = f.hslot, F.row, F.at
 
@@ -186,6 +218,51 @@ def hits_sum(f: Storage, _cfg=None) -> Bound:
             ti.atomic_add(acc[s, 8], q[2] * q[2])
 
     return Bound(hits_sum, ("slot", "pts", "cells", "n", "acc", "res"))
+
+
+def hits_group(f: Storage, _cfg=None) -> Bound:
+    """The points grouped by hit cell after hits_count (the tree), for merge to sum each
+    cell's in their order in the scan (cell_sums), as it sums those of hits_dense: the
+    same map whatever the threads or the path (the CPU; a GPU takes hits_sum)."""
+    F = device_funcs(f)
+    hn, hslot, row, at = f.hn, f.hslot, F.row, F.at
+
+    def hits_group(
+        slot: ti.i32,
+        hitlist: i32_2d,  # [H, 3] the scan's hit cells (hits_count)
+        nh: ti.i32,
+        cells: i32_2d,  # [N, 3] cells of the hits
+        n: ti.i32,
+        hcnt: i32_1d,  # [H] out: points per hit cell
+        off: i32_1d,  # [H] out: where each hit cell's points start in ``order``
+        order: i32_1d,  # [N] out: the points grouped by hit cell
+        first: i32_1d,  # [HIT_CHUNKS + 1] scratch: points before each chunk of hit cells
+    ):
+        # Offsets by a prefix sum over chunks of hit cells, as hits_dense's; hcnt then
+        # counts the points placed, back to the cell's count at the end.
+        size = (nh + HIT_CHUNKS - 1) // HIT_CHUNKS
+        for c in range(HIT_CHUNKS):
+            k = 0
+            for s in range(c * size, ti.min(nh, (c + 1) * size)):
+                v = hn[at(slot, row(hitlist, s))]
+                hcnt[s] = v
+                k += v
+            first[c + 1] = k
+        for _ in range(1):  # prefix sums, one thread
+            first[0] = 0
+            for c in range(HIT_CHUNKS):
+                first[c + 1] += first[c]
+        for c in range(HIT_CHUNKS):
+            run = first[c]
+            for s in range(c * size, ti.min(nh, (c + 1) * size)):
+                off[s] = run
+                run += hcnt[s]
+                hcnt[s] = 0
+        for i in range(n):
+            s = hslot[at(slot, row(cells, i))]
+            order[off[s] + ti.atomic_add(hcnt[s], 1)] = i
+
+    return Bound(hits_group, ("slot", "hitlist", "nh", "cells", "n", "hcnt", "off", "order", "first"))
 
 
 def hits_dense(f: Storage, bt: str) -> Bound:
@@ -225,7 +302,8 @@ def hits_dense(f: Storage, bt: str) -> Bound:
             rank[i] = ti.cast(ti.atomic_add(block[q[0], q[1], q[2]], ti.cast(1, bt)), ti.i32)
         # Hit-list slots by a prefix sum over chunks of points: a counter shared by the
         # threads cost a cache-line transfer per hit cell. The hit list comes out in
-        # the order of the cells' first points.
+        # the order of the points that took rank 0 (threads decide which: the hit list's
+        # order reaches no map, and merge sorts each cell's points, see cell_sums).
         for c in range(HIT_CHUNKS):
             k = 0
             for i in range(c * size, ti.min(n, (c + 1) * size)):
@@ -272,7 +350,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
 
     @ti.func
     def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), first,
+                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), in_tree, first,
                    state):  # fmt: skip
         # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
         # the cell has a Gaussian record now (first: its first points). NDT miss model:
@@ -305,6 +383,9 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                 out = out & NBR_BACK
         if ti.static(not grouped):
             hn[at(slot, c)] = 0
+        else:
+            if in_tree != 0:
+                hn[at(slot, c)] = 0
         v = ne[at(slot, c)]
         ne[at(slot, c)] = NE_GAUSS
         rel = c - b0
@@ -322,6 +403,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         off: i32_1d,
         order: i32_1d,
         pts: f64_2d,
+        in_tree: ti.i32,
         nh: ti.i32,  # hit cells to merge
         n_max: ti.i32,  # cap on a Gaussian's N (0: none)
         rec_n: i32_1d,  # Records
@@ -369,7 +451,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                         if r >= rec_n.shape[0]:
                             left[ti.atomic_add(ctr[C_NO_RECORD], 1)] = s
                             continue
-                        if ti.static(grouped):  # hits_count did not touch the index tree
+                        if ti.static(grouped):  # hits_dense did not touch the index tree (in_tree: a no-op)
                             note_leaf(glm, slot, c, gidx_regions, leaves, 1)
                         gslot[at(slot, c)] = r + 1
                         for a in ti.static(range(3)):
@@ -382,15 +464,10 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     n = ti.cast(cnt, ti.f64)
                     sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
                     ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
-                    if ti.static(grouped):  # sums relative to the cell centre, as hits_sum's
-                        centre = (c.cast(ti.f64) + 0.5) * res
-                        for j in range(off[s], off[s] + cnt):
-                            i = order[j]
-                            x = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]]) - centre
-                            sv += x
-                            ss += ti.Vector(
-                                [x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]]
-                            )
+                    if ti.static(grouped):  # sums relative to the cell centre, in the scan's order
+                        v = cell_sums(order, off[s], cnt, pts, (c.cast(ti.f64) + 0.5) * res)
+                        sv = ti.Vector([v[0], v[1], v[2]])
+                        ss = ti.Vector([v[3], v[4], v[5], v[6], v[7], v[8]])
                     else:
                         sv = ti.Vector([acc[s, 0], acc[s, 1], acc[s, 2]])
                         ss = ti.Vector([acc[s, 3], acc[s, 4], acc[s, 5], acc[s, 6], acc[s, 7], acc[s, 8]])
@@ -440,7 +517,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                             ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
                     first = 1 if m_i == 0 else 0
                     state = hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped,
-                                       first, state)  # fmt: skip
+                                       in_tree, first, state)  # fmt: skip
                     if ti.static(ndt):
                         rec_nbr[r] = state  # (its count of erased neighbours starts again)
                 jq = Q.next(ctr, Q_MERGE)

@@ -7,7 +7,7 @@ cell for cell."""
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -406,15 +406,29 @@ class ScanUpdate:
             records=recs.group, flags=1, **ndt)  # fmt: skip
         hitlist = np.zeros((1, 3), np.int32)
         k.hits_count()(slot=slot, cells=cells, n=0, hitlist=hitlist, ctr=ctr, nodes=nodes)
-        acc = np.zeros((0, 9), np.float64)
-        k.hits_sum()(slot=slot, pts=pts, cells=cells, n=0, acc=acc, res=self.resolution)
-        k.merge(MergeConfig(bt=bt, grouped=False, ndt=self.ndt))(
-            slot=slot, hitlist=hitlist, sums=TreeSums(acc=acc), nh=0, n_max=int(self.config.n_max), records=recs.group,
+        hits = self._tree_sums(hitlist, 0, pts, cells, 0)
+        k.merge(MergeConfig(bt=bt, grouped=self.arch == "cpu", ndt=self.ndt))(
+            slot=slot, hitlist=hitlist, **hits, nh=0, n_max=int(self.config.n_max), records=recs.group,
             ctr=ctr, model=self.model, nodes=nodes, block=blk, res=self.resolution, left=np.zeros(1, np.int32),
             **ndt)  # fmt: skip
         k.apply_free(self.ndt)(slot=slot, touched=self.touched_group, nt=0, model=self.model, records=recs.group,
                                ctr=ctr, **ndt)  # fmt: skip
         ctr[:] = keep
+
+    def _tree_sums(self, hitlist, nh: int, world, cells, n_hit: int) -> dict:
+        """merge's hits after hits_count: on the CPU each cell's points grouped
+        (hits_group), which merge sums in their order in the scan as it sums those of
+        hits_dense, so that the map depends neither on the threads nor on the path; on
+        a GPU their sums by float64 atomic adds (hits_sum)."""
+        k, slot = self.k, self.slot
+        if self.arch != "cpu":
+            acc = np.zeros((nh, 9), np.float64)
+            k.hits_sum()(slot=slot, pts=world, cells=cells, n=n_hit, acc=acc, res=self.resolution)
+            return {"sums": TreeSums(acc=acc)}
+        hcnt, off, order = (np.empty(max(x, 1), np.int32) for x in (nh, nh, n_hit))
+        k.hits_group()(slot=slot, hitlist=hitlist, nh=nh, cells=cells, n=n_hit, hcnt=hcnt, off=off, order=order,
+                       first=self.chunks)  # fmt: skip
+        return {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world, in_tree=1)}
 
     def insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
         t0 = time.perf_counter()
@@ -434,26 +448,25 @@ class ScanUpdate:
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         # Points per hit cell counted in the block (no tree walks) when it holds them all; on
-        # the CPU only (its prefix sum runs on one thread).
-        grouped = whole and self.arch == "cpu"
+        # the CPU only (its prefix sum runs on one thread). On the CPU merge sums each cell's
+        # points in their order in the scan on either path (the same map, bit for bit).
+        grouped = self.arch == "cpu"
         if n_hit:
-            if grouped:
+            if whole and grouped:
                 hcnt, off, order = np.empty(n_hit, np.int32), np.empty(n_hit, np.int32), np.empty(n_hit, np.int32)
                 k.hits_dense(bt)(cells=cells, n=n_hit, hitlist=hitlist, hcnt=hcnt, off=off, rank=np.empty(n_hit, np.int32),
                                  order=order, ctr=ctr, block=blk, first=self.chunks)  # fmt: skip
                 nh = int(ctr[C_HIT_CELLS])
+                hits = {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world, in_tree=0)}
             else:
                 k.hits_count()(slot=slot, cells=cells, n=n_hit, hitlist=hitlist, ctr=ctr, nodes=nodes)
                 nh = int(ctr[C_HIT_CELLS])
-                acc = np.zeros((nh, 9), np.float64)
-                k.hits_sum()(slot=slot, pts=world, cells=cells, n=n_hit, acc=acc, res=res)
+                hits = self._tree_sums(hitlist, nh, world, cells, n_hit)
             left, todo = np.empty(nh, np.int32), nh
             merge = k.merge(MergeConfig(bt=bt, grouped=grouped, ndt=self.ndt))
             while True:
                 cap = recs.capacity
                 ctr[C_RECORDS], ctr[C_NO_RECORD], ctr[Q_MERGE] = recs.count, 0, 0
-                hits = {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world)} if grouped else {
-                    "sums": TreeSums(acc=acc)}  # fmt: skip
                 merge(slot=slot, hitlist=hitlist, **hits, nh=todo, n_max=int(cfg.n_max), records=recs.group, ctr=ctr,
                       model=model, nodes=nodes, block=blk, res=res, left=left, **self._ndt_kw())  # fmt: skip
                 # At once, like the record count: an update cut short later must not hand
@@ -465,10 +478,11 @@ class ScanUpdate:
                 recs.grow_for(nh)
                 s = np.sort(left[:todo])
                 hitlist = hitlist[s]
-                if grouped:
-                    hcnt, off = hcnt[s], off[s]
+                g = hits.get("grouped")
+                if g is not None:
+                    hits = {"grouped": replace(g, hcnt=g.hcnt[s], off=g.off[s])}
                 else:
-                    acc = acc[s]
+                    hits = {"sums": TreeSums(acc=hits["sums"].acc[s])}
         if dense is not None:
             block, marked = blk.block, self.ndt and blk.block.size > 0
             shape = np.array(block.shape, np.int32)
