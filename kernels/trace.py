@@ -184,15 +184,9 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                     li = (co - b0).dot(strides)  # flat index of the current cell in the block
                     dli = step * strides
                     left = rem[0] + rem[1] + rem[2]
-                    # A hit ray's last cell is its endpoint's, not passed; a free ray passes its
-                    # last cell too (one visit site: each inlines the NDT test).
-                    ends = 1
-                    if ti.static(full):
-                        if i >= n_hit:
-                            ends = 0
                     # Each pass steps at least one axis towards the endpoint cell, so the loop
                     # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
-                    while left >= ends:
+                    while left > 0:
                         rel = cur - b0
                         near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
                         if ti.static(mode == "dense"):
@@ -222,8 +216,6 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             else:
                                 ti.atomic_add(ne[at(slot, cur)], 1)
                         visits += 1
-                        if left == 0:
-                            break
                         # One axis crosses first by a clear margin (the common case): step it,
                         # advancing its crossing parameter by addition.
                         first = -1
@@ -263,6 +255,20 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                                     left -= 1
                                     li += dli[a]
                                     tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+                    if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
+                        if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                            block_visit(
+                                block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss
+                            )
+                            if flags != 0:
+                                bflag1[li >> SHIFT] = ti.i8(1)
+                        else:
+                            note_leaf(olm, slot, ce, occ_regions, leaves, 0)
+                            g = visit(slot, ce, touched, cap, ctr)
+                            if ti.static(ndt) and g != 0:
+                                ndt_tree_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss,
+                                               ndt_minp)  # fmt: skip
+                        visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
                 jq = Q.next(ctr, Q_RAYS)
 
