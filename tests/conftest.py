@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,26 @@ def pytest_configure(config):
     import ndtom_ti
 
     ndtom_ti.init(os.environ.get("NDTOM_ARCH", "cpu"))
+
+
+@pytest.fixture(autouse=True)
+def close_maps(monkeypatch):
+    """Closes every map a test made when it ends: maps share the process's few storage slots
+    (``init(max_maps=...)``), and the next test must not wait for the collector to free them.
+    Maps of module-scoped fixtures are made before this fixture and stay open."""
+    from ndtom_ti import NdtOmMap
+
+    made = weakref.WeakSet()
+    init = NdtOmMap.__init__
+
+    def tracked(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        made.add(self)
+
+    monkeypatch.setattr(NdtOmMap, "__init__", tracked)
+    yield
+    for m in list(made):
+        m.close()
 
 
 @pytest.fixture(scope="session")

@@ -3,12 +3,11 @@
 import os
 import subprocess
 import sys
-import threading
 
 import pytest
 
 import ndtom_ti
-from ndtom_ti import affinity, runtime
+from ndtom_ti import affinity
 from ndtom_ti.kernels.ndt import cpu_threads
 
 linux_cpu = pytest.mark.skipif(

@@ -3,7 +3,6 @@ sharing the session's Taichi), plus two real subprocesses."""
 
 from __future__ import annotations
 
-import gc
 import os
 import re
 import shlex
@@ -29,10 +28,6 @@ from ndtom_ti.mapfile import read_header  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
 
 
 @pytest.fixture(scope="module")

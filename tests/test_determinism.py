@@ -18,7 +18,7 @@ from conftest import DATA, _import_simworld
 
 import ndtom_ti
 from ndtom_ti import NdtOmMap
-from ndtom_ti.mapfile import read_snapshot
+from ndtom_ti.snapshot import MapSnapshot
 from ndtom_ti.snapshot import ARRAYS
 
 RES = 0.2
@@ -26,12 +26,6 @@ MODELS = ("paper", "ndt")
 BALM = DATA / "balm_hall_every4"
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    import gc
-
-    yield
-    gc.collect()
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +56,7 @@ def assert_same_file(a: Path, b: Path) -> None:
     """Bit-identical files; where not, the arrays that differ and by how much."""
     if a.read_bytes() == b.read_bytes():
         return
-    sa, sb = read_snapshot(a), read_snapshot(b)
+    sa, sb = MapSnapshot.load(a), MapSnapshot.load(b)
     diffs = []
     for name in ARRAYS:
         x, y = getattr(sa, name), getattr(sb, name)

@@ -9,7 +9,6 @@ Real data: 4 clouds of the TUM bag at 0.2 m. About 25 s in all on 2 cores.
 from __future__ import annotations
 
 import csv
-import gc
 import json
 import math
 from pathlib import Path
@@ -35,10 +34,6 @@ def need_simworld() -> None:
         pytest.skip(f"simworld not found at {SIMWORLD}")
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
 
 
 @pytest.fixture(scope="module")

@@ -24,10 +24,6 @@ from ndtom_ti.pipeline import map_scans  # noqa: E402
 IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import gc
 import json
 import os
 import signal
@@ -22,10 +21,6 @@ from ndtom_ti.io import RecordingError  # noqa: E402
 from ndtom_ti.pipeline import config_with_ranges, load_config_file, map_recording, map_scans  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()  # maps share 8 slots: release the ones a test left behind
 
 
 @pytest.mark.parametrize("fmt", ["ros1", "sqlite3", "mcap"])

@@ -3,7 +3,6 @@ with checks that the maps are right (skipped when the data is not there)."""
 
 from __future__ import annotations
 
-import gc
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +22,6 @@ NORLAB = DATA / "norlab_outdoor_stationary_14.bag"
 LUMINAR = DATA / "luminar_embag_test.bag"
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
 
 
 def need(p: Path) -> Path:

@@ -39,10 +39,6 @@ from ndtom_ti.pipeline import map_scans
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    yield
-    gc.collect()
 
 
 def run_cli(*args: object):

@@ -15,8 +15,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_pipeline_bags as pb
 
-# the first round's autouse fixture (maps freed after each test) and CLI runner
-from test_reliability import _free_maps, run_cli  # noqa: F401
+# the first round's CLI runner
+from test_reliability import run_cli
 
 from ndtom_ti import NdtOmMap
 
@@ -94,7 +94,6 @@ def test_export_and_view_html_refuse_to_overwrite_the_map(tmp_path, small_map_fi
 # ---------------------------------------------------------------------------- 2-5: every setting checked once
 import json  # noqa: E402
 import math  # noqa: E402
-import struct  # noqa: E402
 import time  # noqa: E402
 
 import test_reliability as r1  # noqa: E402 - the crafted-file helpers (parse, build)

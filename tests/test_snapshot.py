@@ -26,11 +26,6 @@ from ndtom_ti.snapshot import ARRAYS, MapSnapshot
 SUFFIX = {"ply": ".ply", "pcd": ".pcd", "npz": ".npz", "csv": ".csv", "bt": ".bt", "grid": ".pgm"}
 
 
-@pytest.fixture(autouse=True)
-def _free_maps():
-    gc.collect()
-    yield
-    gc.collect()
 
 
 def dicts_equal(a: dict, b: dict) -> None:
