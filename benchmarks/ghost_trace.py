@@ -92,8 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     tree, _ = b.build_octree(scans, res)
     octo_ghost = q.octree_occupied(tree, res)(cells)
     print(f"OctoMap: {octo_ghost.sum()} ghosts ({100 * octo_ghost.mean():.1f}%), {(octo_ghost & ghost).sum()} shared")
-    print(f"{a.npz.name} at {res:g} m: {len(cells)} observed cells left by moving objects, {ghost.sum()} ghosts "
-          f"({100 * ghost.mean():.1f}%); sigma_s {sigma_s:g} m, near cells {near}, eta {eta:g}")  # fmt: skip
+    print(
+        f"{a.npz.name} at {res:g} m: {len(cells)} observed cells left by moving objects, {ghost.sum()} ghosts "
+        f"({100 * ghost.mean():.1f}%); sigma_s {sigma_s:g} m, near cells {near}, eta {eta:g}"
+    )
     rows = []
     for k in np.flatnonzero(ghost):
         c, h = cells[k], int(last[k])
@@ -130,16 +132,29 @@ def main(argv: list[str] | None = None) -> int:
                 s += t
             scan_sums.append(s * (NDT_BACK_MISS if state & 2 else 1.0))
         g_end = gaussian_of(states[-1], c, res)
-        rows.append({
-            "cell": tuple(int(v) for v in c), "last_hit": h, "scans_after": len(scans) - 1 - h,
-            "scans_passed": octo_scans, "passes": passes, "near_skipped": skipped_near, "terms": tested,
-            "term_median": float(np.median(terms)) if terms else 0.0, "term_min": min(terms, default=0.0),
-            "ray_to_mean_m": float(np.median(dists)) if dists else float("nan"), "sum": float(np.sum(scan_sums)),
-            "logodds_at_leave": float(lo_after[h][k]), "logodds_end": float(lo_after[-1][k]),
-            "n": g_end[0] if g_end else 0, "erased_near": g_end[3] if g_end else 0, "state": g_end[4] if g_end else 0,
-            # OctoMap from its clamp: one miss a scan the cell is passed
-            "octomap_clears": OCTO_MAX + octo_scans * OCTO_MISS <= 0.0, "octomap_ghost": bool(octo_ghost[k]),
-        })  # fmt: skip
+        rows.append(
+            {
+                "cell": tuple(int(v) for v in c),
+                "last_hit": h,
+                "scans_after": len(scans) - 1 - h,
+                "scans_passed": octo_scans,
+                "passes": passes,
+                "near_skipped": skipped_near,
+                "terms": tested,
+                "term_median": float(np.median(terms)) if terms else 0.0,
+                "term_min": min(terms, default=0.0),
+                "ray_to_mean_m": float(np.median(dists)) if dists else float("nan"),
+                "sum": float(np.sum(scan_sums)),
+                "logodds_at_leave": float(lo_after[h][k]),
+                "logodds_end": float(lo_after[-1][k]),
+                "n": g_end[0] if g_end else 0,
+                "erased_near": g_end[3] if g_end else 0,
+                "state": g_end[4] if g_end else 0,
+                # OctoMap from its clamp: one miss a scan the cell is passed
+                "octomap_clears": OCTO_MAX + octo_scans * OCTO_MISS <= 0.0,
+                "octomap_ghost": bool(octo_ghost[k]),
+            }
+        )
     summarize(rows)
     if a.csv:
         import csv
@@ -162,17 +177,31 @@ def summarize(rows: list[dict]) -> None:
         return f"median {np.median(v):.3g} (quartiles {np.percentile(v, 25):.3g}-{np.percentile(v, 75):.3g})"
 
     print(f"ghosts: {len(rows)}")
-    for key in ("scans_after", "scans_passed", "passes", "near_skipped", "terms", "term_median", "term_min",
-                "ray_to_mean_m", "sum",
-                "logodds_at_leave", "logodds_end", "n", "erased_near"):  # fmt: skip
+    for key in (
+        "scans_after",
+        "scans_passed",
+        "passes",
+        "near_skipped",
+        "terms",
+        "term_median",
+        "term_min",
+        "ray_to_mean_m",
+        "sum",
+        "logodds_at_leave",
+        "logodds_end",
+        "n",
+        "erased_near",
+    ):
         print(f"  {key:17} {q3(key)}")
     st = np.array([r["state"] for r in rows])
     print(f"  state: fresh {int((st & 1).sum())}, back {int((st & 2 > 0).sum())}, none {int((st == 0).sum())}")
     few = sum(r["passes"] < 10 for r in rows)
     none_tested = sum(r["terms"] == 0 for r in rows)
     print(f"  passed by < 10 rays: {few}; no ray tested the Gaussian: {none_tested}")
-    print(f"  OctoMap's miss (-0.41 a passing scan from its clamp 3.5) would clear {sum(r['octomap_clears'] for r in rows)}; "
-          f"OctoMap keeps {sum(r['octomap_ghost'] for r in rows)} of them")
+    print(
+        f"  OctoMap's miss (-0.41 a passing scan from its clamp 3.5) would clear {sum(r['octomap_clears'] for r in rows)}; "
+        f"OctoMap keeps {sum(r['octomap_ghost'] for r in rows)} of them"
+    )
 
 
 if __name__ == "__main__":

@@ -35,8 +35,24 @@ def main() -> None:
     lap = a.lap_scans
     speed = a.speed or simworld.build_hall(0).path.length / lap
     out = Path(tempfile.mkdtemp(prefix="ndtom_laps_"))
-    subprocess.run([sys.executable, str(SIM), "--scans", str(a.laps * lap), "--stride", "10", "--static", "--no-bags",
-                    "--speed", repr(speed), "--out", str(out)], check=True, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [
+            sys.executable,
+            str(SIM),
+            "--scans",
+            str(a.laps * lap),
+            "--stride",
+            "10",
+            "--static",
+            "--no-bags",
+            "--speed",
+            repr(speed),
+            "--out",
+            str(out),
+        ],
+        check=True,
+        capture_output=True,
+    )
     print(f"{a.laps} laps of {lap} scans at {speed:.4f} m/s, {a.res:g} m")
 
     ndtom_ti.init("cpu", pin_threads=True)  # as the ndtom command runs
@@ -49,9 +65,11 @@ def main() -> None:
             r = m.memory_report()
             mem = r["total_bytes"]
             first = first or mem
-            print(f"lap {(i + 1) // lap}: {mem / 2**20:8.1f} MiB ({100 * (mem / first - 1):+.1f}% vs lap 1): "
-                  f"nodes {r['node_bytes'] / 2**20:.1f} MiB, records {r['record_bytes'] / 2**20:.1f} MiB "
-                  f"({r['records_in_use']} in use), {r['gaussians']} Gaussians, {r['known_cells']} cells known")  # fmt: skip
+            print(
+                f"lap {(i + 1) // lap}: {mem / 2**20:8.1f} MiB ({100 * (mem / first - 1):+.1f}% vs lap 1): "
+                f"nodes {r['node_bytes'] / 2**20:.1f} MiB, records {r['record_bytes'] / 2**20:.1f} MiB "
+                f"({r['records_in_use']} in use), {r['gaussians']} Gaussians, {r['known_cells']} cells known"
+            )
 
 
 if __name__ == "__main__":

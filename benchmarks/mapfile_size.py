@@ -57,7 +57,9 @@ def main() -> None:
                         times.setdefault(f"map save {v}", []).append(
                             timed(lambda v=v, f=f, m=m: m.snapshot().save(f, version=v))
                         )
-                        times.setdefault(f"map load {v}", []).append(timed(lambda f=f: ndtom_ti.NdtOmMap.load(f).close()))
+                        times.setdefault(f"map load {v}", []).append(
+                            timed(lambda f=f: ndtom_ti.NdtOmMap.load(f).close())
+                        )
             if m is not None:
                 m.close()
             size = {v: f.stat().st_size for v, f in files.items()}
@@ -70,9 +72,15 @@ def main() -> None:
             for what in ("save", "load", "map save", "map load"):
                 if f"{what} {VERSION}" in med:
                     a = med[f"{what} {RAW_VERSION}"]
-                    print(f"  {what}: format {RAW_VERSION} {a:.3f} s, " + ", ".join(
-                        f"format {v} {med[f'{what} {v}']:.3f} s (ratio {med[f'{what} {v}'] / a:.2f})"
-                        for v in files if v != RAW_VERSION) + f" (medians of {args.repeats})")
+                    print(
+                        f"  {what}: format {RAW_VERSION} {a:.3f} s, "
+                        + ", ".join(
+                            f"format {v} {med[f'{what} {v}']:.3f} s (ratio {med[f'{what} {v}'] / a:.2f})"
+                            for v in files
+                            if v != RAW_VERSION
+                        )
+                        + f" (medians of {args.repeats})"
+                    )
 
 
 if __name__ == "__main__":

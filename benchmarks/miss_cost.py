@@ -28,8 +28,23 @@ SIMWORLD = ROOT.parent / "shared" / "tools" / "simworld.py"
 
 def hall_scans(n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     with tempfile.TemporaryDirectory() as tmp:
-        subprocess.run([sys.executable, str(SIMWORLD), "--scans", str(n), "--stride", "10", "--seed", str(seed),
-                        "--no-bags", "--out", tmp], check=True, capture_output=True)  # fmt: skip
+        subprocess.run(
+            [
+                sys.executable,
+                str(SIMWORLD),
+                "--scans",
+                str(n),
+                "--stride",
+                "10",
+                "--seed",
+                str(seed),
+                "--no-bags",
+                "--out",
+                tmp,
+            ],
+            check=True,
+            capture_output=True,
+        )
         z = np.load(Path(tmp) / "hall.npz")
         out = []
         for i in range(len(z["poses"])):

@@ -75,15 +75,36 @@ def parse_combo(text: str) -> Settings:
     return Settings(**kw)
 
 
-def make_scene(simworld: Path, out: Path, scene: str, seed: int, scans: int, static: bool,
-               settings: Settings = Settings()) -> Path:  # fmt: skip
+def make_scene(
+    simworld: Path, out: Path, scene: str, seed: int, scans: int, static: bool, settings: Settings = Settings()
+) -> Path:
     name = f"{scene}_s{seed}_n{scans}{settings.tag()}{'_static' if static else ''}"
     npz = out / f"{name}.npz"
     if not npz.exists():
         st = settings
-        args = [sys.executable, str(simworld), "--variant", scene, "--seed", str(seed), "--scans", str(scans),
-                "--stride", str(st.stride), "--speed", f"{st.speed:g}", "--sigma", f"{st.noise:g}",
-                "--mount-rpy", f"{st.roll:g},{st.pitch:g},0", "--no-bags", "--name", name, "--out", str(out)]  # fmt: skip
+        args = [
+            sys.executable,
+            str(simworld),
+            "--variant",
+            scene,
+            "--seed",
+            str(seed),
+            "--scans",
+            str(scans),
+            "--stride",
+            str(st.stride),
+            "--speed",
+            f"{st.speed:g}",
+            "--sigma",
+            f"{st.noise:g}",
+            "--mount-rpy",
+            f"{st.roll:g},{st.pitch:g},0",
+            "--no-bags",
+            "--name",
+            name,
+            "--out",
+            str(out),
+        ]
         if static:
             args.append("--static")
         subprocess.run(args, check=True, capture_output=True)
@@ -142,8 +163,17 @@ def build_octree(scans, res: float):
     return tree, np.array(times)
 
 
-def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: float, octomap: bool,
-             seed: int = 7, settings: Settings = Settings()) -> tuple[list[dict], dict]:  # fmt: skip
+def evaluate(
+    scene: str,
+    dyn: list,
+    static: list,
+    sigma: float,
+    boxes,
+    res: float,
+    octomap: bool,
+    seed: int = 7,
+    settings: Settings = Settings(),
+) -> tuple[list[dict], dict]:
     cand = q.mark_observed(q.ghost_candidates(dyn, res, 3.0 * sigma, boxes), dyn, res)
     ref = q.static_reference(dyn, res)
     rows, left = [], {}
@@ -170,13 +200,23 @@ def evaluate(scene: str, dyn: list, static: list, sigma: float, boxes, res: floa
             del s
         gc.collect()
         left[mapper] = qual.ghosts_left
-        rows.append({
-            "scene": scene, "seed": seed, **asdict(settings), "resolution": res, "mapper": mapper, "scans": len(dyn),
-            "ghosts_pct": 100 * qual.ghosts, "ghost_cells_observed": qual.ghost_cells,
-            "static_kept_pct": 100 * qual.static_kept, "static_cells": qual.static_cells,
-            "conflicting_static_pct": None if conf is None else 100 * conf,
-            "ms_median": 1e3 * float(np.median(times[1:])), "ms_p95": 1e3 * float(np.percentile(times[1:], 95)),
-        })  # fmt: skip
+        rows.append(
+            {
+                "scene": scene,
+                "seed": seed,
+                **asdict(settings),
+                "resolution": res,
+                "mapper": mapper,
+                "scans": len(dyn),
+                "ghosts_pct": 100 * qual.ghosts,
+                "ghost_cells_observed": qual.ghost_cells,
+                "static_kept_pct": 100 * qual.static_kept,
+                "static_cells": qual.static_cells,
+                "conflicting_static_pct": None if conf is None else 100 * conf,
+                "ms_median": 1e3 * float(np.median(times[1:])),
+                "ms_p95": 1e3 * float(np.percentile(times[1:], 95)),
+            }
+        )
     del rcu
     gc.collect()
     octo = next((r["ghosts_pct"] for r in rows if r["mapper"] == "octomap"), None)
@@ -215,14 +255,18 @@ def print_table(rows: list[dict]) -> None:
     print("-" * len(head))
     for r in rows:
         conf = "-" if r["conflicting_static_pct"] is None else f"{r['conflicting_static_pct']:.1f}%"
-        print(f"{r['scene']:6} {r['resolution']:>5g} {r['mapper']:12} {r['ghosts_pct']:>6.1f}% {r['ghost_cells_observed']:>8} "
-              f"{r['static_kept_pct']:>10.1f}% {conf:>11} {r['ms_median']:>8.1f}")  # fmt: skip
+        print(
+            f"{r['scene']:6} {r['resolution']:>5g} {r['mapper']:12} {r['ghosts_pct']:>6.1f}% {r['ghost_cells_observed']:>8} "
+            f"{r['static_kept_pct']:>10.1f}% {conf:>11} {r['ms_median']:>8.1f}"
+        )
 
 
 def print_grid(rows: list[dict]) -> None:
     """One line per scene, seed, settings and resolution: the mappers side by side."""
-    head = (f"{'scene':5} {'seed':>5} {'settings':14} {'res':>4} | {'ghosts % ndt / paper / octo':>27} {'ndt/octo':>8} | "
-            f"{'static kept % ndt / paper / octo':>32} | {'conflicting % ndt / paper':>25}")  # fmt: skip
+    head = (
+        f"{'scene':5} {'seed':>5} {'settings':14} {'res':>4} | {'ghosts % ndt / paper / octo':>27} {'ndt/octo':>8} | "
+        f"{'static kept % ndt / paper / octo':>32} | {'conflicting % ndt / paper':>25}"
+    )
     print(head)
     print("-" * len(head))
     keys = ("scene", "seed", *Settings.__dataclass_fields__, "resolution")
@@ -232,9 +276,11 @@ def print_grid(rows: list[dict]) -> None:
     for key, g in groups.items():
         st = Settings(**{k: key[2 + i] for i, k in enumerate(Settings.__dataclass_fields__)})
         ratio = g.get("ndtom-ndt", {}).get("ghosts_vs_octomap")
-        print(f"{key[0]:5} {key[1]:>5} {st.label():14} {key[-1]:>4g} | {_side(g, MAPPERS, 'ghosts_pct'):>27} "
-              f"{'-' if ratio is None else f'{ratio:.2f}x':>8} | {_side(g, MAPPERS, 'static_kept_pct'):>32} | "
-              f"{_side(g, MAPPERS[:2], 'conflicting_static_pct'):>25}")  # fmt: skip
+        print(
+            f"{key[0]:5} {key[1]:>5} {st.label():14} {key[-1]:>4g} | {_side(g, MAPPERS, 'ghosts_pct'):>27} "
+            f"{'-' if ratio is None else f'{ratio:.2f}x':>8} | {_side(g, MAPPERS, 'static_kept_pct'):>32} | "
+            f"{_side(g, MAPPERS[:2], 'conflicting_static_pct'):>25}"
+        )
 
 
 def _side(group: dict, mappers, field: str) -> str:
@@ -254,9 +300,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pitch", type=float, nargs="+", default=[d.pitch], help="mount pitch, degrees")
     ap.add_argument("--noise", type=float, nargs="+", default=[d.noise], help="range noise std, m")
     ap.add_argument("--stride", type=int, nargs="+", default=[d.stride], help="every K-th scan of the 10 Hz stream")
-    ap.add_argument("--combo", nargs="+", metavar="K=V[,K=V]",
-                    help="these combinations of settings (each from the defaults; 'default' for none) "
-                         "instead of the cross product of the lists")  # fmt: skip
+    ap.add_argument(
+        "--combo",
+        nargs="+",
+        metavar="K=V[,K=V]",
+        help="these combinations of settings (each from the defaults; 'default' for none) "
+        "instead of the cross product of the lists",
+    )
     ap.add_argument("--out", type=Path, default=Path("quality"))
     ap.add_argument("--simworld", type=Path, default=SIMWORLD, help="path of simworld.py")
     ap.add_argument("--no-octomap", action="store_true", help="skip OctoMap even when pyoctomap is installed")
@@ -272,8 +322,11 @@ def main(argv: list[str] | None = None) -> int:
             print("pyoctomap not installed: OctoMap skipped (pip install -e '.[bench]')", file=sys.stderr)
             octomap = False
     try:
-        grid = ([parse_combo(c) for c in a.combo] if a.combo else
-                [Settings(*v) for v in product(a.speed, a.roll, a.pitch, a.noise, a.stride)])  # fmt: skip
+        grid = (
+            [parse_combo(c) for c in a.combo]
+            if a.combo
+            else [Settings(*v) for v in product(a.speed, a.roll, a.pitch, a.noise, a.stride)]
+        )
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

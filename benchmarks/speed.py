@@ -77,7 +77,10 @@ def _profiled(m, scans):
                 per[k].append(v)
     finally:
         args.Bound.__call__ = call
-    return {k: (1e3 * float(np.median([w for w, _ in v])), 1e3 * float(np.median([c for _, c in v]))) for k, v in per.items()}
+    return {
+        k: (1e3 * float(np.median([w for w, _ in v])), 1e3 * float(np.median([c for _, c in v])))
+        for k, v in per.items()
+    }
 
 
 def run_one(a) -> dict:
@@ -143,8 +146,10 @@ def main() -> None:
         for row in r["rows"]:
             om = row.get("octomap_ms")
             ratio = f"{om / row['ms']:6.1f}" if om else "     -"
-            print(f"{r['pin']:>6} {row['res']:5.2f} {row['ms']:9.1f} {om or float('nan'):10.1f} {ratio} "
-                  f"{row['first_s']:12.2f}")  # fmt: skip
+            print(
+                f"{r['pin']:>6} {row['res']:5.2f} {row['ms']:9.1f} {om or float('nan'):10.1f} {ratio} "
+                f"{row['first_s']:12.2f}"
+            )
             for k, (w, c) in sorted(row.get("kernels", {}).items(), key=lambda kv: -kv[1][0]):
                 print(f"{'':13}{k:16} {w:7.2f} ms wall {c:7.2f} ms cpu")
 

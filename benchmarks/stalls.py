@@ -49,9 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     rest = np.array(times[1:])
     med = float(np.median(rest))
     worst = int(np.argmax(rest)) + 1
-    print(f"init {t_init * 1e3:.0f} ms; first scan {times[0]:.0f} ms; later scans median {med:.1f} ms, "
-          f"p95 {np.percentile(rest, 95):.1f} ms; worst scan {worst} ({sizes[worst]} points) {times[worst]:.1f} ms "
-          f"= {times[worst] / med:.2f} x the median; points per scan {min(sizes)}-{max(sizes)}")  # fmt: skip
+    print(
+        f"init {t_init * 1e3:.0f} ms; first scan {times[0]:.0f} ms; later scans median {med:.1f} ms, "
+        f"p95 {np.percentile(rest, 95):.1f} ms; worst scan {worst} ({sizes[worst]} points) {times[worst]:.1f} ms "
+        f"= {times[worst] / med:.2f} x the median; points per scan {min(sizes)}-{max(sizes)}"
+    )
     return 0
 
 

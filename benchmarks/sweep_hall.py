@@ -23,8 +23,23 @@ SHARED = ROOT.parent / "shared"
 def hall_scans(n: int) -> list:
     sim = SHARED / "tools" / "simworld.py"
     out = Path(tempfile.mkdtemp(prefix="ndtom_hall_"))
-    subprocess.run([sys.executable, str(sim), "--variant", "hall", "--stride", "10", "--scans", str(n),
-                    "--no-bags", "--out", str(out)], check=True, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [
+            sys.executable,
+            str(sim),
+            "--variant",
+            "hall",
+            "--stride",
+            "10",
+            "--scans",
+            str(n),
+            "--no-bags",
+            "--out",
+            str(out),
+        ],
+        check=True,
+        capture_output=True,
+    )
     sys.path.insert(0, str(sim.parent))
     import simworld
 
@@ -58,19 +73,21 @@ def main() -> None:
     res = [float(x) for x in a.resolutions.split(",")]
     baseline = None if a.no_octomap or not sweep.octomap_available() else "octomap"
     config = ndtom_ti.MapConfig(miss_model=a.miss_model) if a.miss_model else None
-    rows = sweep.run_sweep(
-        scans, res, baseline=baseline, progress=lambda s: print(s, file=sys.stderr), config=config
-    )
+    rows = sweep.run_sweep(scans, res, baseline=baseline, progress=lambda s: print(s, file=sys.stderr), config=config)
     a.out.mkdir(parents=True, exist_ok=True)
     name = Path(a.bag).stem if a.bag else "hall"
     tags = {**sweep.machine_tags(arch), "data": name}  # the rows hold the number of scans
     sweep.write_csv(rows, a.out / f"sweep_{name}.csv", tags)
     sweep.plot(rows, a.out / f"sweep_{name}.png", f"{name}, {len(scans)} scans, {arch}, {tags['cores']} cores")
-    print(f"{'mapper':12} {'res':>5} {'median ms':>10} {'p95 ms':>8} {'Mvisits/s':>9} {'x ndtom':>8} {'Gaussians':>9} {'MiB':>7}")
+    print(
+        f"{'mapper':12} {'res':>5} {'median ms':>10} {'p95 ms':>8} {'Mvisits/s':>9} {'x ndtom':>8} {'Gaussians':>9} {'MiB':>7}"
+    )
     for r in rows:
-        print(f"{r.mapper:12} {r.resolution:5.2f} {r.ms_median:10.1f} {r.ms_p95:8.1f} {r.visits_per_s / 1e6:9.1f} "
-              f"{r.ratio_to_ndtom:8.2f} {'-' if r.gaussians is None else r.gaussians:>9} "
-              f"{r.memory_bytes / 2**20:7.1f}")  # fmt: skip
+        print(
+            f"{r.mapper:12} {r.resolution:5.2f} {r.ms_median:10.1f} {r.ms_p95:8.1f} {r.visits_per_s / 1e6:9.1f} "
+            f"{r.ratio_to_ndtom:8.2f} {'-' if r.gaussians is None else r.gaussians:>9} "
+            f"{r.memory_bytes / 2**20:7.1f}"
+        )
     print(f"points/scan {np.mean([len(p) for p, _ in scans]):.0f}; csv and png in {a.out}")
 
 

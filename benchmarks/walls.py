@@ -59,8 +59,10 @@ def main() -> None:
         for name, m in maps.items():
             idx, thick = walls(m.gaussians(min_probability=0.0) if name == "Recursive NDT" else m.gaussians())
             both = int(isin_rows(ref, idx).sum())
-            print(f"{Path(path).name:34} {res:5.2f} {n:5d} {name:>14} {len(idx):7d} {both:7d} "
-                  f"{100 * both / max(len(ref), 1):5.1f}% {1000 * np.median(thick) if len(thick) else 0:8.2f}")  # fmt: skip
+            print(
+                f"{Path(path).name:34} {res:5.2f} {n:5d} {name:>14} {len(idx):7d} {both:7d} "
+                f"{100 * both / max(len(ref), 1):5.1f}% {1000 * np.median(thick) if len(thick) else 0:8.2f}"
+            )
             m.close()
 
 

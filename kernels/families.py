@@ -18,8 +18,21 @@ from .trace import RaysConfig
 from .update import FreeConfig, MergeConfig
 
 # Kernels of every scan get the lighter call (launch.py); the rest keep Taichi's.
-_PER_SCAN = {"prepare", "hits_count", "hits_sum", "hits_group", "hits_dense", "merge", "rays", "mark_gaussians", "block_apply",
-             "apply_marked", "apply_free", "apply_free_all", "reset_rays"}  # fmt: skip
+_PER_SCAN = {
+    "prepare",
+    "hits_count",
+    "hits_sum",
+    "hits_group",
+    "hits_dense",
+    "merge",
+    "rays",
+    "mark_gaussians",
+    "block_apply",
+    "apply_marked",
+    "apply_free",
+    "apply_free_all",
+    "reset_rays",
+}
 
 
 # Told the name of each kernel variant just before its first call in this process (the call

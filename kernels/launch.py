@@ -90,8 +90,10 @@ class Launcher:
             self.kernel(*args)
             t_kernel = self._k.compiled_kernels[self._k.ensure_compiled(*args)]
             prog: Any = impl.get_runtime().prog
-            if not all(hasattr(o, a) for o, a in ((t_kernel, "make_launch_context"), (prog, "compile_kernel"),
-                                                   (prog, "launch_kernel"))):  # fmt: skip
+            if not all(
+                hasattr(o, a)
+                for o, a in ((t_kernel, "make_launch_context"), (prog, "compile_kernel"), (prog, "launch_kernel"))
+            ):
                 self._kinds = None  # not the Taichi this was written for: its call from now on
                 return None
             self._plans[sig] = t_kernel

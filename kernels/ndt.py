@@ -293,8 +293,9 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     queue = make_queue(cpu_threads(), on_cpu())
 
     @ti.func
-    def free_update(slot, c, dl, g, l_min, l_max, l_reset, rec_n: ti.template(), ctr: ti.template(),
-                    rec_free: ti.template()):  # fmt: skip
+    def free_update(
+        slot, c, dl, g, l_min, l_max, l_reset, rec_n: ti.template(), ctr: ti.template(), rec_free: ti.template()
+    ):
         # eq. (12) (or the NDT miss model) for a cell that rays passed and no endpoint hit:
         # dl is its log-odds change; reset of its Gaussian (g: NE_GAUSS set) at l <= l_reset
         # (eq. 12: 0; NDT miss model: NDT_RESET): its record goes on the free stack for the
@@ -364,9 +365,21 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return NDT_RESET if rec_nbr[r] & NBR_BACK == 0 else -BIG
 
     @ti.func
-    def free_update_tree(slot, c, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                         rec_free: ti.template(), rec_miss: ti.template(), ndt_minp, ndt: ti.template(),
-                         rec_nbr: ti.template(), rec_icov: ti.template()):  # fmt: skip
+    def free_update_tree(
+        slot,
+        c,
+        l_free,
+        l_min,
+        l_max,
+        rec_n: ti.template(),
+        ctr: ti.template(),
+        rec_free: ti.template(),
+        rec_miss: ti.template(),
+        ndt_minp,
+        ndt: ti.template(),
+        rec_nbr: ti.template(),
+        rec_icov: ti.template(),
+    ):
         # Hit cells were updated by merge, which cleared their ray count: skipped. With the
         # NDT miss model (ndt) a cell whose Gaussian has >= ndt_minp points takes the rays'
         # summed likelihood terms instead of the count's.
@@ -390,33 +403,59 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     erased_beside(slot, c, rec_n, rec_nbr, rec_icov, ndt_minp)
 
     @ti.func
-    def block_cell(slot, c, v, new_leaf, l_free, l_min, l_max, rec_n: ti.template(), ctr: ti.template(),
-                   regions: ti.template(), leaves: ti.template(), rec_free: ti.template()):  # fmt: skip
+    def block_cell(
+        slot,
+        c,
+        v,
+        new_leaf,
+        l_free,
+        l_min,
+        l_max,
+        rec_n: ti.template(),
+        ctr: ti.template(),
+        regions: ti.template(),
+        leaves: ti.template(),
+        rec_free: ti.template(),
+    ):
         # eq. (12) for a cell of the dense block that v rays passed; new_leaf: the first
         # such cell of its tree leaf in this pass, which counts the leaf if it creates it.
         # (Cells marked for the NDT miss model were applied and cleared by apply_marked.)
         if new_leaf:
             note_leaf(olm, slot, c, regions, leaves, 0)
-        free_update(slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, 0.0, rec_n, ctr,
-                    rec_free)  # fmt: skip
+        free_update(
+            slot, c, ti.cast(v * l_free, ti.f32), ne[at(slot, c)] & NE_GAUSS, l_min, l_max, 0.0, rec_n, ctr, rec_free
+        )
 
     @ti.func
-    def add_miss(r, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
-                 rec_miss: ti.template()):  # fmt: skip
+    def add_miss(r, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(), rec_miss: ti.template()):
         # The ray's NDT miss term added to record r's sum (terms that round to zero add nothing).
         v = ndt_miss(r, c, o, z, u, length, hit, res, prm, rec_icov)
         if v != 0:
             ti.atomic_add(rec_miss[r], v)
 
     @ti.func
-    def ndt_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(),
-                  rec_miss: ti.template()):  # fmt: skip
+    def ndt_visit(
+        slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_icov: ti.template(), rec_miss: ti.template()
+    ):
         # A ray passing a cell of the block marked as holding a usable Gaussian.
         add_miss(gslot[at(slot, c)] - 1, c, o, z, u, length, hit, res, prm, rec_icov, rec_miss)
 
     @ti.func
-    def ndt_tree_visit(slot, c, o, z, u, length, hit, res, prm: ti.template(), rec_n: ti.template(),
-                       rec_icov: ti.template(), rec_miss: ti.template(), ndt_minp):  # fmt: skip
+    def ndt_tree_visit(
+        slot,
+        c,
+        o,
+        z,
+        u,
+        length,
+        hit,
+        res,
+        prm: ti.template(),
+        rec_n: ti.template(),
+        rec_icov: ti.template(),
+        rec_miss: ti.template(),
+        ndt_minp,
+    ):
         # A ray passing a cell of the tree that may hold a Gaussian (NE_GAUSS).
         r = gslot[at(slot, c)] - 1
         if r >= 0 and rec_n[r] >= ndt_minp:
@@ -456,8 +495,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return out
 
     @ti.func
-    def ndt_icov(r, rec_n: ti.template(), rec_scat: ti.template(), rec_mean: ti.template(), prm: ti.template(),
-                 rec_icov: ti.template()):  # fmt: skip
+    def ndt_icov(
+        r,
+        rec_n: ti.template(),
+        rec_scat: ti.template(),
+        rec_mean: ti.template(),
+        prm: ti.template(),
+        rec_icov: ti.template(),
+    ):
         # What a ray visit reads of record r, in one row: the inverse of its regularised
         # covariance (xx xy xz yy yz zz) and a copy of its mean (relative to the cell
         # centre). Computed when its points change (merge) or the map is loaded.
@@ -528,10 +573,29 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return out
 
     f.funcs = SimpleNamespace(
-        leaf=leaf, region=region, grid_lo=grid_lo, SHIFT=SHIFT, queue=queue,
-        row=row, at=at, note_leaf=note_leaf, tally=tally, visit=visit, next_t=next_t,
-        free_update=free_update, erased_beside=erased_beside, wide=wide, take_miss=take_miss, ndt_reset=ndt_reset, free_update_tree=free_update_tree, block_cell=block_cell,
-        add_miss=add_miss, ndt_visit=ndt_visit, ndt_tree_visit=ndt_tree_visit,
-        ndt_floor=ndt_floor, ndt_icov=ndt_icov, ndt_miss=ndt_miss,
-    )  # fmt: skip
+        leaf=leaf,
+        region=region,
+        grid_lo=grid_lo,
+        SHIFT=SHIFT,
+        queue=queue,
+        row=row,
+        at=at,
+        note_leaf=note_leaf,
+        tally=tally,
+        visit=visit,
+        next_t=next_t,
+        free_update=free_update,
+        erased_beside=erased_beside,
+        wide=wide,
+        take_miss=take_miss,
+        ndt_reset=ndt_reset,
+        free_update_tree=free_update_tree,
+        block_cell=block_cell,
+        add_miss=add_miss,
+        ndt_visit=ndt_visit,
+        ndt_tree_visit=ndt_tree_visit,
+        ndt_floor=ndt_floor,
+        ndt_icov=ndt_icov,
+        ndt_miss=ndt_miss,
+    )
     return f.funcs

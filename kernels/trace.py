@@ -106,8 +106,21 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     b1d = ti.types.ndarray(dtype=bt, ndim=1)
 
     @ti.func
-    def block_visit(entry: ti.template(), near, slot, c, o, z, u, length, hit, res, ndt_prm: ti.template(),
-                    rec_icov: ti.template(), rec_miss: ti.template()):  # fmt: skip
+    def block_visit(
+        entry: ti.template(),
+        near,
+        slot,
+        c,
+        o,
+        z,
+        u,
+        length,
+        hit,
+        res,
+        ndt_prm: ti.template(),
+        rec_icov: ti.template(),
+        rec_miss: ti.template(),
+    ):
         # A ray passing block entry ``entry`` (cell c): counted, or with the NDT miss model
         # its Gaussian tested (a marked entry, unless near: the last cells of a hit ray, see
         # config.MapConfig.near_cells_at) or nothing (a hit cell's entry).
@@ -190,15 +203,41 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                         rel = cur - b0
                         near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
                         if ti.static(mode == "dense"):
-                            block_visit(block1[li], near, slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_icov,
-                                        rec_miss)  # fmt: skip
+                            block_visit(
+                                block1[li],
+                                near,
+                                slot,
+                                cur,
+                                o,
+                                z,
+                                u,
+                                length,
+                                i < n_hit,
+                                res,
+                                ndt_prm,
+                                rec_icov,
+                                rec_miss,
+                            )
                             if flags != 0:
                                 bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                         elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
                             # Near the sensor every ray passes: count in the dense block,
                             # applied to the tree once per cell by block_apply.
-                            block_visit(block[rel[0], rel[1], rel[2]], near, slot, cur, o, z, u, length, i < n_hit, res,
-                                        ndt_prm, rec_icov, rec_miss)  # fmt: skip
+                            block_visit(
+                                block[rel[0], rel[1], rel[2]],
+                                near,
+                                slot,
+                                cur,
+                                o,
+                                z,
+                                u,
+                                length,
+                                i < n_hit,
+                                res,
+                                ndt_prm,
+                                rec_icov,
+                                rec_miss,
+                            )
                             lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
                             if (lb != last_leaf).any():
                                 bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
@@ -211,8 +250,21 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             if ti.static(full):
                                 g = visit(slot, cur, touched, cap, ctr)
                                 if ti.static(ndt) and g != 0 and near == 0:
-                                    ndt_tree_visit(slot, cur, o, z, u, length, i < n_hit, res, ndt_prm, rec_n, rec_icov,
-                                                   rec_miss, ndt_minp)  # fmt: skip
+                                    ndt_tree_visit(
+                                        slot,
+                                        cur,
+                                        o,
+                                        z,
+                                        u,
+                                        length,
+                                        i < n_hit,
+                                        res,
+                                        ndt_prm,
+                                        rec_n,
+                                        rec_icov,
+                                        rec_miss,
+                                        ndt_minp,
+                                    )
                             else:
                                 ti.atomic_add(ne[at(slot, cur)], 1)
                         visits += 1
@@ -266,17 +318,30 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             note_leaf(olm, slot, ce, occ_regions, leaves, 0)
                             g = visit(slot, ce, touched, cap, ctr)
                             if ti.static(ndt) and g != 0:
-                                ndt_tree_visit(slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss,
-                                               ndt_minp)  # fmt: skip
+                                ndt_tree_visit(
+                                    slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss, ndt_minp
+                                )
                         visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
                 jq = Q.next(ctr, Q_RAYS)
 
     ndt_fields = ("rec_miss", "rec_icov", "ndt_prm", "ndt_minp")
     ndt_part = ("ndt", NdtRecords, ndt_fields) if ndt else (None, NdtRecords, ndt_fields)
-    return Bound(rays, ("slot", ("rays", Rays), ("sensor", Sensor), ("touched", Touched), "ctr",
-                        ("nodes", Nodes, ("occ_regions", "leaves")), ("block", Block), ("records", Records, ("rec_n",)),
-                        ndt_part, "flags"))  # fmt: skip
+    return Bound(
+        rays,
+        (
+            "slot",
+            ("rays", Rays),
+            ("sensor", Sensor),
+            ("touched", Touched),
+            "ctr",
+            ("nodes", Nodes, ("occ_regions", "leaves")),
+            ("block", Block),
+            ("records", Records, ("rec_n",)),
+            ndt_part,
+            "flags",
+        ),
+    )
 
 
 def mark_gaussians(f: Storage, bt: str) -> Bound:
@@ -319,8 +384,17 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
             if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)
 
-    return Bound(mark_gaussians, ("nrec", ("records", Records, ("rec_n", "rec_cell")), ("ndt", NdtRecords, ("ndt_minp",)),
-                                  ("block", Block, ("block", "bflag", "base")), ("rays", Rays, ("cells", "n_hit")), "flags"))  # fmt: skip
+    return Bound(
+        mark_gaussians,
+        (
+            "nrec",
+            ("records", Records, ("rec_n", "rec_cell")),
+            ("ndt", NdtRecords, ("ndt_minp",)),
+            ("block", Block, ("block", "bflag", "base")),
+            ("rays", Rays, ("cells", "n_hit")),
+            "flags",
+        ),
+    )
 
 
 def reset_rays(f: Storage, _cfg=None) -> Bound:
@@ -392,5 +466,17 @@ def count_new_nodes(f: Storage, dedup: bool) -> Bound:
                     if gidx_regions[slot, r[0], r[1], r[2]] == 0:
                         ti.atomic_add(out[3], 1)
 
-    return Bound(count_new_nodes, ("slot", "cells", "n", "lbase", "seen", "rbase", "rseen",
-                                   ("nodes", Nodes, ("occ_regions", "gidx_regions")), "out"))  # fmt: skip
+    return Bound(
+        count_new_nodes,
+        (
+            "slot",
+            "cells",
+            "n",
+            "lbase",
+            "seen",
+            "rbase",
+            "rseen",
+            ("nodes", Nodes, ("occ_regions", "gidx_regions")),
+            "out",
+        ),
+    )

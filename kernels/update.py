@@ -334,8 +334,10 @@ def hits_dense(f: Storage, bt: str) -> Bound:
             q = row(cells, i) - b0
             order[off[ti.cast(block[q[0], q[1], q[2]], ti.i32)] + rank[i]] = i
 
-    return Bound(hits_dense, ("cells", "n", "hitlist", "hcnt", "off", "rank", "order", "ctr",
-                              ("block", Block, ("block", "base")), "first"))  # fmt: skip
+    return Bound(
+        hits_dense,
+        ("cells", "n", "hitlist", "hcnt", "off", "rank", "order", "ctr", ("block", Block, ("block", "base")), "first"),
+    )
 
 
 def merge(f: Storage, cfg: MergeConfig) -> Bound:
@@ -349,9 +351,24 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
     b3d = ti.types.ndarray(dtype=bt, ndim=3)
 
     @ti.func
-    def hit_update(slot, c, cnt, l_hit, l_min, l_max, regions: ti.template(), leaves: ti.template(),
-                   block: ti.template(), b0, bsize, ctr: ti.template(), grouped: ti.template(), in_tree, first,
-                   state):  # fmt: skip
+    def hit_update(
+        slot,
+        c,
+        cnt,
+        l_hit,
+        l_min,
+        l_max,
+        regions: ti.template(),
+        leaves: ti.template(),
+        block: ti.template(),
+        b0,
+        bsize,
+        ctr: ti.template(),
+        grouped: ti.template(),
+        in_tree,
+        first,
+        state,
+    ):
         # eq. (12) for a cell with endpoints: the hit update only, its ray count cleared;
         # the cell has a Gaussian record now (first: its first points). NDT miss model:
         # state is the record's NBR_FRESH / NBR_BACK bits before the hit; returns them after.
@@ -516,17 +533,47 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                         if tot_i >= ndt_minp:  # what rays read of the cell's points
                             ndt_icov(r, rec_n, rec_scat, rec_mean, ndt_prm, rec_icov)
                     first = 1 if m_i == 0 else 0
-                    state = hit_update(slot, c, cnt, l_hit, l_min, l_max, occ_regions, leaves, block, b0, bsize, ctr, grouped,
-                                       in_tree, first, state)  # fmt: skip
+                    state = hit_update(
+                        slot,
+                        c,
+                        cnt,
+                        l_hit,
+                        l_min,
+                        l_max,
+                        occ_regions,
+                        leaves,
+                        block,
+                        b0,
+                        bsize,
+                        ctr,
+                        grouped,
+                        in_tree,
+                        first,
+                        state,
+                    )
                     if ti.static(ndt):
                         rec_nbr[r] = state  # (its count of erased neighbours starts again)
                 jq = Q.next(ctr, Q_MERGE)
 
-    return Bound(merge, ("slot", "hitlist", ("sums", TreeSums) if not grouped else (None, TreeSums),
-                         ("grouped", GroupedHits) if grouped else (None, GroupedHits), "nh", "n_max",
-                         ("records", Records), "ctr", ("model", Model, ("l_hit", "l_min", "l_max")),
-                         ("nodes", Nodes), ("block", Block, ("block", "base")), "res", "left",
-                         ("ndt", NdtRecords) if ndt else (None, NdtRecords)))  # fmt: skip
+    return Bound(
+        merge,
+        (
+            "slot",
+            "hitlist",
+            ("sums", TreeSums) if not grouped else (None, TreeSums),
+            ("grouped", GroupedHits) if grouped else (None, GroupedHits),
+            "nh",
+            "n_max",
+            ("records", Records),
+            "ctr",
+            ("model", Model, ("l_hit", "l_min", "l_max")),
+            ("nodes", Nodes),
+            ("block", Block, ("block", "base")),
+            "res",
+            "left",
+            ("ndt", NdtRecords) if ndt else (None, NdtRecords),
+        ),
+    )
 
 
 _FREE_PARTS = (("model", Model, ("l_free", "l_min", "l_max")), ("records", Records, ("rec_n", "rec_free")), "ctr")
@@ -564,15 +611,35 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
                 c = row(rec_cell, r)
                 rel = c - b0
                 if (rel >= 0).all() and (rel < bsize).all():
-                    erased = free_update(slot, c, take_miss(r, rec_miss, rec_nbr), NE_GAUSS, l_min, l_max,
-                                         ndt_reset(r, rec_nbr), rec_n, ctr, rec_free)  # fmt: skip
+                    erased = free_update(
+                        slot,
+                        c,
+                        take_miss(r, rec_miss, rec_nbr),
+                        NE_GAUSS,
+                        l_min,
+                        l_max,
+                        ndt_reset(r, rec_nbr),
+                        rec_n,
+                        ctr,
+                        rec_free,
+                    )
                     if erased != 0:
                         erased_beside(slot, c, rec_n, rec_nbr, rec_icov, ndt_minp)
                     tally(ctr, C_BLOCK_CELLS, r >> 6, 1)
 
-    return Bound(apply_marked, ("slot", "nrec", ("model", Model, ("l_min", "l_max")),
-                                ("records", Records, ("rec_n", "rec_cell", "rec_free")), "ctr", "shape", "base",
-                                ("ndt", NdtRecords, ("rec_miss", "rec_icov", "ndt_minp", "rec_nbr"))))  # fmt: skip
+    return Bound(
+        apply_marked,
+        (
+            "slot",
+            "nrec",
+            ("model", Model, ("l_min", "l_max")),
+            ("records", Records, ("rec_n", "rec_cell", "rec_free")),
+            "ctr",
+            "shape",
+            "base",
+            ("ndt", NdtRecords, ("rec_miss", "rec_icov", "ndt_minp", "rec_nbr")),
+        ),
+    )
 
 
 def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
@@ -655,16 +722,39 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
                                         if v != 0:
                                             k = kw * lanes + lane
-                                            block_cell(slot, b0 + ti.Vector([i, j, k]), v, k >> SHIFT != last, l_free,
-                                                       l_min, l_max, rec_n, ctr, occ_regions, leaves, rec_free)  # fmt: skip
+                                            block_cell(
+                                                slot,
+                                                b0 + ti.Vector([i, j, k]),
+                                                v,
+                                                k >> SHIFT != last,
+                                                l_free,
+                                                l_min,
+                                                l_max,
+                                                rec_n,
+                                                ctr,
+                                                occ_regions,
+                                                leaves,
+                                                rec_free,
+                                            )
                                             cells += 1
                                             last = k >> SHIFT
                     if cells > 0:
                         tally(ctr, C_BLOCK_CELLS, ij >> 3, cells)
                 jq = Q.next(ctr, Q_APPLY)
 
-    return Bound(block_apply, ("slot", "words", "bflag", "shape", "base", "flagged", *_FREE_PARTS,
-                               ("nodes", Nodes, ("occ_regions", "leaves"))))  # fmt: skip
+    return Bound(
+        block_apply,
+        (
+            "slot",
+            "words",
+            "bflag",
+            "shape",
+            "base",
+            "flagged",
+            *_FREE_PARTS,
+            ("nodes", Nodes, ("occ_regions", "leaves")),
+        ),
+    )
 
 
 def apply_free(f: Storage, ndt: bool) -> Bound:
@@ -688,12 +778,34 @@ def apply_free(f: Storage, ndt: bool) -> Bound:
         rec_icov: f64_2d,
     ):
         for t in range(nt):
-            free_update_tree(slot, row(touched, t), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss, ndt_minp, ndt,
-                             rec_nbr, rec_icov)  # fmt: skip
+            free_update_tree(
+                slot,
+                row(touched, t),
+                l_free,
+                l_min,
+                l_max,
+                rec_n,
+                ctr,
+                rec_free,
+                rec_miss,
+                ndt_minp,
+                ndt,
+                rec_nbr,
+                rec_icov,
+            )
 
-    return Bound(apply_free, ("slot", ("touched", Touched, ("touched",)), "nt", *_FREE_PARTS,
-                              ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")) if ndt
-                              else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))))  # fmt: skip
+    return Bound(
+        apply_free,
+        (
+            "slot",
+            ("touched", Touched, ("touched",)),
+            "nt",
+            *_FREE_PARTS,
+            ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))
+            if ndt
+            else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")),
+        ),
+    )
 
 
 def apply_free_all(f: Storage, ndt: bool) -> Bound:
@@ -716,12 +828,32 @@ def apply_free_all(f: Storage, ndt: bool) -> Bound:
     ):
         for I in ti.grouped(ne):
             if I[0] == slot and ne[I] & NE_COUNT > 0:
-                free_update_tree(slot, ti.Vector([I[1], I[2], I[3]]), l_free, l_min, l_max, rec_n, ctr, rec_free, rec_miss,
-                                 ndt_minp, ndt, rec_nbr, rec_icov)  # fmt: skip
+                free_update_tree(
+                    slot,
+                    ti.Vector([I[1], I[2], I[3]]),
+                    l_free,
+                    l_min,
+                    l_max,
+                    rec_n,
+                    ctr,
+                    rec_free,
+                    rec_miss,
+                    ndt_minp,
+                    ndt,
+                    rec_nbr,
+                    rec_icov,
+                )
 
-    return Bound(apply_free_all, ("slot", *_FREE_PARTS,
-                                  ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")) if ndt
-                                  else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))))  # fmt: skip
+    return Bound(
+        apply_free_all,
+        (
+            "slot",
+            *_FREE_PARTS,
+            ("ndt", NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov"))
+            if ndt
+            else (None, NdtRecords, ("rec_miss", "ndt_minp", "rec_nbr", "rec_icov")),
+        ),
+    )
 
 
 def ndt_refresh(f: Storage, _cfg=None) -> Bound:
@@ -744,5 +876,11 @@ def ndt_refresh(f: Storage, _cfg=None) -> Bound:
                 if rec_nbr[r] & NBR_COUNT >= NDT_ERASED_NEIGHBOURS:
                     wide(r, rec_icov)
 
-    return Bound(ndt_refresh, ("nrec", ("records", Records, ("rec_n", "rec_mean", "rec_scat")),
-                               ("ndt", NdtRecords, ("rec_icov", "ndt_prm", "rec_nbr"))))  # fmt: skip
+    return Bound(
+        ndt_refresh,
+        (
+            "nrec",
+            ("records", Records, ("rec_n", "rec_mean", "rec_scat")),
+            ("ndt", NdtRecords, ("rec_icov", "ndt_prm", "rec_nbr")),
+        ),
+    )

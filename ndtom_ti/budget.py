@@ -97,8 +97,17 @@ class MemoryBudget:
             first = order[np.concatenate(([True], sk[1:] != sk[:-1]))]
             cells, seen, dedup = np.ascontiguousarray(hit_cells[first]), np.zeros((1, 1, 1), np.int32), False
         new = np.zeros(4, np.int64)
-        self.k.count_new_nodes(dedup)(slot=self.slot, cells=cells, n=len(cells), lbase=lo.astype(np.int32), seen=seen,
-                                      rbase=rlo.astype(np.int32), rseen=rseen, nodes=self.nodes, out=new)  # fmt: skip
+        self.k.count_new_nodes(dedup)(
+            slot=self.slot,
+            cells=cells,
+            n=len(cells),
+            lbase=lo.astype(np.int32),
+            seen=seen,
+            rbase=rlo.astype(np.int32),
+            rseen=rseen,
+            nodes=self.nodes,
+            out=new,
+        )
         return new[[2, 0, 3, 1]]
 
     def load_bound(self, occ_idx: np.ndarray, g_idx: np.ndarray) -> np.ndarray:

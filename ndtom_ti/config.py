@@ -193,8 +193,19 @@ class MapConfig:
     def ndt_params(self, resolution: float) -> np.ndarray:
         """The NDT miss model's kernel parameters at this resolution (kernels/args.py
         NdtRecords.ndt_prm, read by kernels/ndt.py in this order)."""
-        return np.array([self.eta, 0.5 / self.sigma_s_at(resolution) ** 2, NDT_COV_FLOOR, NDT_LINE, NDT_LINE_FLOOR,
-                         self.min_points, NDT_SPARSE_SIGMA**2, NDT_LINE_POINTS, self.near_cells_at(resolution)])  # fmt: skip
+        return np.array(
+            [
+                self.eta,
+                0.5 / self.sigma_s_at(resolution) ** 2,
+                NDT_COV_FLOOR,
+                NDT_LINE,
+                NDT_LINE_FLOOR,
+                self.min_points,
+                NDT_SPARSE_SIGMA**2,
+                NDT_LINE_POINTS,
+                self.near_cells_at(resolution),
+            ]
+        )
 
     @property
     def ndt_min_points(self) -> int:

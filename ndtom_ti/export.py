@@ -86,11 +86,16 @@ DEFAULT_SUFFIX = {"ply": ".ply", "pcd": ".pcd", "npz": ".npz", "csv": ".csv", "b
 COV_TERMS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
 _COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 PLY_PROPERTIES = (
-    ("x", "float", "<f4"), ("y", "float", "<f4"), ("z", "float", "<f4"),
-    ("red", "uchar", "u1"), ("green", "uchar", "u1"), ("blue", "uchar", "u1"),
-    ("p_occ", "float", "<f4"), ("n", "int", "<i4"),
+    ("x", "float", "<f4"),
+    ("y", "float", "<f4"),
+    ("z", "float", "<f4"),
+    ("red", "uchar", "u1"),
+    ("green", "uchar", "u1"),
+    ("blue", "uchar", "u1"),
+    ("p_occ", "float", "<f4"),
+    ("n", "int", "<i4"),
     *((name, "float", "<f4") for name in COV_TERMS),
-)  # fmt: skip
+)
 # Height colours: blue, cyan, green, yellow, red at equal steps from the low to the high
 # end of the height range (the 1st and 99th percentile of the means' z).
 HEIGHT_RAMP = ((0, 0, 255), (0, 255, 255), (0, 255, 0), (255, 255, 0), (255, 0, 0))

@@ -70,9 +70,12 @@ def _symbol_offset(lib: Path) -> int:
             raise GuardFailed(f"{lib.name} has no symbol table (stripped)")
         sym, strs = symtabs[0], secs[symtabs[0][6]]
         fh.seek(sym[4])
-        syms = np.frombuffer(fh.read(sym[5]), np.dtype(
-            [("name", "<u4"), ("info", "u1"), ("other", "u1"), ("shndx", "<u2"), ("value", "<u8"), ("size", "<u8")]
-        ))  # fmt: skip
+        syms = np.frombuffer(
+            fh.read(sym[5]),
+            np.dtype(
+                [("name", "<u4"), ("info", "u1"), ("other", "u1"), ("shndx", "<u2"), ("value", "<u8"), ("size", "<u8")]
+            ),
+        )
         fh.seek(strs[4])
         names = fh.read(strs[5])
     offsets, i = [], names.find(SYMBOL + b"\0")

@@ -128,8 +128,13 @@ class NdtOmMap:
 
         c = self.config
         # The slot is emptied by close(), or when the map is collected.
-        self._slot = MapSlot(self.layout, ndt=c.ndt_misses, ndt_params=c.ndt_params(self.resolution),
-                             ndt_min_points=c.ndt_min_points, occupancy=self.occupancy_enabled)  # fmt: skip
+        self._slot = MapSlot(
+            self.layout,
+            ndt=c.ndt_misses,
+            ndt_params=c.ndt_params(self.resolution),
+            ndt_min_points=c.ndt_min_points,
+            occupancy=self.occupancy_enabled,
+        )
         self._lock = self._slot.lock
         # How the updates run (speed only). On CUDA a numpy block is copied to the device
         # and back at every launch: keep it to the 1M cells nearest the sensor there.
@@ -137,8 +142,14 @@ class NdtOmMap:
         # Without n_max the updates still cap N at N_LIMIT: past 2**31 the kernels' int32
         # counts would wrap, and a Gaussian of a negative count is deleted.
         upd_cfg = self.config if self.config.n_max else replace(self.config, n_max=N_LIMIT)
-        self._update = ScanUpdate(slot=self._slot, plan=self.plan, config=upd_cfg, resolution=self.resolution,
-                                  occupancy=self.occupancy_enabled, arch=self.arch)  # fmt: skip
+        self._update = ScanUpdate(
+            slot=self._slot,
+            plan=self.plan,
+            config=upd_cfg,
+            resolution=self.resolution,
+            occupancy=self.occupancy_enabled,
+            arch=self.arch,
+        )
 
     # ------------------------------------------------------------------ properties
 
@@ -273,8 +284,17 @@ class NdtOmMap:
         points for their next hit).
         """
         raw = self._slot.gaussian_records()
-        return select_gaussians(raw["index"], raw["n"], raw["mean_rel"], raw["scatter"], raw["logodds"],
-                                self.resolution, min_points, min_probability, self.config.min_points)  # fmt: skip
+        return select_gaussians(
+            raw["index"],
+            raw["n"],
+            raw["mean_rel"],
+            raw["scatter"],
+            raw["logodds"],
+            self.resolution,
+            min_points,
+            min_probability,
+            self.config.min_points,
+        )
 
     @_locked
     def known_cells(self) -> dict:
@@ -360,9 +380,15 @@ class NdtOmMap:
     def snapshot(self) -> MapSnapshot:
         """The map's content now as plain numpy arrays (:class:`~ndtom_ti.snapshot.MapSnapshot`):
         save, export, coarsen and view it without a map slot."""
-        settings = {"resolution": self.resolution, "occupancy_enabled": self.occupancy_enabled, "config": self.config,
-                    "layout": self.layout, "metadata": copy_metadata(self.metadata),
-                    "scans_inserted": self.scans_inserted, "points_inserted": self.points_inserted}  # fmt: skip
+        settings = {
+            "resolution": self.resolution,
+            "occupancy_enabled": self.occupancy_enabled,
+            "config": self.config,
+            "layout": self.layout,
+            "metadata": copy_metadata(self.metadata),
+            "scans_inserted": self.scans_inserted,
+            "points_inserted": self.points_inserted,
+        }
         return MapSnapshot.adopt(settings, self._slot.state())
 
     @classmethod

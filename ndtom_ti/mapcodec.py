@@ -51,11 +51,23 @@ _INDEX = ("occ_index", "g_index")
 # What each array compresses best as, by payload version (bytes of the recordings' maps).
 # The reader takes "raw", "planes" or "nonzero" for any array that is not an index.
 CODINGS = {
-    4: {"occ_logodds": "raw", "g_n": "planes", "g_mean_rel": "planes", "g_scatter": "raw",
-        "g_erased_near": "planes", "g_ndt_state": "raw"},
-    5: {"occ_logodds": "raw", "g_n": "planes", "g_mean_rel": "planes", "g_scatter": "nonzero",
-        "g_erased_near": "planes", "g_ndt_state": "raw"},
-}  # fmt: skip
+    4: {
+        "occ_logodds": "raw",
+        "g_n": "planes",
+        "g_mean_rel": "planes",
+        "g_scatter": "raw",
+        "g_erased_near": "planes",
+        "g_ndt_state": "raw",
+    },
+    5: {
+        "occ_logodds": "raw",
+        "g_n": "planes",
+        "g_mean_rel": "planes",
+        "g_scatter": "nonzero",
+        "g_erased_near": "planes",
+        "g_ndt_state": "raw",
+    },
+}
 CODING = CODINGS[VERSION]
 _VALUE_CODINGS = ("raw", "planes", "nonzero")
 
@@ -202,9 +214,14 @@ def check_table(table: list[dict], payload_bytes: int, bad: Bad) -> None:
                 bad(f"array {name!r} declares {second} bytes of rows for {rows} rows of {row_bytes} bytes")
         if name in _INDEX:
             lo, span = e.get("lo"), e.get("span")
-            if not (isinstance(lo, list) and isinstance(span, list) and len(lo) == len(span) == 3
-                    and all(_int(v) and abs(v) < 2**31 for v in lo) and all(_int(v) and 0 < v <= 2**32 for v in span)
-                    and math.prod(span) < 2**62):  # fmt: skip
+            if not (
+                isinstance(lo, list)
+                and isinstance(span, list)
+                and len(lo) == len(span) == 3
+                and all(_int(v) and abs(v) < 2**31 for v in lo)
+                and all(_int(v) and 0 < v <= 2**32 for v in span)
+                and math.prod(span) < 2**62
+            ):
                 bad(f"array {name!r} has key bounds lo {lo!r}, span {span!r}")
             if streams[1]["raw_nbytes"] % 8 or streams[1]["raw_nbytes"] > 8 * rows:
                 bad(f"array {name!r} declares {streams[1]['raw_nbytes']} bytes of long differences for {rows} rows")

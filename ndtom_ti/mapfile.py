@@ -86,8 +86,9 @@ def _encode(s: dict, cells: dict, version: int) -> tuple[bytes, list]:
     else:
         table, blobs, offset = [], [], 0
         for name, a in arrays.items():
-            table.append({"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "offset": offset,
-                          "nbytes": a.nbytes})  # fmt: skip
+            table.append(
+                {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "offset": offset, "nbytes": a.nbytes}
+            )
             blobs.append(a)
             offset += a.nbytes
     sha, offset = hashlib.sha256(), 0
@@ -213,10 +214,15 @@ def read(path: str | Path) -> tuple[dict, dict]:
         for first, order in _check_values(path, arrays, layout, config, header["resolution"], ordered).items():
             for name in ROWS[first]:
                 arrays[name] = arrays[name][order]
-        settings = {"resolution": float(header["resolution"]), "occupancy_enabled": bool(header["occupancy"]),
-                        "config": config, "layout": layout, "metadata": header.get("metadata") or {},
-                        "scans_inserted": header["scans_inserted"],
-                        "points_inserted": header["points_inserted"]}  # fmt: skip
+        settings = {
+            "resolution": float(header["resolution"]),
+            "occupancy_enabled": bool(header["occupancy"]),
+            "config": config,
+            "layout": layout,
+            "metadata": header.get("metadata") or {},
+            "scans_inserted": header["scans_inserted"],
+            "points_inserted": header["points_inserted"],
+        }
     except MapFileError:
         raise
     except (KeyError, TypeError, ValueError) as exc:
@@ -283,8 +289,12 @@ def _check_header(path: Path, header: dict, version: int) -> None:
     if header.get("metadata") is not None and not isinstance(header["metadata"], dict):
         bad("metadata is not a table")
     lay = header.get("layout")
-    if not (isinstance(lay, dict) and isinstance(lay.get("l1"), list) and len(lay["l1"]) == 3
-            and all(_is_int(v) and v > 0 for v in [*lay["l1"], lay.get("l2"), lay.get("leaf")])):  # fmt: skip
+    if not (
+        isinstance(lay, dict)
+        and isinstance(lay.get("l1"), list)
+        and len(lay["l1"]) == 3
+        and all(_is_int(v) and v > 0 for v in [*lay["l1"], lay.get("l2"), lay.get("leaf")])
+    ):
         bad(f"layout must hold l1 (3 positive integers), l2 and leaf (positive integers), got {lay!r}")
     table = header.get("arrays")
     if not isinstance(table, list):
@@ -300,8 +310,12 @@ def _check_header(path: Path, header: dict, version: int) -> None:
         if entry.get("dtype") != dtype:
             bad(f"array {name!r} has dtype {entry.get('dtype')!r}, expected {dtype!r}")
         shape, cols = entry.get("shape"), _COLUMNS[name]
-        if not (isinstance(shape, list) and len(shape) == 1 + len(cols) and all(_is_int(n) and n >= 0 for n in shape)
-                and tuple(shape[1:]) == cols):  # fmt: skip
+        if not (
+            isinstance(shape, list)
+            and len(shape) == 1 + len(cols)
+            and all(_is_int(n) and n >= 0 for n in shape)
+            and tuple(shape[1:]) == cols
+        ):
             bad(f"array {name!r} has shape {shape!r}, expected [rows{''.join(f', {c}' for c in cols)}]")
         rows[name] = shape[0]
         if version >= 4:  # the codec's fields: checked below, for the whole table
@@ -356,8 +370,11 @@ def _check_values(path: Path, arrays: dict, layout, config: MapConfig, resolutio
                 bad(f"{name} lists a cell twice")
             unsorted[name] = np.argsort(key)
     lod = arrays["occ_logodds"]
-    if len(lod) and not (np.isfinite(lod).all() and (lod >= np.float32(config.logodds_min)).all()
-                         and (lod <= np.float32(config.logodds_max)).all()):  # fmt: skip
+    if len(lod) and not (
+        np.isfinite(lod).all()
+        and (lod >= np.float32(config.logodds_min)).all()
+        and (lod <= np.float32(config.logodds_max)).all()
+    ):
         bad(f"occ_logodds holds values that are not finite or outside [{config.logodds_min}, {config.logodds_max}]")
     gn, mean, s = arrays["g_n"], arrays["g_mean_rel"], arrays["g_scatter"]
     if len(gn) == 0:

@@ -213,11 +213,24 @@ class MappingSummary:
         m.metadata["summary"] = {
             k: d[k]
             for k in (
-                "clouds_seen", "scans_used", "skipped", "points_in", "points_used", "free_rays", "dropped",
-                "gaussians", "known_cells", "memory_bytes", "ms_first_scan", "ms_per_scan_median", "ms_per_scan_p95",
-                "wall_seconds", "stopped", "error",
+                "clouds_seen",
+                "scans_used",
+                "skipped",
+                "points_in",
+                "points_used",
+                "free_rays",
+                "dropped",
+                "gaussians",
+                "known_cells",
+                "memory_bytes",
+                "ms_first_scan",
+                "ms_per_scan_median",
+                "ms_per_scan_p95",
+                "wall_seconds",
+                "stopped",
+                "error",
             )
-        }  # fmt: skip
+        }
 
 
 # ---------------------------------------------------------------------------- configuration
@@ -416,9 +429,14 @@ def map_scans(
     ``T_world_sensor`` (4, 4), or of ``(points, T_world_sensor)`` pairs."""
     cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)
     summary = MappingSummary(
-        source=source, pose_source=pose_source, fixed_frame=fixed_frame, resolution=float(resolution),
-        occupancy=bool(occupancy), config=cfg.to_dict(), scans_expected=scans_expected,
-    )  # fmt: skip
+        source=source,
+        pose_source=pose_source,
+        fixed_frame=fixed_frame,
+        resolution=float(resolution),
+        occupancy=bool(occupancy),
+        config=cfg.to_dict(),
+        scans_expected=scans_expected,
+    )
     if progress is not None:
         progress(summary, None)
     m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
@@ -467,11 +485,17 @@ def open_recording_run(
     with open_recording(path) as rec:
         stream = rec.scans(selection)
         summary = MappingSummary(
-            source=str(Path(path).resolve()), cloud_topic=stream.cloud_topic, frame_id=stream.frame_id,
-            fixed_frame=stream.fixed_frame, pose_source=stream.pose_source, resolution=float(resolution),
-            occupancy=bool(occupancy), config=config.to_dict(), options=selection.options(),
+            source=str(Path(path).resolve()),
+            cloud_topic=stream.cloud_topic,
+            frame_id=stream.frame_id,
+            fixed_frame=stream.fixed_frame,
+            pose_source=stream.pose_source,
+            resolution=float(resolution),
+            occupancy=bool(occupancy),
+            config=config.to_dict(),
+            options=selection.options(),
             scans_expected=selection.expected_scans(rec, stream.cloud_topic),
-        )  # fmt: skip
+        )
         extra = {"recording": {"path": summary.source, "format": rec.format, "storage": rec.storage}}
         extra.update(metadata or {})
         yield RecordingRun(stream, summary, extra)

@@ -36,8 +36,7 @@ class GaussianRecords:
     the free stack).
     """
 
-    def __init__(self, ndt: bool, ndt_prm: np.ndarray | None = None, ndt_minp: int = 0,
-                 capacity: int = START_RECORDS):  # fmt: skip
+    def __init__(self, ndt: bool, ndt_prm: np.ndarray | None = None, ndt_minp: int = 0, capacity: int = START_RECORDS):
         self.ndt = bool(ndt)
         self.ndt_prm = np.zeros(9) if ndt_prm is None else ndt_prm
         self.ndt_minp = int(ndt_minp)
@@ -119,8 +118,15 @@ class GaussianRecords:
         cand = np.flatnonzero(self.n[: self.count] >= min_points)
         return np.ascontiguousarray(self.cell[cand])
 
-    def load(self, index: np.ndarray, n: np.ndarray, mean_rel: np.ndarray, scatter: np.ndarray,
-             erased_near: np.ndarray | None = None, ndt_state: np.ndarray | None = None) -> None:  # fmt: skip
+    def load(
+        self,
+        index: np.ndarray,
+        n: np.ndarray,
+        mean_rel: np.ndarray,
+        scatter: np.ndarray,
+        erased_near: np.ndarray | None = None,
+        ndt_state: np.ndarray | None = None,
+    ) -> None:
         """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
         k = len(index)
         self.grow(max(START_RECORDS, k))

@@ -134,8 +134,9 @@ class ScanUpdate:
         self.chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
-        self.model = Model(l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min),
-                           l_max=float(config.logodds_max))  # fmt: skip
+        self.model = Model(
+            l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min), l_max=float(config.logodds_max)
+        )
         self._touched_rows = 0
         self._sync_touched()
         self._tree_ready = False  # compile_tree_path done
@@ -180,8 +181,17 @@ class ScanUpdate:
         free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
         r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
         if n:
-            self.k.prepare()(pts=pts, n=n, rot=np.ascontiguousarray(T[:3, :3]).reshape(-1), trans=origin, res=res, r2=r2,
-                             out_world=world, out_cells=cells, status=status)  # fmt: skip
+            self.k.prepare()(
+                pts=pts,
+                n=n,
+                rot=np.ascontiguousarray(T[:3, :3]).reshape(-1),
+                trans=origin,
+                res=res,
+                r2=r2,
+                out_world=world,
+                out_cells=cells,
+                status=status,
+            )
         cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
         n_hit, n_free = int(cnt[0]), int(cnt[1])
         if n_hit + n_free < n:
@@ -242,9 +252,15 @@ class ScanUpdate:
         bt = "u16" if self.arch == "cpu" and len(p.world) <= self.plan.u16_rays else "i32"
         ndt = mode == "full" and self.ndt
         blk = self.block_for(self._block_box(p) if dense else None, p.ocell, bt)
-        common = {"slot": slot, "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution),
-                  "touched": self.touched_group, "ctr": ctr, "nodes": self.budget.nodes, "block": blk,
-                  "records": self.records.group}  # fmt: skip
+        common = {
+            "slot": slot,
+            "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution),
+            "touched": self.touched_group,
+            "ctr": ctr,
+            "nodes": self.budget.nodes,
+            "block": blk,
+            "records": self.records.group,
+        }
         if ndt:
             common["ndt"] = self.records.ndt_group
         cfg = RaysConfig(bt=bt, mode="full" if mode == "full" else "floor", ndt=ndt)
@@ -268,8 +284,14 @@ class ScanUpdate:
             scan_rays = Rays(pts=world, cells=cells, n_hit=n_hit, n=n)
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
-                k.mark_gaussians(bt)(nrec=self.records.count, records=self.records.group, ndt=self.records.ndt_group,
-                                     block=blk, rays=scan_rays, flags=int(flagged))  # fmt: skip
+                k.mark_gaussians(bt)(
+                    nrec=self.records.count,
+                    records=self.records.group,
+                    ndt=self.records.ndt_group,
+                    block=blk,
+                    rays=scan_rays,
+                    flags=int(flagged),
+                )
             ctr[Q_RAYS] = 0
             k.rays(cfg)(rays=scan_rays, flags=int(flagged), **common)
             st.note_usage()
@@ -299,8 +321,16 @@ class ScanUpdate:
             if fits:
                 # No dense block here: its cells would reach the tree outside this batch's bound.
                 ctr[Q_RAYS] = 0
-                rays(flags=1, rays=Rays(pts=np.ascontiguousarray(ws[a:b]), cells=np.ascontiguousarray(cs[a:b]),
-                               n_hit=max(0, min(n_hit - a, b - a)), n=b - a), **common)  # fmt: skip
+                rays(
+                    flags=1,
+                    rays=Rays(
+                        pts=np.ascontiguousarray(ws[a:b]),
+                        cells=np.ascontiguousarray(cs[a:b]),
+                        n_hit=max(0, min(n_hit - a, b - a)),
+                        n=b - a,
+                    ),
+                    **common,
+                )
                 st.note_usage()
                 self.batches += 1
                 fresh = len(hit_cells) == 0
@@ -402,17 +432,38 @@ class ScanUpdate:
         blk, nodes, ndt = self._empty[bt], self.budget.nodes, self._ndt_kw()
         keep = ctr.copy()  # the queues' counters move
         k.rays(RaysConfig(bt=bt, mode="full", ndt=self.ndt))(
-            slot=slot, rays=none, sensor=sensor, touched=self.touched_group, ctr=ctr, nodes=nodes, block=blk,
-            records=recs.group, flags=1, **ndt)  # fmt: skip
+            slot=slot,
+            rays=none,
+            sensor=sensor,
+            touched=self.touched_group,
+            ctr=ctr,
+            nodes=nodes,
+            block=blk,
+            records=recs.group,
+            flags=1,
+            **ndt,
+        )
         hitlist = np.zeros((1, 3), np.int32)
         k.hits_count()(slot=slot, cells=cells, n=0, hitlist=hitlist, ctr=ctr, nodes=nodes)
         hits = self._tree_sums(hitlist, 0, pts, cells, 0)
         k.merge(MergeConfig(bt=bt, grouped=self.arch == "cpu", ndt=self.ndt))(
-            slot=slot, hitlist=hitlist, **hits, nh=0, n_max=int(self.config.n_max), records=recs.group,
-            ctr=ctr, model=self.model, nodes=nodes, block=blk, res=self.resolution, left=np.zeros(1, np.int32),
-            **ndt)  # fmt: skip
-        k.apply_free(self.ndt)(slot=slot, touched=self.touched_group, nt=0, model=self.model, records=recs.group,
-                               ctr=ctr, **ndt)  # fmt: skip
+            slot=slot,
+            hitlist=hitlist,
+            **hits,
+            nh=0,
+            n_max=int(self.config.n_max),
+            records=recs.group,
+            ctr=ctr,
+            model=self.model,
+            nodes=nodes,
+            block=blk,
+            res=self.resolution,
+            left=np.zeros(1, np.int32),
+            **ndt,
+        )
+        k.apply_free(self.ndt)(
+            slot=slot, touched=self.touched_group, nt=0, model=self.model, records=recs.group, ctr=ctr, **ndt
+        )
         ctr[:] = keep
 
     def _tree_sums(self, hitlist, nh: int, world, cells, n_hit: int) -> dict:
@@ -426,8 +477,9 @@ class ScanUpdate:
             k.hits_sum()(slot=slot, pts=world, cells=cells, n=n_hit, acc=acc, res=self.resolution)
             return {"sums": TreeSums(acc=acc)}
         hcnt, off, order = (np.empty(max(x, 1), np.int32) for x in (nh, nh, n_hit))
-        k.hits_group()(slot=slot, hitlist=hitlist, nh=nh, cells=cells, n=n_hit, hcnt=hcnt, off=off, order=order,
-                       first=self.chunks)  # fmt: skip
+        k.hits_group()(
+            slot=slot, hitlist=hitlist, nh=nh, cells=cells, n=n_hit, hcnt=hcnt, off=off, order=order, first=self.chunks
+        )
         return {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world, in_tree=1)}
 
     def insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
@@ -454,8 +506,18 @@ class ScanUpdate:
         if n_hit:
             if whole and grouped:
                 hcnt, off, order = np.empty(n_hit, np.int32), np.empty(n_hit, np.int32), np.empty(n_hit, np.int32)
-                k.hits_dense(bt)(cells=cells, n=n_hit, hitlist=hitlist, hcnt=hcnt, off=off, rank=np.empty(n_hit, np.int32),
-                                 order=order, ctr=ctr, block=blk, first=self.chunks)  # fmt: skip
+                k.hits_dense(bt)(
+                    cells=cells,
+                    n=n_hit,
+                    hitlist=hitlist,
+                    hcnt=hcnt,
+                    off=off,
+                    rank=np.empty(n_hit, np.int32),
+                    order=order,
+                    ctr=ctr,
+                    block=blk,
+                    first=self.chunks,
+                )
                 nh = int(ctr[C_HIT_CELLS])
                 hits = {"grouped": GroupedHits(hcnt=hcnt, off=off, order=order, pts=world, in_tree=0)}
             else:
@@ -467,8 +529,21 @@ class ScanUpdate:
             while True:
                 cap = recs.capacity
                 ctr[C_RECORDS], ctr[C_NO_RECORD], ctr[Q_MERGE] = recs.count, 0, 0
-                merge(slot=slot, hitlist=hitlist, **hits, nh=todo, n_max=int(cfg.n_max), records=recs.group, ctr=ctr,
-                      model=model, nodes=nodes, block=blk, res=res, left=left, **self._ndt_kw())  # fmt: skip
+                merge(
+                    slot=slot,
+                    hitlist=hitlist,
+                    **hits,
+                    nh=todo,
+                    n_max=int(cfg.n_max),
+                    records=recs.group,
+                    ctr=ctr,
+                    model=model,
+                    nodes=nodes,
+                    block=blk,
+                    res=res,
+                    left=left,
+                    **self._ndt_kw(),
+                )
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
                 recs.count, recs.nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
@@ -478,25 +553,49 @@ class ScanUpdate:
                 recs.grow_for(nh)
                 s = np.sort(left[:todo])
                 hitlist = hitlist[s]
-                g = hits.get("grouped")
-                if g is not None:
+                g, t = hits.get("grouped"), hits.get("sums")
+                if isinstance(g, GroupedHits):
                     hits = {"grouped": replace(g, hcnt=g.hcnt[s], off=g.off[s])}
-                else:
-                    hits = {"sums": TreeSums(acc=hits["sums"].acc[s])}
+                elif isinstance(t, TreeSums):
+                    hits = {"sums": TreeSums(acc=t.acc[s])}
         if dense is not None:
             block, marked = blk.block, self.ndt and blk.block.size > 0
             shape = np.array(block.shape, np.int32)
             if marked:  # the sums of the marked cells (block_apply clears their marks)
-                k.apply_marked()(slot=slot, nrec=recs.count, model=model, records=recs.group, ctr=ctr, shape=shape,
-                                 base=blk.base, ndt=recs.ndt_group)  # fmt: skip
+                k.apply_marked()(
+                    slot=slot,
+                    nrec=recs.count,
+                    model=model,
+                    records=recs.group,
+                    ctr=ctr,
+                    shape=shape,
+                    base=blk.base,
+                    ndt=recs.ndt_group,
+                )
             k.block_apply(FreeConfig(bt=bt, ndt=marked))(
-                slot=slot, words=block.reshape(-1).view(np.uint64), bflag=blk.bflag, shape=shape, base=blk.base,
-                flagged=int(flagged), model=model, records=recs.group, ctr=ctr, nodes=nodes)  # fmt: skip
+                slot=slot,
+                words=block.reshape(-1).view(np.uint64),
+                bflag=blk.bflag,
+                shape=shape,
+                base=blk.base,
+                flagged=int(flagged),
+                model=model,
+                records=recs.group,
+                ctr=ctr,
+                nodes=nodes,
+            )
         if self.occupancy and n:
             nt = int(ctr[C_TOUCHED])
             if 0 < nt <= len(self.touched):
-                k.apply_free(self.ndt)(slot=slot, touched=self.touched_group, nt=nt, model=model, records=recs.group,
-                                       ctr=ctr, **self._ndt_kw())  # fmt: skip
+                k.apply_free(self.ndt)(
+                    slot=slot,
+                    touched=self.touched_group,
+                    nt=nt,
+                    model=model,
+                    records=recs.group,
+                    ctr=ctr,
+                    **self._ndt_kw(),
+                )
             elif nt:
                 k.apply_free_all(self.ndt)(slot=slot, model=model, records=recs.group, ctr=ctr, **self._ndt_kw())
                 self.plan.touched_rows = 2 * nt

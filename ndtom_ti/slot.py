@@ -176,8 +176,9 @@ class MapSlot:
             io.load_known(slot, occ_idx, occ_lo, len(occ_idx), fs.occ_regions, fs.leaf_count)
         if len(g_idx):
             recs = self.records
-            recs.load(g_idx, st["g_n"], st["g_mean_rel"], st["g_scatter"], st.get("g_erased_near"),
-                      st.get("g_ndt_state"))  # fmt: skip
+            recs.load(
+                g_idx, st["g_n"], st["g_mean_rel"], st["g_scatter"], st.get("g_erased_near"), st.get("g_ndt_state")
+            )
             if recs.ndt:
                 self.kernels.ndt_refresh()(nrec=recs.count, records=recs.group, ndt=recs.ndt_group)
             io.load_slots(slot, g_idx, len(g_idx), fs.gidx_regions, fs.occ_regions, fs.leaf_count)

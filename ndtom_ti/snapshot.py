@@ -45,8 +45,9 @@ def probability(logodds: np.ndarray) -> np.ndarray:
         return 1.0 - 1.0 / (1.0 + np.exp(logodds))
 
 
-def select_gaussians(index, n, mean_rel, scatter, logodds, resolution: float, min_points, min_probability,
-                     default_min_points: int) -> dict:  # fmt: skip
+def select_gaussians(
+    index, n, mean_rel, scatter, logodds, resolution: float, min_points, min_probability, default_min_points: int
+) -> dict:
     """The dict of ``gaussians()`` (a map's and a snapshot's) from Gaussian records sorted by
     cell: ``index`` (G, 3), ``n`` (G,), ``mean_rel`` (G, 3) mean minus the cell centre,
     ``scatter`` (G, 6) xx xy xz yy yz zz, ``logodds`` (G,) of their cells."""
@@ -149,8 +150,12 @@ class MapSnapshot:
                 object.__setattr__(self, name, np.zeros(len(self.g_index), ARRAYS[name][0]))
         for name, (dtype, cols) in ARRAYS.items():
             a = getattr(self, name)
-            if not (isinstance(a, np.ndarray) and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
-                    and not a.flags.writeable):  # fmt: skip
+            if not (
+                isinstance(a, np.ndarray)
+                and a.dtype == np.dtype(dtype)
+                and a.flags.c_contiguous
+                and not a.flags.writeable
+            ):
                 a = np.array(a, dtype=dtype, order="C")  # a copy: the caller's array stays theirs
                 a.flags.writeable = False
                 copied.add(name)
@@ -161,8 +166,9 @@ class MapSnapshot:
         for first, (_, *others) in ROWS.items():
             for name in others:
                 if len(getattr(self, name)) != len(getattr(self, first)):
-                    raise ValueError(f"{name} has {len(getattr(self, name))} rows but {first} has "
-                                     f"{len(getattr(self, first))}")  # fmt: skip
+                    raise ValueError(
+                        f"{name} has {len(getattr(self, name))} rows but {first} has {len(getattr(self, first))}"
+                    )
             if first in copied:  # arrays from outside: sorted here (read-only ones are the caller's word)
                 self._sort_rows(first, (first, *others))
 
@@ -254,8 +260,17 @@ class MapSnapshot:
         float64 (scatter / (N - 1); 0 for N < 2), ``n`` (K,) int64, ``p_occ`` and
         ``logodds`` (K,) float64. Cells need ``n >= min_points`` (default: the config's)
         and ``p_occ > min_probability`` (0: occupied or not)."""
-        return select_gaussians(self.g_index, self.g_n, self.g_mean_rel, self.g_scatter, self._g_logodds,
-                                self.resolution, min_points, min_probability, self.config.min_points)  # fmt: skip
+        return select_gaussians(
+            self.g_index,
+            self.g_n,
+            self.g_mean_rel,
+            self.g_scatter,
+            self._g_logodds,
+            self.resolution,
+            min_points,
+            min_probability,
+            self.config.min_points,
+        )
 
     def known_cells(self) -> dict:
         """Every known cell (occupied and free), as ``NdtOmMap.known_cells`` gives them:
@@ -298,8 +313,13 @@ class MapSnapshot:
         from .multires import coarsen_state
 
         f = int(factor)
-        settings = {"resolution": self.resolution * f, "occupancy_enabled": self.occupancy_enabled,
-                        "config": self.config, "layout": self.layout,
-                        "metadata": {**copy_metadata(self.metadata), "coarsened_from": self.resolution, "factor": f},
-                        "scans_inserted": self.scans_inserted, "points_inserted": self.points_inserted}  # fmt: skip
+        settings = {
+            "resolution": self.resolution * f,
+            "occupancy_enabled": self.occupancy_enabled,
+            "config": self.config,
+            "layout": self.layout,
+            "metadata": {**copy_metadata(self.metadata), "coarsened_from": self.resolution, "factor": f},
+            "scans_inserted": self.scans_inserted,
+            "points_inserted": self.points_inserted,
+        }
         return MapSnapshot.adopt(settings, coarsen_state(self.state(), self.resolution, f, self.config.n_max))

@@ -20,8 +20,13 @@ sys.path.insert(0, str(TESTS))
 
 # What the tests read from ../shared: without it they skip, one by one. CI sets
 # NDTOM_REQUIRE_SHARED=1 (.ci/run): then a missing piece stops the run at once instead.
-SHARED_NEEDED = ("data/balm_hall_every4", "data/luminar_embag_test.bag", "data/norlab_outdoor_stationary_14.bag",
-                 "data/tum_fr2_pioneer_slam2_10f.bag", "tools/simworld.py")
+SHARED_NEEDED = (
+    "data/balm_hall_every4",
+    "data/luminar_embag_test.bag",
+    "data/norlab_outdoor_stationary_14.bag",
+    "data/tum_fr2_pioneer_slam2_10f.bag",
+    "tools/simworld.py",
+)
 
 
 def pytest_configure(config):

@@ -3,6 +3,7 @@
 Imported by tests/test_io_*.py (they put this folder on sys.path). Nothing here
 reads the real recordings; those live in ../shared/data (see DATA_DIR).
 """
+
 from __future__ import annotations
 
 import math
@@ -24,7 +25,7 @@ DATA_DIR = Path(os.environ.get('NDTOM_DATA_DIR', REPO.parent / 'shared' / 'data'
 SIMWORLD = Path(os.environ.get('NDTOM_SIMWORLD', REPO.parent / 'shared' / 'tools' / 'simworld.py'))
 
 FORMATS = ('ros1', 'sqlite3', 'mcap')
-T0 = 1_700_000_000 * 10**9          # base stamp of the generated bags (ns)
+T0 = 1_700_000_000 * 10**9  # base stamp of the generated bags (ns)
 MS = 1_000_000
 
 
@@ -76,11 +77,13 @@ class Msgs:
     def transform(self, stamp: int, parent: str, child: str, t: Sequence[float], q: Sequence[float]) -> Any:
         T = self.T
         return T['geometry_msgs/msg/TransformStamped'](
-            header=self.header(stamp, parent), child_frame_id=child,
+            header=self.header(stamp, parent),
+            child_frame_id=child,
             transform=T['geometry_msgs/msg/Transform'](
                 translation=T['geometry_msgs/msg/Vector3'](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                rotation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                           w=float(q[3]))))
+                rotation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+            ),
+        )
 
     def tf(self, transforms: Sequence[tuple[int, str, str, Sequence[float], Sequence[float]]]) -> Any:
         return self.T['tf2_msgs/msg/TFMessage'](transforms=[self.transform(*x) for x in transforms])
@@ -89,18 +92,23 @@ class Msgs:
         T = self.T
         return T['geometry_msgs/msg/Pose'](
             position=T['geometry_msgs/msg/Point'](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-            orientation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                          w=float(q[3])))
+            orientation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
 
     def odometry(self, stamp: int, parent: str, child: str, t: Sequence[float], q: Sequence[float]) -> Any:
         T = self.T
         return T['nav_msgs/msg/Odometry'](
-            header=self.header(stamp, parent), child_frame_id=child,
+            header=self.header(stamp, parent),
+            child_frame_id=child,
             pose=T['geometry_msgs/msg/PoseWithCovariance'](pose=self.pose(t, q), covariance=np.zeros(36)),
             twist=T['geometry_msgs/msg/TwistWithCovariance'](
-                twist=T['geometry_msgs/msg/Twist'](linear=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0),
-                                                   angular=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0)),
-                covariance=np.zeros(36)))
+                twist=T['geometry_msgs/msg/Twist'](
+                    linear=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0),
+                    angular=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0),
+                ),
+                covariance=np.zeros(36),
+            ),
+        )
 
     def pose_stamped(self, stamp: int, parent: str, t: Sequence[float], q: Sequence[float]) -> Any:
         return self.T['geometry_msgs/msg/PoseStamped'](header=self.header(stamp, parent), pose=self.pose(t, q))
@@ -108,13 +116,20 @@ class Msgs:
     def cloud(self, stamp: int, frame: str, packed: PackedCloud) -> Any:
         PF = self.T['sensor_msgs/msg/PointField']
         return self.T['sensor_msgs/msg/PointCloud2'](
-            header=self.header(stamp, frame), height=packed.height, width=packed.width,
+            header=self.header(stamp, frame),
+            height=packed.height,
+            width=packed.width,
             fields=[PF(name=n, offset=o, datatype=d, count=1) for n, o, d in packed.fields],
-            is_bigendian=packed.bigendian, point_step=packed.point_step, row_step=packed.row_step,
-            data=np.frombuffer(packed.data, dtype=np.uint8), is_dense=False)
+            is_bigendian=packed.bigendian,
+            point_step=packed.point_step,
+            row_step=packed.row_step,
+            data=np.frombuffer(packed.data, dtype=np.uint8),
+            is_dense=False,
+        )
 
-    def image(self, stamp: int, frame: str, depth: np.ndarray, encoding: str, bigendian: bool = False,
-              pad: int = 0) -> Any:
+    def image(
+        self, stamp: int, frame: str, depth: np.ndarray, encoding: str, bigendian: bool = False, pad: int = 0
+    ) -> Any:
         """Image from a (h, w) array (float metres for 32FC1, uint16 mm for 16UC1); `pad` bytes per row."""
         code = {'32FC1': 'f4', '16UC1': 'u2', 'rgb8': 'u1', 'mono16': 'u2'}[encoding]
         arr = np.ascontiguousarray(depth, dtype=('>' if bigendian else '<') + code)
@@ -122,26 +137,38 @@ class Msgs:
         rows = arr.reshape(h, -1).view(np.uint8)
         data = np.concatenate([rows, np.full((h, pad), 0xAB, np.uint8)], axis=1) if pad else rows
         return self.T['sensor_msgs/msg/Image'](
-            header=self.header(stamp, frame), height=h, width=w, encoding=encoding,
-            is_bigendian=int(bigendian), step=data.shape[1], data=data.reshape(-1).copy())
+            header=self.header(stamp, frame),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=int(bigendian),
+            step=data.shape[1],
+            data=data.reshape(-1).copy(),
+        )
 
-    def camera_info(self, stamp: int, frame: str, h: int, w: int, fx: float, fy: float, cx: float,
-                    cy: float) -> Any:
+    def camera_info(self, stamp: int, frame: str, h: int, w: int, fx: float, fy: float, cx: float, cy: float) -> Any:
         T = self.T
         K = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], float)
         R = np.eye(3).reshape(-1)
         P = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], float)
         roi = T['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         mats = dict(D=np.zeros(5), K=K, R=R, P=P) if self.ros1 else dict(d=np.zeros(5), k=K, r=R, p=P)
-        return T['sensor_msgs/msg/CameraInfo'](header=self.header(stamp, frame), height=h, width=w,
-                                               distortion_model='plumb_bob', binning_x=0, binning_y=0, roi=roi,
-                                               **mats)
+        return T['sensor_msgs/msg/CameraInfo'](
+            header=self.header(stamp, frame),
+            height=h,
+            width=w,
+            distortion_model='plumb_bob',
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **mats,
+        )
 
 
 # ----------------------------------------------------------------------------- PointCloud2 packing
 @dataclass
 class PackedCloud:
-    fields: list[tuple[str, int, int]]   # (name, offset, datatype)
+    fields: list[tuple[str, int, int]]  # (name, offset, datatype)
     point_step: int
     row_step: int
     height: int
@@ -153,9 +180,16 @@ class PackedCloud:
 _DT = {'f4': 7, 'f8': 8, 'u1': 2, 'i1': 1, 'u2': 4, 'i2': 3, 'u4': 6, 'i4': 5}
 
 
-def pack_cloud(points: np.ndarray, *, layout: dict[str, tuple[int, str]] | None = None, point_step: int = 12,
-               bigendian: bool = False, height: int = 1, row_pad: int = 0,
-               extra_values: dict[str, np.ndarray] | None = None) -> PackedCloud:
+def pack_cloud(
+    points: np.ndarray,
+    *,
+    layout: dict[str, tuple[int, str]] | None = None,
+    point_step: int = 12,
+    bigendian: bool = False,
+    height: int = 1,
+    row_pad: int = 0,
+    extra_values: dict[str, np.ndarray] | None = None,
+) -> PackedCloud:
     """Serialise (N, 3) points with the given field layout {name: (offset, 'f4'|'f8'|...)}.
 
     Unused bytes are filled with 0xAB so that decoding the wrong bytes shows up.
@@ -165,8 +199,14 @@ def pack_cloud(points: np.ndarray, *, layout: dict[str, tuple[int, str]] | None 
     n = len(pts)
     width = n // height
     order = '>' if bigendian else '<'
-    dt = np.dtype({'names': list(layout), 'formats': [order + c for _, c in layout.values()],
-                   'offsets': [o for o, _ in layout.values()], 'itemsize': point_step})
+    dt = np.dtype(
+        {
+            'names': list(layout),
+            'formats': [order + c for _, c in layout.values()],
+            'offsets': [o for o, _ in layout.values()],
+            'itemsize': point_step,
+        }
+    )
     raw = np.full(n * point_step, 0xAB, np.uint8)
     arr = raw.view(dt)
     for i, name in enumerate('xyz'):
@@ -198,21 +238,31 @@ def write_bag(path: Path, fmt: str, entries: Sequence[Entry], latched: Sequence[
         topics.setdefault(topic, msgtype)
     if ros1:
         with Writer1(path) as w:
-            conns = {t: w.add_connection(t, mt, typestore=TS1, callerid='/test',
-                                         latching=1 if t in latched else None) for t, mt in topics.items()}
+            conns = {
+                t: w.add_connection(t, mt, typestore=TS1, callerid='/test', latching=1 if t in latched else None)
+                for t, mt in topics.items()
+            }
             for topic, msgtype, t, build in entries:
                 w.write(conns[topic], t, TS1.serialize_ros1(build(m), msgtype))
     else:
         zero = QosTime(sec=0, nsec=0)
-        latched_qos = Qos(history=QosHistory.KEEP_LAST, depth=1, reliability=QosReliability.RELIABLE,
-                          durability=QosDurability.TRANSIENT_LOCAL, deadline=zero, lifespan=zero,
-                          liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=zero,
-                          avoid_ros_namespace_conventions=False)
+        latched_qos = Qos(
+            history=QosHistory.KEEP_LAST,
+            depth=1,
+            reliability=QosReliability.RELIABLE,
+            durability=QosDurability.TRANSIENT_LOCAL,
+            deadline=zero,
+            lifespan=zero,
+            liveliness=QosLiveliness.AUTOMATIC,
+            liveliness_lease_duration=zero,
+            avoid_ros_namespace_conventions=False,
+        )
         plugin = StoragePlugin.MCAP if fmt == 'mcap' else StoragePlugin.SQLITE3
         with Writer2(path, version=8, storage_plugin=plugin) as w:
-            conns = {t: w.add_connection(t, mt, typestore=TS2,
-                                         offered_qos_profiles=[latched_qos] if t in latched else [])
-                     for t, mt in topics.items()}
+            conns = {
+                t: w.add_connection(t, mt, typestore=TS2, offered_qos_profiles=[latched_qos] if t in latched else [])
+                for t, mt in topics.items()
+            }
             for topic, msgtype, t, build in entries:
                 w.write(conns[topic], t, TS2.serialize_cdr(build(m), msgtype))
     return path
@@ -225,11 +275,11 @@ def write_bag(path: Path, fmt: str, entries: Sequence[Entry], latched: Sequence[
 # /cam16/depth/image (16UC1) in frame 'cam', each with a camera_info beside it.
 TF_TIMES = [T0, T0 + 200 * MS, T0 + 400 * MS]
 CLOUD_TIMES = [T0 - 500 * MS, T0, T0 + 100 * MS, T0 + 300 * MS, T0 + 400 * MS]  # #0 is before the first tf
-AXIS = (1.0, 2.0, 3.0)   # the base rotates about this fixed axis: slerp = linear angle
+AXIS = (1.0, 2.0, 3.0)  # the base rotates about this fixed axis: slerp = linear angle
 
 
 def base_angle(stamp: int) -> float:
-    return 0.2 + 1.5 * (stamp - T0) / 1e9      # rad; 0.2 .. 0.8 over the tf samples
+    return 0.2 + 1.5 * (stamp - T0) / 1e9  # rad; 0.2 .. 0.8 over the tf samples
 
 
 def base_translation(stamp: int) -> np.ndarray:
@@ -264,18 +314,43 @@ def scene_clouds() -> list[tuple[np.ndarray, dict[str, Any]]]:
     rng = np.random.default_rng(7)
     out: list[tuple[np.ndarray, dict[str, Any]]] = []
     p = rng.uniform(-20, 20, (6, 3))
-    out.append((p, {}))                                            # plain float32
+    out.append((p, {}))  # plain float32
     p = rng.uniform(-20, 20, (5, 3))
-    out.append((p, dict(layout={'t': (0, 'f8'), 'z': (9, 'f8'), 'x': (17, 'f8'), 'intensity': (25, 'f4'),
-                                'y': (31, 'f8')}, point_step=41,
-                        extra_values={'t': np.arange(5.0), 'intensity': np.ones(5)})))  # float64, odd offsets
+    out.append(
+        (
+            p,
+            dict(
+                layout={'t': (0, 'f8'), 'z': (9, 'f8'), 'x': (17, 'f8'), 'intensity': (25, 'f4'), 'y': (31, 'f8')},
+                point_step=41,
+                extra_values={'t': np.arange(5.0), 'intensity': np.ones(5)},
+            ),
+        )
+    )  # float64, odd offsets
     p = rng.uniform(-20, 20, (4, 3))
-    out.append((p, dict(layout={'x': (0, 'f4'), 'y': (4, 'f4'), 'z': (8, 'f4'), 'ring': (12, 'u2')},
-                        point_step=16, bigendian=True, extra_values={'ring': np.arange(4)})))  # big-endian
+    out.append(
+        (
+            p,
+            dict(
+                layout={'x': (0, 'f4'), 'y': (4, 'f4'), 'z': (8, 'f4'), 'ring': (12, 'u2')},
+                point_step=16,
+                bigendian=True,
+                extra_values={'ring': np.arange(4)},
+            ),
+        )
+    )  # big-endian
     p = rng.uniform(-20, 20, (6, 3))
     p[[1, 4]] = np.nan
-    out.append((p, dict(height=2, row_pad=8, point_step=20,
-                        layout={'x': (4, 'f4'), 'y': (8, 'f4'), 'z': (12, 'f4'), 'rgb': (16, 'u4')})))  # organised
+    out.append(
+        (
+            p,
+            dict(
+                height=2,
+                row_pad=8,
+                point_step=20,
+                layout={'x': (4, 'f4'), 'y': (8, 'f4'), 'z': (12, 'f4'), 'rgb': (16, 'u4')},
+            ),
+        )
+    )  # organised
     p = rng.uniform(-20, 20, (3, 3))
     out.append((p, dict(layout={'x': (0, 'f8'), 'y': (8, 'f8'), 'z': (16, 'f8')}, point_step=24)))
     return out
@@ -296,41 +371,85 @@ def scene_depth() -> tuple[np.ndarray, np.ndarray]:
     return d32, d16
 
 
-def scene_entries(fmt: str, *, with_odom: bool = True, with_tf: bool = True,
-                  with_depth: bool = True) -> list[Entry]:
+def scene_entries(fmt: str, *, with_odom: bool = True, with_tf: bool = True, with_depth: bool = True) -> list[Entry]:
     ros1 = fmt == 'ros1'
     e: list[Entry] = []
     if with_tf:
-        static = [(T0, 'base', 'mount', *T_BASE_MOUNT_TQ), (T0, 'mount', 'sensor', *T_MOUNT_SENSOR_TQ),
-                  (T0, 'sensor', 'cam', *T_SENSOR_CAM_TQ)]
-        if ros1:   # one latched message
+        static = [
+            (T0, 'base', 'mount', *T_BASE_MOUNT_TQ),
+            (T0, 'mount', 'sensor', *T_MOUNT_SENSOR_TQ),
+            (T0, 'sensor', 'cam', *T_SENSOR_CAM_TQ),
+        ]
+        if ros1:  # one latched message
             e.append(('/tf_static', 'tf2_msgs/msg/TFMessage', T0 - 600 * MS, lambda m, s=static: m.tf(s)))
-        else:      # ROS2 publishers send one message each
+        else:  # ROS2 publishers send one message each
             for i, s in enumerate(static):
                 e.append(('/tf_static', 'tf2_msgs/msg/TFMessage', T0 - 600 * MS + i, lambda m, s=s: m.tf([s])))
         for t in TF_TIMES:
             q = quat_axis_angle(AXIS, base_angle(t))
-            e.append(('/tf', 'tf2_msgs/msg/TFMessage', t,
-                      lambda m, t=t, q=q: m.tf([(t, 'map', 'base', base_translation(t), q)])))
+            e.append(
+                (
+                    '/tf',
+                    'tf2_msgs/msg/TFMessage',
+                    t,
+                    lambda m, t=t, q=q: m.tf([(t, 'map', 'base', base_translation(t), q)]),
+                )
+            )
     if with_odom:
         for t in TF_TIMES:
             q = quat_axis_angle(AXIS, base_angle(t))
-            e.append(('/odom', 'nav_msgs/msg/Odometry', t + 1,
-                      lambda m, t=t, q=q: m.odometry(t, 'map', 'base', base_translation(t), q)))
+            e.append(
+                (
+                    '/odom',
+                    'nav_msgs/msg/Odometry',
+                    t + 1,
+                    lambda m, t=t, q=q: m.odometry(t, 'map', 'base', base_translation(t), q),
+                )
+            )
     for t, (pts, kw) in zip(CLOUD_TIMES, scene_clouds(), strict=True):
-        e.append(('/cloud', 'sensor_msgs/msg/PointCloud2', t + 2,
-                  lambda m, t=t, pts=pts, kw=kw: m.cloud(t, 'sensor', pack_cloud(pts, **kw))))
+        e.append(
+            (
+                '/cloud',
+                'sensor_msgs/msg/PointCloud2',
+                t + 2,
+                lambda m, t=t, pts=pts, kw=kw: m.cloud(t, 'sensor', pack_cloud(pts, **kw)),
+            )
+        )
     if with_depth:
         d32, d16 = scene_depth()
         for t in CLOUD_TIMES[1:3]:
-            e.append(('/cam/depth/camera_info', 'sensor_msgs/msg/CameraInfo', t + 3,
-                      lambda m, t=t: m.camera_info(t, 'cam', 5, 8, **DEPTH_K)))
-            e.append(('/cam/depth/image', 'sensor_msgs/msg/Image', t + 3,
-                      lambda m, t=t: m.image(t, 'cam', d32, '32FC1', pad=4)))
-            e.append(('/cam16/depth/camera_info', 'sensor_msgs/msg/CameraInfo', t + 3,
-                      lambda m, t=t: m.camera_info(t, 'cam', 5, 8, **DEPTH_K)))
-            e.append(('/cam16/depth/image', 'sensor_msgs/msg/Image', t + 3,
-                      lambda m, t=t: m.image(t, 'cam', d16, '16UC1', bigendian=True)))
+            e.append(
+                (
+                    '/cam/depth/camera_info',
+                    'sensor_msgs/msg/CameraInfo',
+                    t + 3,
+                    lambda m, t=t: m.camera_info(t, 'cam', 5, 8, **DEPTH_K),
+                )
+            )
+            e.append(
+                (
+                    '/cam/depth/image',
+                    'sensor_msgs/msg/Image',
+                    t + 3,
+                    lambda m, t=t: m.image(t, 'cam', d32, '32FC1', pad=4),
+                )
+            )
+            e.append(
+                (
+                    '/cam16/depth/camera_info',
+                    'sensor_msgs/msg/CameraInfo',
+                    t + 3,
+                    lambda m, t=t: m.camera_info(t, 'cam', 5, 8, **DEPTH_K),
+                )
+            )
+            e.append(
+                (
+                    '/cam16/depth/image',
+                    'sensor_msgs/msg/Image',
+                    t + 3,
+                    lambda m, t=t: m.image(t, 'cam', d16, '16UC1', bigendian=True),
+                )
+            )
     return sorted(e, key=lambda x: x[2])
 
 

@@ -204,9 +204,7 @@ def ray_pass_counts(
     return _count_rows(rows)
 
 
-def endpoint_counts(
-    endpoints: np.ndarray, r: float, hit_mask: np.ndarray | None = None
-) -> dict[Cell, int]:
+def endpoint_counts(endpoints: np.ndarray, r: float, hit_mask: np.ndarray | None = None) -> dict[Cell, int]:
     """``N_p``: per cell, the number of hit endpoints in it (``np.floor(x / r)``).
 
     Parameters
@@ -430,8 +428,11 @@ def ndt_om_logodds(
                     C, floors = np.eye(3) / NDT_WIDE, (0.0, 1.0, 0.0, 1.0)
                 else:
                     floors = None
-                inc = sum(ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors)
-                          for i in passes[c] if i >= 0)  # fmt: skip
+                inc = sum(
+                    ndt_miss_term(origin, ends[i], bool(hit[i]), mu, C, eta, sigma_s, n, floors)
+                    for i in passes[c]
+                    if i >= 0
+                )
                 erase_at = reset
                 if c in back:
                     inc *= back_miss

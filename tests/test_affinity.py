@@ -38,8 +38,13 @@ print("PROBE", affinity.pool_threads(cpu_threads()) == tids)
 def test_workers_pinned_one_per_cpu():
     if len(_cpus()) < 2:
         pytest.skip("one CPU: nothing to pin")
-    out = subprocess.run([sys.executable, "-c", PINNED], env={k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"},
-                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", PINNED],
+        env={k: v for k, v in os.environ.items() if k != "NDTOM_PIN_THREADS"},
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     got = dict(line.split(" ", 1) for line in out.strip().splitlines())
     n, threads, cpus = map(int, got["N"].split())
     if threads != cpus:

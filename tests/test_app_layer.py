@@ -43,10 +43,19 @@ def test_check_resolution_takes_positive_numbers(value) -> None:
     assert type(got) is float and got == float(value)
 
 
-@pytest.mark.parametrize("value, error", [
-    (0.0, ValueError), (-0.1, ValueError), (math.nan, ValueError), (math.inf, ValueError),
-    (True, TypeError), ("0.2", TypeError), (None, TypeError), ([0.2], TypeError),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "value, error",
+    [
+        (0.0, ValueError),
+        (-0.1, ValueError),
+        (math.nan, ValueError),
+        (math.inf, ValueError),
+        (True, TypeError),
+        ("0.2", TypeError),
+        (None, TypeError),
+        ([0.2], TypeError),
+    ],
+)
 def test_check_resolution_refuses_the_rest(value, error) -> None:
     with pytest.raises(error, match=r"^-r/--resolution must be a (positive )?number of metres, got"):
         check_resolution(value, "-r/--resolution")
@@ -57,15 +66,19 @@ def _pair() -> tuple[np.ndarray, np.ndarray]:
     return pts, np.eye(4)
 
 
-@pytest.mark.parametrize("call", [
-    lambda r, tmp: ndtom_ti.NdtOmMap(r),
-    lambda r, tmp: batch_ndt(_pair()[0], r),
-    lambda r, tmp: ErrorRefinementMap(r),
-    lambda r, tmp: map_recording(tmp / "never-read.bag", r),
-    lambda r, tmp: map_scans([_pair()], r),
-    lambda r, tmp: run_experiments([_pair()], r, tmp / "ex", plots=False),
-    lambda r, tmp: sweep.run_sweep([_pair()], [0.5, r]),
-], ids=["NdtOmMap", "batch_ndt", "ErrorRefinementMap", "map_recording", "map_scans", "run_experiments", "run_sweep"])
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda r, tmp: ndtom_ti.NdtOmMap(r),
+        lambda r, tmp: batch_ndt(_pair()[0], r),
+        lambda r, tmp: ErrorRefinementMap(r),
+        lambda r, tmp: map_recording(tmp / "never-read.bag", r),
+        lambda r, tmp: map_scans([_pair()], r),
+        lambda r, tmp: run_experiments([_pair()], r, tmp / "ex", plots=False),
+        lambda r, tmp: sweep.run_sweep([_pair()], [0.5, r]),
+    ],
+    ids=["NdtOmMap", "batch_ndt", "ErrorRefinementMap", "map_recording", "map_scans", "run_experiments", "run_sweep"],
+)
 def test_every_resolution_goes_through_the_one_check(call, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"must be a positive number of metres, got -0\.5$"):
         call(-0.5, tmp_path)
@@ -74,13 +87,19 @@ def test_every_resolution_goes_through_the_one_check(call, tmp_path: Path) -> No
     assert not (tmp_path / "ex").exists()  # refused before any work
 
 
-@pytest.mark.parametrize("args, message", [
-    (["sweep", "--synthetic", "--resolutions", "0.4,-1"], "--resolutions must be positive numbers of metres, got '0.4,-1'"),
-    (["sweep", "--synthetic", "--resolutions", "0.4,x"], "--resolutions must be numbers separated by commas"),
-    (["experiments", "nothing.bag", "-r", "0.4", "--sweep", "0.2,0"], "--sweep must be positive numbers of metres"),
-    (["experiments", "nothing.bag", "-r", "inf"], "-r/--resolution must be a positive number of metres, got inf"),
-    (["demo", "-r", "0"], "-r/--resolution must be a positive number of metres, got 0.0"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["sweep", "--synthetic", "--resolutions", "0.4,-1"],
+            "--resolutions must be positive numbers of metres, got '0.4,-1'",
+        ),
+        (["sweep", "--synthetic", "--resolutions", "0.4,x"], "--resolutions must be numbers separated by commas"),
+        (["experiments", "nothing.bag", "-r", "0.4", "--sweep", "0.2,0"], "--sweep must be positive numbers of metres"),
+        (["experiments", "nothing.bag", "-r", "inf"], "-r/--resolution must be a positive number of metres, got inf"),
+        (["demo", "-r", "0"], "-r/--resolution must be a positive number of metres, got 0.0"),
+    ],
+)
 def test_resolution_options_are_checked_before_any_work(args, message, tmp_path: Path) -> None:
     res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out")])
     assert res.exit_code == exitcodes.EXIT_USAGE and message in res.output, res.output
@@ -95,7 +114,9 @@ def test_one_scan_type() -> None:
     scans = make_scans(2, rings=4, per_ring=30)
     assert all(type(s) is Scan for s in scans) and [s.index for s in scans] == [0, 1]
     # (quality.LabelledScan is ground truth, world-frame points with labels: not a sensor scan)
-    defined = [p for p in _installed_sources() if re.search(r"^class (?!LabelledScan)\w*Scan\b.*:", p.read_text(), re.M)]
+    defined = [
+        p for p in _installed_sources() if re.search(r"^class (?!LabelledScan)\w*Scan\b.*:", p.read_text(), re.M)
+    ]
     assert defined == [PACKAGE / "scan.py"], defined
     assert not [p for p in _installed_sources() if re.search(r"^\w*Scan = ", p.read_text(), re.M)]  # no aliases
 

@@ -28,8 +28,6 @@ from ndtom_ti.mapfile import read_header  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-
-
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("bags")
@@ -64,9 +62,26 @@ def test_help_and_version() -> None:
         assert cmd in r.output
     r = run("map", "--help")
     assert r.exit_code == 0
-    for opt in ("--resolution", "--output", "--cloud-topic", "--fixed-frame", "--poses", "--pose-topic",
-                "--sensor-frame", "--every", "--every-distance", "--start", "--end", "--max-scans",
-                "--max-range", "--min-range", "--no-occupancy", "--miss-model", "--arch", "--config"):
+    for opt in (
+        "--resolution",
+        "--output",
+        "--cloud-topic",
+        "--fixed-frame",
+        "--poses",
+        "--pose-topic",
+        "--sensor-frame",
+        "--every",
+        "--every-distance",
+        "--start",
+        "--end",
+        "--max-scans",
+        "--max-range",
+        "--min-range",
+        "--no-occupancy",
+        "--miss-model",
+        "--arch",
+        "--config",
+    ):
         assert opt in r.output, opt
     r = run("--version")
     assert r.exit_code == 0 and ndtom_ti.__version__ in r.output
@@ -75,9 +90,20 @@ def test_help_and_version() -> None:
 def test_info_shows_topics_frames_and_pose_sources(bags) -> None:
     r = run("info", bags["ros1"])
     assert r.exit_code == 0, r.output
-    for text in ("/points", "sensor_msgs/msg/PointCloud2", "/tf_static", "mappable (frame lidar)",
-                 "map", "base", "lidar", "[static]", "[5 transforms", "tf: map -> base -> lidar",
-                 "Ready: ndtom map", "ROS1"):
+    for text in (
+        "/points",
+        "sensor_msgs/msg/PointCloud2",
+        "/tf_static",
+        "mappable (frame lidar)",
+        "map",
+        "base",
+        "lidar",
+        "[static]",
+        "[5 transforms",
+        "tf: map -> base -> lidar",
+        "Ready: ndtom map",
+        "ROS1",
+    ):
         assert text in r.output, text
     r = run("info", bags["two"])
     assert r.exit_code == 0
@@ -92,8 +118,10 @@ def test_usage_errors_are_one_error_line_and_a_hint(bags, tmp_path: Path) -> Non
     bad option (exit 2), not Click's usage text."""
     for args, texts in (
         (("map", bags["ros1"]), ("Missing option '-r' / '--resolution'", "Hint: give the cell size in metres")),
-        (("map", bags["ros1"], "-r", "0.5", "--every", "0"), ("'--every'", "greater than or equal to 1",
-                                                              "Hint: `ndtom map --help`")),
+        (
+            ("map", bags["ros1"], "-r", "0.5", "--every", "0"),
+            ("'--every'", "greater than or equal to 1", "Hint: `ndtom map --help`"),
+        ),
         (("bogus",), ("No such command 'bogus'", "Hint: `ndtom --help` lists the commands")),
     ):
         r = run(*args)
@@ -121,8 +149,18 @@ def test_map_writes_the_right_map_with_its_settings(bags, tmp_path: Path, kind: 
     out = tmp_path / "site.ndtom"
     r = run("map", bags[kind], "-r", pb.RES, "-o", out)
     assert r.exit_code == 0, r.output
-    for text in ("Mapping summary", "5 of 5 clouds read", "scans skipped", "Gaussians", "known cells",
-                 "memory", "time per scan", "median", "p95", "Map written to"):
+    for text in (
+        "Mapping summary",
+        "5 of 5 clouds read",
+        "scans skipped",
+        "Gaussians",
+        "known cells",
+        "memory",
+        "time per scan",
+        "median",
+        "p95",
+        "Map written to",
+    ):
         assert text in r.output, text
     assert not list(tmp_path.glob(".*tmp"))  # no temporary files left
     m = NdtOmMap.load(out)
@@ -150,8 +188,21 @@ def test_map_options_and_config_file(bags, tmp_path: Path) -> None:
     cfg = tmp_path / "map.toml"
     cfg.write_text("p_occupied = 0.7\nmax_range = 50.0\nmin_points = 4\n")
     out = tmp_path / "c.ndtom"
-    r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--max-range", "3.5",
-            "--every", "2", "--no-progress")
+    r = run(
+        "map",
+        bags["ros1"],
+        "-r",
+        "0.5",
+        "-o",
+        out,
+        "--config",
+        cfg,
+        "--max-range",
+        "3.5",
+        "--every",
+        "2",
+        "--no-progress",
+    )
     assert r.exit_code == 0, r.output
     assert "3 of 5 clouds read" in r.output and "2 left out by --every" in r.output and "out of range" in r.output
     h = read_header(out)
@@ -160,8 +211,10 @@ def test_map_options_and_config_file(bags, tmp_path: Path) -> None:
     assert h["metadata"]["summary"]["dropped"]["range"] > 0
     js = tmp_path / "map.json"
     js.write_text('{"p_empty": 0.4}')
-    assert run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", js, "--max-scans", "1",
-               "--no-progress").exit_code == 0
+    assert (
+        run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", js, "--max-scans", "1", "--no-progress").exit_code
+        == 0
+    )
     assert read_header(out)["config"]["p_empty"] == 0.4
 
 
@@ -172,29 +225,58 @@ def test_miss_model_option_wins_over_the_config_file(bags, tmp_path: Path) -> No
     r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--max-scans", "2", "--no-progress")
     assert r.exit_code == 0, r.output
     assert read_header(out)["config"]["miss_model"] == "ndt" and read_header(out)["config"]["sigma_s"] == 0.1
-    r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--config", cfg, "--miss-model", "paper", "--max-scans",
-            "2", "--no-progress")  # fmt: skip
+    r = run(
+        "map",
+        bags["ros1"],
+        "-r",
+        "0.5",
+        "-o",
+        out,
+        "--config",
+        cfg,
+        "--miss-model",
+        "paper",
+        "--max-scans",
+        "2",
+        "--no-progress",
+    )
     assert r.exit_code == 0, r.output
     assert read_header(out)["config"]["miss_model"] == "paper"
     r = run("map", bags["ros1"], "-r", "0.5", "-o", out, "--miss-model", "octomap")
     assert r.exit_code == 2 and "octomap" in r.output
 
 
-@pytest.mark.parametrize("args, texts", [
-    (["-r", "-1"], ["resolution must be a positive"]),
-    (["-r", "nan"], ["resolution must be a positive"]),
-    (["-r", "0.25", "--every", "2", "--every-distance", "1"], ["--every or --every-distance, not both"]),
-    (["-r", "0.25", "--sensor-frame", "--pose-topic", "/odom"], ["give one pose source"]),
-    (["-r", "0.25", "--start", "5", "--end", "1"], ["--end (1.0) is before --start (5.0)"]),
-    (["-r", "0.25", "--min-range", "5", "--max-range", "2"], ["max_range must be > min_range"]),
-    (["-r", "0.25", "--poses", "missing_poses.txt"], ["pose file", "does not exist"]),
-    (["-r", "0.25", "--pose-topic", "/odm"], ["pose topic '/odm' is not in"]),
-    (["-r", "0.25", "--config", "missing.toml"], ["config file", "does not exist"]),
-    (["-r", "0.25", "--every", "0"], ["Invalid value for '--every'"]),
-    (["-r", "0.25", "--arch", "tpu"], ["Invalid value for '--arch'"]),
-    ([], ["Missing option '-r'"]),
-], ids=["negative-res", "nan-res", "every-and-distance", "two-pose-sources", "end-before-start",
-        "ranges", "pose-file", "pose-topic", "config-file", "every-0", "arch", "no-res"])
+@pytest.mark.parametrize(
+    "args, texts",
+    [
+        (["-r", "-1"], ["resolution must be a positive"]),
+        (["-r", "nan"], ["resolution must be a positive"]),
+        (["-r", "0.25", "--every", "2", "--every-distance", "1"], ["--every or --every-distance, not both"]),
+        (["-r", "0.25", "--sensor-frame", "--pose-topic", "/odom"], ["give one pose source"]),
+        (["-r", "0.25", "--start", "5", "--end", "1"], ["--end (1.0) is before --start (5.0)"]),
+        (["-r", "0.25", "--min-range", "5", "--max-range", "2"], ["max_range must be > min_range"]),
+        (["-r", "0.25", "--poses", "missing_poses.txt"], ["pose file", "does not exist"]),
+        (["-r", "0.25", "--pose-topic", "/odm"], ["pose topic '/odm' is not in"]),
+        (["-r", "0.25", "--config", "missing.toml"], ["config file", "does not exist"]),
+        (["-r", "0.25", "--every", "0"], ["Invalid value for '--every'"]),
+        (["-r", "0.25", "--arch", "tpu"], ["Invalid value for '--arch'"]),
+        ([], ["Missing option '-r'"]),
+    ],
+    ids=[
+        "negative-res",
+        "nan-res",
+        "every-and-distance",
+        "two-pose-sources",
+        "end-before-start",
+        "ranges",
+        "pose-file",
+        "pose-topic",
+        "config-file",
+        "every-0",
+        "arch",
+        "no-res",
+    ],
+)
 def test_bad_options_exit_2(bags, tmp_path: Path, args: list, texts: list) -> None:
     out = tmp_path / "x.ndtom"
     r = run("map", bags["ros1"], "-o", out, *args)
@@ -205,9 +287,11 @@ def test_bad_options_exit_2(bags, tmp_path: Path, args: list, texts: list) -> No
 
 
 def test_bad_config_file_exits_2(bags, tmp_path: Path) -> None:
-    for text, name, msg in (("p_occupied = [", "a.toml", "not valid TOML"),
-                            ('{"resolution": 0.1}', "b.json", "unknown options ['resolution']"),
-                            ("p_occupied = 0.3", "c.toml", "p_occupied must be in (0.5, 1)")):
+    for text, name, msg in (
+        ("p_occupied = [", "a.toml", "not valid TOML"),
+        ('{"resolution": 0.1}', "b.json", "unknown options ['resolution']"),
+        ("p_occupied = 0.3", "c.toml", "p_occupied must be in (0.5, 1)"),
+    ):
         f = tmp_path / name
         f.write_text(text)
         r = run("map", bags["ros1"], "-r", "0.25", "-o", tmp_path / "x.ndtom", "--config", f)
@@ -243,22 +327,41 @@ def _plain_folder(root: Path) -> Path:
     return root / "folder"
 
 
-@pytest.mark.parametrize("make, extra, texts", [
-    (lambda r, b: b["ros1"], ["--cloud-topic", "/point"],
-     ["cloud topic '/point' is not in", "Did you mean '/points'?", "Mappable topics: /points"]),
-    (lambda r, b: b["ros1"], ["--cloud-topic", "/tf"], ["/tf has type tf2_msgs/msg/TFMessage"]),
-    (lambda r, b: b["two"], [], ["2 PointCloud2 topics: /points, /points_front", "--cloud-topic"]),
-    (lambda r, b: b["notf"], [], ["no usable poses for /points (frame 'lidar')", "--sensor-frame", "--poses"]),
-    (lambda r, b: b["ros1"], ["--fixed-frame", "odom"], ["fixed frame 'odom' is not in the TF tree"]),
-    (lambda r, b: b["fields"], [], ["has no x/y/z field", "fields present: range", "x, y, z fields"]),
-    (lambda r, b: _empty_bag(r), [], ["has no topic to map", "the bag is empty"]),
-    (lambda r, b: _truncated_bag(r), [], ["cut.bag", "truncated or corrupt", "rosbag reindex"]),
-    (lambda r, b: _corrupt_bag(r), [], ["noise.bag", "truncated or corrupt"]),
-    (lambda r, b: _text_file(r), [], ["is not a ROS bag"]),
-    (lambda r, b: _plain_folder(r), [], ["is a folder but not a ROS2 bag", "readme.txt"]),
-    (lambda r, b: r / "missing.bag", [], ["missing.bag does not exist"]),
-], ids=["misspelled-topic", "not-a-cloud-topic", "several-topics", "no-poses", "bad-fixed-frame",
-        "unknown-fields", "empty", "truncated", "corrupt", "not-a-bag", "folder", "missing"])
+@pytest.mark.parametrize(
+    "make, extra, texts",
+    [
+        (
+            lambda r, b: b["ros1"],
+            ["--cloud-topic", "/point"],
+            ["cloud topic '/point' is not in", "Did you mean '/points'?", "Mappable topics: /points"],
+        ),
+        (lambda r, b: b["ros1"], ["--cloud-topic", "/tf"], ["/tf has type tf2_msgs/msg/TFMessage"]),
+        (lambda r, b: b["two"], [], ["2 PointCloud2 topics: /points, /points_front", "--cloud-topic"]),
+        (lambda r, b: b["notf"], [], ["no usable poses for /points (frame 'lidar')", "--sensor-frame", "--poses"]),
+        (lambda r, b: b["ros1"], ["--fixed-frame", "odom"], ["fixed frame 'odom' is not in the TF tree"]),
+        (lambda r, b: b["fields"], [], ["has no x/y/z field", "fields present: range", "x, y, z fields"]),
+        (lambda r, b: _empty_bag(r), [], ["has no topic to map", "the bag is empty"]),
+        (lambda r, b: _truncated_bag(r), [], ["cut.bag", "truncated or corrupt", "rosbag reindex"]),
+        (lambda r, b: _corrupt_bag(r), [], ["noise.bag", "truncated or corrupt"]),
+        (lambda r, b: _text_file(r), [], ["is not a ROS bag"]),
+        (lambda r, b: _plain_folder(r), [], ["is a folder but not a ROS2 bag", "readme.txt"]),
+        (lambda r, b: r / "missing.bag", [], ["missing.bag does not exist"]),
+    ],
+    ids=[
+        "misspelled-topic",
+        "not-a-cloud-topic",
+        "several-topics",
+        "no-poses",
+        "bad-fixed-frame",
+        "unknown-fields",
+        "empty",
+        "truncated",
+        "corrupt",
+        "not-a-bag",
+        "folder",
+        "missing",
+    ],
+)
 def test_bad_recordings_exit_2_without_a_map(bags, tmp_path: Path, make, extra: list, texts: list) -> None:
     bag = make(tmp_path, bags)
     out = tmp_path / "out.ndtom"
@@ -307,11 +410,15 @@ def test_no_scan_left_is_an_error(bags, tmp_path: Path) -> None:
     assert not out.exists()
 
 
-@pytest.mark.parametrize("where, texts", [
-    (lambda t: t / "no" / "such" / "folder" / "m.ndtom", ["folder", "does not exist"]),
-    (lambda t: t / "afile.txt" / "m.ndtom", ["is not a folder"]),
-    (lambda t: t, ["is a folder"]),
-], ids=["missing-folder", "parent-is-file", "output-is-folder"])
+@pytest.mark.parametrize(
+    "where, texts",
+    [
+        (lambda t: t / "no" / "such" / "folder" / "m.ndtom", ["folder", "does not exist"]),
+        (lambda t: t / "afile.txt" / "m.ndtom", ["is not a folder"]),
+        (lambda t: t, ["is a folder"]),
+    ],
+    ids=["missing-folder", "parent-is-file", "output-is-folder"],
+)
 def test_unwritable_output_fails_before_mapping(bags, tmp_path: Path, monkeypatch, where, texts) -> None:
     (tmp_path / "afile.txt").write_text("x")
     import ndtom_ti.pipeline
@@ -391,9 +498,16 @@ def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
     out = tmp_path / "demo_out"
     r = run("demo", "--out", out)
     assert r.exit_code == 0, r.output
-    for text in ("Demo scene", "Mapping summary", "20 of 20 clouds read", "Against the ground truth",
-                 "left where the box was taken away", "Map written to", f"Next: ndtom view {out / 'demo.ndtom'}",
-                 "ndtom export"):
+    for text in (
+        "Demo scene",
+        "Mapping summary",
+        "20 of 20 clouds read",
+        "Against the ground truth",
+        "left where the box was taken away",
+        "Map written to",
+        f"Next: ndtom view {out / 'demo.ndtom'}",
+        "ndtom export",
+    ):
         assert text in r.output, text
     # points/s leaves out the first scan, which compiles the kernels (it read "0.00 M points/s")
     rate = float(re.search(r"([\d.]+) M points/s after the first scan", r.output).group(1))
@@ -414,8 +528,9 @@ def _ndtom() -> list[str]:
 
 
 def test_python_m_ndtom_ti_help() -> None:
-    p = subprocess.run([sys.executable, "-m", "ndtom_ti", "--help"], capture_output=True, text=True, cwd=ROOT,
-                       timeout=120)
+    p = subprocess.run(
+        [sys.executable, "-m", "ndtom_ti", "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
     assert p.returncode == 0, p.stderr
     assert "Usage:" in p.stdout and "map" in p.stdout and "export" in p.stdout
 
@@ -423,13 +538,23 @@ def test_python_m_ndtom_ti_help() -> None:
 def test_real_ndtom_map_exit_codes(bags, tmp_path: Path) -> None:
     env = {**os.environ, "NDTOM_ARCH": "cpu"}
     out = tmp_path / "real.ndtom"
-    p = subprocess.run([*_ndtom(), "map", str(bags["ros1"]), "-r", str(pb.RES), "-o", str(out), "--arch", "cpu"],
-                       capture_output=True, text=True, timeout=300, env=env)
+    p = subprocess.run(
+        [*_ndtom(), "map", str(bags["ros1"]), "-r", str(pb.RES), "-o", str(out), "--arch", "cpu"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert p.returncode == 0, p.stdout + p.stderr
     assert "Map written to" in p.stdout and read_header(out)["scans_inserted"] == 5
     assert "Traceback" not in p.stderr
-    p = subprocess.run([*_ndtom(), "map", str(bags["notf"]), "-r", "0.25", "-o", str(tmp_path / "bad.ndtom")],
-                       capture_output=True, text=True, timeout=300, env=env)
+    p = subprocess.run(
+        [*_ndtom(), "map", str(bags["notf"]), "-r", "0.25", "-o", str(tmp_path / "bad.ndtom")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert p.returncode == 2 and "Error: no usable poses" in p.stderr and "Traceback" not in p.stderr
 
 
@@ -442,8 +567,9 @@ def test_tables_written_to_a_file_are_not_folded_at_80_columns(tmp_path: Path) -
     del m
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     with open(tmp_path / "log.txt", "w") as log:
-        subprocess.run([sys.executable, "-m", "ndtom_ti", "info", str(path)], stdout=log, env=env, check=True,
-                       timeout=120)
+        subprocess.run(
+            [sys.executable, "-m", "ndtom_ti", "info", str(path)], stdout=log, env=env, check=True, timeout=120
+        )
     text = (tmp_path / "log.txt").read_text()
     assert "(every cell with points: the Gaussians, and those of fewer points or in free cells)" in text, text
     assert max(len(line) for line in text.splitlines()) <= 160
@@ -455,8 +581,13 @@ def test_the_bar_says_when_kernels_compile(tmp_path: Path) -> None:
     # first scan waits for that, and the terminal must say so, not sit at 0 scans in silence.
     out = tmp_path / "demo"
     cmd = " ".join(shlex.quote(str(a)) for a in [*_ndtom(), "demo", "--scans", "2", "--out", out, "--arch", "cpu"])
-    p = subprocess.run(["script", "-qec", cmd, "/dev/null"], capture_output=True, text=True, timeout=600,
-                       env={**os.environ, "COLUMNS": "150"})  # fmt: skip
+    p = subprocess.run(
+        ["script", "-qec", cmd, "/dev/null"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "COLUMNS": "150"},
+    )
     assert p.returncode == 0, p.stdout[-3000:]
     assert "compiling kernels, once per process" in p.stdout, p.stdout[-3000:]
     assert "Warning" not in p.stdout, p.stdout[-3000:]

@@ -13,8 +13,9 @@ TUM = DATA / "tum_fr2_pioneer_slam2_10f.bag"
 
 @pytest.mark.skipif(not TUM.exists(), reason="shared data not present")
 def test_cli_experiments_on_tum(tmp_path):
-    res = CliRunner().invoke(app, ["experiments", str(TUM), "-r", "0.3", "--max-scans", "3", "--no-plots",
-                                   "--out", str(tmp_path / "ex")])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["experiments", str(TUM), "-r", "0.3", "--max-scans", "3", "--no-plots", "--out", str(tmp_path / "ex")]
+    )
     assert res.exit_code == 0, res.output
     s = json.loads((tmp_path / "ex" / "summary.json").read_text())
     assert s["fig1_final_score"]["rcu"] >= 0.999

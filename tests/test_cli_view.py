@@ -30,8 +30,9 @@ def test_map_view_maps_the_recording_live_and_saves_it(tmp_path, monkeypatch):
     # private: the command's wait for Ctrl-C after mapping has no public hook
     monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: served.append(viewer.url))
     out = tmp_path / "live.ndtom"
-    res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(out), "--view", "--no-wait",
-                                   "--rate", "max", "--port", "0"])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["map", str(bag), "-r", "0.5", "-o", str(out), "--view", "--no-wait", "--rate", "max", "--port", "0"]
+    )
     assert res.exit_code == 0, res.output
     # the same summary as `ndtom map`, and the map written with its metadata
     assert "Mapping summary" in res.output and "scans used" in res.output and "Map written to" in res.output
@@ -47,7 +48,8 @@ def test_map_view_maps_the_recording_live_and_saves_it(tmp_path, monkeypatch):
 
 def test_map_view_bad_rate(tmp_path):
     bag = write_plane_bag(tmp_path, "ros1")
-    res = CliRunner().invoke(app, ["map", str(bag), "-r", "0.5", "-o", str(tmp_path / "x.ndtom"), "--view",
-                                   "--rate", "fast"])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["map", str(bag), "-r", "0.5", "-o", str(tmp_path / "x.ndtom"), "--view", "--rate", "fast"]
+    )
     assert res.exit_code == 2 and "--rate" in res.output
     assert not (tmp_path / "x.ndtom").exists()

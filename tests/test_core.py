@@ -111,7 +111,9 @@ def single_scan_logodds(res, origin, endpoints, block_cells=None):
 
 
 def assert_logodds_equal(got, ref):
-    assert set(got) == set(ref), f"cells differ: missing {list(set(ref) - set(got))[:5]}, extra {list(set(got) - set(ref))[:5]}"
+    assert set(got) == set(ref), (
+        f"cells differ: missing {list(set(ref) - set(got))[:5]}, extra {list(set(got) - set(ref))[:5]}"
+    )
     for c, v in ref.items():
         assert got[c] == pytest.approx(v, rel=1e-5, abs=1e-6), c
 
@@ -288,7 +290,9 @@ def test_scan_of_more_rays_than_u16_counts_hold():
 def test_occupancy_of_unknown_cells_is_prior_and_flagged():
     m = NdtOmMap(0.5, config=EQ12)
     m.insert_scan(np.array([[3.0, 0.2, 0.2]]), np.eye(4))
-    p, known = m.occupancy(np.array([[3.1, 0.1, 0.1], [1.0, 0.1, 0.1], [50.0, 50.0, 50.0], [np.nan, 0, 0]]), return_known=True)
+    p, known = m.occupancy(
+        np.array([[3.1, 0.1, 0.1], [1.0, 0.1, 0.1], [50.0, 50.0, 50.0], [np.nan, 0, 0]]), return_known=True
+    )
     assert known.tolist() == [True, True, False, False]
     assert p[0] > 0.5 and p[1] < 0.5 and p[2] == 0.5 and p[3] == 0.5
 
@@ -482,7 +486,9 @@ def test_dynamic_object_erased_static_surfaces_kept(sim_hall_dynamic):
     assert max(counts[gone + 5 :]) == 0, counts
     # Static structure keeps its Gaussians: walls, pillars and racks seen in the last
     # scans still hold Gaussians where their points fall.
-    static = np.concatenate([d.scan(i, "world")[d.scan_labels(i) < d.n_static] for i in range(d.n_scans - 3, d.n_scans)])
+    static = np.concatenate(
+        [d.scan(i, "world")[d.scan_labels(i) < d.n_static] for i in range(d.n_scans - 3, d.n_scans)]
+    )
     cells, n = np.unique(np.floor(static / res).astype(np.int64), axis=0, return_counts=True)
     cells = cells[n >= 5]  # well observed: sparse far cells may hold fewer than 3 points
     g = m.gaussians()

@@ -26,8 +26,6 @@ MODELS = ("paper", "ndt")
 BALM = DATA / "balm_hall_every4"
 
 
-
-
 @pytest.fixture(scope="module")
 def sim_npz(sim_hall_dynamic) -> Path:
     return sim_hall_dynamic.path
@@ -121,8 +119,14 @@ def test_one_thread_gives_the_map_of_many(sim_npz, tmp_path):
     assert impl.current_cfg().cpu_max_num_threads > 1
     env = {**os.environ, "NDTOM_ARCH": "cpu"}
     tests = str(Path(__file__).resolve().parent)
-    res = subprocess.run([sys.executable, "-c", _ONE_THREAD, str(sim_npz), str(tmp_path), "1", tests],
-                         env=env, capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
+    res = subprocess.run(
+        [sys.executable, "-c", _ONE_THREAD, str(sim_npz), str(tmp_path), "1", tests],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     scans = sim_scans(sim_npz)
     for model in MODELS:

@@ -34,8 +34,6 @@ def need_simworld() -> None:
         pytest.skip(f"simworld not found at {SIMWORLD}")
 
 
-
-
 @pytest.fixture(scope="module")
 def static_run(tmp_path_factory):
     """Static hall generated on the fly (the ``sim:static`` source), all outputs, with a
@@ -225,10 +223,25 @@ def test_outputs_exist_and_parse(static_run):
     assert f3["occupied_cells"] > 0 and f3["empty_cells"] > 0
 
     columns = {
-        "fig1_vs_batch.csv": ["scan", "batch_gaussians", "score_rcu", "score_ndtom", "score_ndtom_ndt", "score_er", "ms_ndtom"],
+        "fig1_vs_batch.csv": [
+            "scan",
+            "batch_gaussians",
+            "score_rcu",
+            "score_ndtom",
+            "score_ndtom_ndt",
+            "score_er",
+            "ms_ndtom",
+        ],
         "fig2_self_test.csv": ["cloud", "cloud_gaussians", "score_rcu", "score_ndtom", "score_er", "coverage_rcu"],
         "fig3_logodds.csv": ["scan", "mean_logodds_occupied", "mean_logodds_empty", "occupied_cells", "empty_cells"],
-        "fig4b_conflicting.csv": ["scan", "conflicting", "ndtom_gaussians", "rcu_gaussians", "fraction", "fraction_ndt"],
+        "fig4b_conflicting.csv": [
+            "scan",
+            "conflicting",
+            "ndtom_gaussians",
+            "rcu_gaussians",
+            "fraction",
+            "fraction_ndt",
+        ],
         "conflicting_cells.csv": ["i", "j", "k", "x", "y", "z", "rcu_n", "ndtom_logodds", "horizontal"],
         "fig5_sweep.csv": ["mapper", "resolution", "ms_median"],
     }
@@ -266,8 +279,24 @@ def test_tum_rcu_equals_batch(tmp_path):
 
 
 def test_command_prints_summary(dynamic_npz, tmp_path):
-    res = CliRunner().invoke(app, ["experiments", str(dynamic_npz), "-r", "1.0", "--out", str(tmp_path), "--max-scans",
-                                   "2", "--every", "2", "--no-plots", "--coarsen", "2"])  # fmt: skip
+    res = CliRunner().invoke(
+        app,
+        [
+            "experiments",
+            str(dynamic_npz),
+            "-r",
+            "1.0",
+            "--out",
+            str(tmp_path),
+            "--max-scans",
+            "2",
+            "--every",
+            "2",
+            "--no-plots",
+            "--coarsen",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     text = res.output
     assert "Fig. 1 score vs batch" in text and "Fig. 4b" in text and "Fig. 4d: 1 m -> 2 m" in text

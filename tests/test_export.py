@@ -24,14 +24,16 @@ from ndtom_ti.pipeline import map_scans  # noqa: E402
 IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-
-
 @pytest.fixture(scope="module")
 def map_file(tmp_path_factory) -> Path:
     """The plane scene mapped: occupied floor and wall Gaussians, and some freed ones."""
     rng = np.random.default_rng(3)
-    m, _ = map_scans([(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(4)], pb.RES,
-                     source="test scene", metadata={"note": "export test"})
+    m, _ = map_scans(
+        [(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(4)],
+        pb.RES,
+        source="test scene",
+        metadata={"note": "export test"},
+    )
     path = m.save(tmp_path_factory.mktemp("maps") / "scene.ndtom")
     del m
     gc.collect()
@@ -152,24 +154,45 @@ def test_default_output_and_min_probability(map_file: Path, tmp_path: Path) -> N
     assert (v_sure["p_occ"] > 0.8).all()
 
 
-@pytest.mark.parametrize("setup, args, texts", [
-    (lambda t, m: t / "missing.ndtom", [], ["no map file at"]),
-    (lambda t, m: (t / "x.ndtom").write_text("hello") and t / "x.ndtom", [], ["not an ndtom_ti map file"]),
-    (lambda t, m: (t / "cut.ndtom").write_bytes(m.read_bytes()[:-100]) and t / "cut.ndtom", [], ["truncated"]),
-    (lambda t, m: m, ["-o", "{t}/nope/out.ply"], ["folder", "does not exist"]),
-    (lambda t, m: m, ["--min-probability", "1.5"], ["--min-probability must be in [0, 1)"]),
-    (lambda t, m: m, ["-f", "las"], ["Invalid value for '-f' / '--format'"]),
-    (lambda t, m: m, ["-f", "ply", "-o", "{m}"], ["is the map file", "would destroy it"]),
-    (lambda t, m: m, ["-o", "{t}/h.xyz"], ["cannot tell the export format", "'.xyz'", "--format"]),
-    (lambda t, m: m, ["-o", "{t}/h"], ["cannot tell the export format", "no suffix"]),
-    (lambda t, m: m, ["-f", "ply", "-o", "{t}/h.csv"], ["suffix of the csv format", "asked for is ply"]),
-    (lambda t, m: m, ["-o", "{t}/h.ply", "--z-min", "1"], ["height band of --format grid only"]),
-    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "2", "--z-max", "1"], ["--z-min (2.0) must be below"]),
-    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-max", "1"], ["give --z-min and --z-max together"]),
-    (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "40", "--z-max", "41"], ["no known cells in the height band",
-                                                                          "known cells span z"]),
-], ids=["missing", "not-a-map", "truncated", "no-folder", "probability", "format", "overwrite-map", "unknown-suffix",
-        "no-suffix", "suffix-conflict", "band-not-grid", "band-order", "band-half", "band-empty"])
+@pytest.mark.parametrize(
+    "setup, args, texts",
+    [
+        (lambda t, m: t / "missing.ndtom", [], ["no map file at"]),
+        (lambda t, m: (t / "x.ndtom").write_text("hello") and t / "x.ndtom", [], ["not an ndtom_ti map file"]),
+        (lambda t, m: (t / "cut.ndtom").write_bytes(m.read_bytes()[:-100]) and t / "cut.ndtom", [], ["truncated"]),
+        (lambda t, m: m, ["-o", "{t}/nope/out.ply"], ["folder", "does not exist"]),
+        (lambda t, m: m, ["--min-probability", "1.5"], ["--min-probability must be in [0, 1)"]),
+        (lambda t, m: m, ["-f", "las"], ["Invalid value for '-f' / '--format'"]),
+        (lambda t, m: m, ["-f", "ply", "-o", "{m}"], ["is the map file", "would destroy it"]),
+        (lambda t, m: m, ["-o", "{t}/h.xyz"], ["cannot tell the export format", "'.xyz'", "--format"]),
+        (lambda t, m: m, ["-o", "{t}/h"], ["cannot tell the export format", "no suffix"]),
+        (lambda t, m: m, ["-f", "ply", "-o", "{t}/h.csv"], ["suffix of the csv format", "asked for is ply"]),
+        (lambda t, m: m, ["-o", "{t}/h.ply", "--z-min", "1"], ["height band of --format grid only"]),
+        (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-min", "2", "--z-max", "1"], ["--z-min (2.0) must be below"]),
+        (lambda t, m: m, ["-o", "{t}/h.pgm", "--z-max", "1"], ["give --z-min and --z-max together"]),
+        (
+            lambda t, m: m,
+            ["-o", "{t}/h.pgm", "--z-min", "40", "--z-max", "41"],
+            ["no known cells in the height band", "known cells span z"],
+        ),
+    ],
+    ids=[
+        "missing",
+        "not-a-map",
+        "truncated",
+        "no-folder",
+        "probability",
+        "format",
+        "overwrite-map",
+        "unknown-suffix",
+        "no-suffix",
+        "suffix-conflict",
+        "band-not-grid",
+        "band-order",
+        "band-half",
+        "band-empty",
+    ],
+)
 def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts) -> None:
     path = setup(tmp_path, map_file)
     args = [a.format(t=tmp_path, m=map_file) for a in args]
@@ -183,8 +206,14 @@ def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts
 
 
 def test_python_api_and_empty_maps(tmp_path: Path) -> None:
-    empty = {"index": np.zeros((0, 3), np.int64), "mean": np.zeros((0, 3)), "cov": np.zeros((0, 3, 3)),
-             "n": np.zeros(0, np.int64), "p_occ": np.zeros(0), "logodds": np.zeros(0)}
+    empty = {
+        "index": np.zeros((0, 3), np.int64),
+        "mean": np.zeros((0, 3)),
+        "cov": np.zeros((0, 3, 3)),
+        "n": np.zeros(0, np.int64),
+        "p_occ": np.zeros(0),
+        "logodds": np.zeros(0),
+    }
     header, v = read_ply(write_ply(empty, tmp_path / "empty.ply", comment="nothing"))
     assert len(v) == 0 and "element vertex 0" in header and "comment nothing" in header
     m = NdtOmMap(0.5)
@@ -289,7 +318,7 @@ def test_bt_is_read_by_octomap(map_file: Path, tmp_path: Path) -> None:
         ref.updateNode((cell + 0.5) * res, bool(is_occ))
     ref.writeBinary(str(tmp_path / "ref.bt"))
     ours, theirs = out.read_bytes(), (tmp_path / "ref.bt").read_bytes()
-    assert ours[ours.index(b"\nid OcTree\n"):] == theirs[theirs.index(b"\nid OcTree\n"):]
+    assert ours[ours.index(b"\nid OcTree\n") :] == theirs[theirs.index(b"\nid OcTree\n") :]
 
 
 def test_bt_merges_full_octants_and_rejects_cells_beyond_octomap(tmp_path: Path) -> None:

@@ -37,8 +37,14 @@ def _rows(index: np.ndarray) -> np.ndarray:
 def test_cuda_and_cpu_make_the_same_map(arch, tmp_path: Path) -> None:
     other = "cpu" if arch == "cuda" else "cuda"
     env = {**os.environ, "NDTOM_PIN_THREADS": "0"}
-    p = subprocess.run([sys.executable, "-c", _OTHER, other, str(tmp_path / "other.npz")], capture_output=True,
-                       text=True, timeout=600, env=env, check=False)  # fmt: skip
+    p = subprocess.run(
+        [sys.executable, "-c", _OTHER, other, str(tmp_path / "other.npz")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+        check=False,
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     there = np.load(tmp_path / "other.npz")
     m = ndtom_ti.NdtOmMap(0.2)

@@ -1,4 +1,5 @@
 """PointCloud2 and depth-image decoding (ndtom_ti.io.pointcloud)."""
+
 from __future__ import annotations
 
 import sys
@@ -38,8 +39,15 @@ def test_float64_keeps_values_to_float32_precision() -> None:
 def test_big_endian_float64_with_padding_and_extra_fields() -> None:
     pts = np.array([[1.5, -2.25, 3.0], [4.0, 5.5, -6.75], [7.0, 8.0, 9.0], [0.5, 0.25, 0.125]])
     layout = {'intensity': (0, 'f4'), 'x': (4, 'f8'), 'y': (12, 'f8'), 'z': (20, 'f8'), 'ring': (28, 'u2')}
-    msg = _cloud(pts, layout=layout, point_step=32, bigendian=True, height=2, row_pad=3,
-                 extra_values={'intensity': np.arange(4), 'ring': np.arange(4)})
+    msg = _cloud(
+        pts,
+        layout=layout,
+        point_step=32,
+        bigendian=True,
+        height=2,
+        row_pad=3,
+        extra_values={'intensity': np.arange(4), 'ring': np.arange(4)},
+    )
     assert msg.row_step == 2 * 32 + 3
     np.testing.assert_array_equal(decode_pointcloud2(msg), pts.astype(np.float32))
 
@@ -66,8 +74,9 @@ def test_decode_accepts_bytes_payload() -> None:
 
 def test_missing_xyz_fields_names_the_fields_present() -> None:
     layout = {'a': (0, 'f4'), 'b': (4, 'f4'), 'c': (8, 'f4')}
-    msg = M2.cloud(fx.T0, 'lidar', fx.pack_cloud(np.zeros((2, 3)), layout={'x': (0, 'f4'), 'y': (4, 'f4'),
-                                                                              'z': (8, 'f4')}))
+    msg = M2.cloud(
+        fx.T0, 'lidar', fx.pack_cloud(np.zeros((2, 3)), layout={'x': (0, 'f4'), 'y': (4, 'f4'), 'z': (8, 'f4')})
+    )
     PF = M2.T['sensor_msgs/msg/PointField']
     msg.fields = [PF(name=n, offset=o, datatype=7, count=1) for n, (o, _) in layout.items()]
     with pytest.raises(RecordingError) as err:
@@ -89,7 +98,7 @@ def test_truncated_data_and_bad_offsets_are_reported() -> None:
     with pytest.raises(RecordingError, match='truncated'):
         decode_pointcloud2(msg)
     msg = _cloud(np.ones((4, 3)))
-    msg.point_step = 10     # z at 8..12 no longer fits
+    msg.point_step = 10  # z at 8..12 no longer fits
     with pytest.raises(RecordingError, match="'z' at offset 8 does not fit in point_step 10"):
         decode_pointcloud2(msg)
 
@@ -104,7 +113,7 @@ def test_depth_32fc1_back_projection(m: fx.Msgs) -> None:
     ref = fx.expected_depth_points(d32, **fx.DEPTH_K)
     assert out.shape == (40, 3) and out.dtype == np.float32
     np.testing.assert_allclose(out, ref, atol=1e-6, equal_nan=True)
-    assert np.isnan(out).all(axis=1).sum() == 3   # NaN, 0 and inf pixels -> NaN rows, layout kept
+    assert np.isnan(out).all(axis=1).sum() == 3  # NaN, 0 and inf pixels -> NaN rows, layout kept
 
 
 def test_depth_16uc1_millimetres_big_endian_and_stride() -> None:
@@ -116,7 +125,7 @@ def test_depth_16uc1_millimetres_big_endian_and_stride() -> None:
     out = depth_image_to_points(img, info, stride=3)
     assert out.shape == (2 * 3, 3)
     np.testing.assert_allclose(out, ref[::3, ::3].reshape(-1, 3), atol=1e-6, equal_nan=True)
-    assert np.isnan(depth_image_to_points(img, info)[1 * 8 + 1]).all()   # 0 mm = no depth
+    assert np.isnan(depth_image_to_points(img, info)[1 * 8 + 1]).all()  # 0 mm = no depth
 
 
 def test_unsupported_image_encoding_and_bad_camera_info() -> None:

@@ -1,4 +1,5 @@
 """The four real recordings in ../shared/data (skipped when they are not there)."""
+
 from __future__ import annotations
 
 import sys
@@ -24,12 +25,16 @@ def _need(p: Path) -> Path:
     return p
 
 
-@pytest.mark.parametrize('path, fmt, storage, cloud_topic', [
-    (TUM, 'ros1', 'ros1', '/camera/depth/points'),
-    (BALM, 'ros2', 'mcap', '/livox/points'),
-    (NORLAB, 'ros1', 'ros1', '/lidar/points'),
-    (LUMINAR, 'ros1', 'ros1', '/luminar_pointcloud'),
-], ids=['tum', 'balm', 'norlab', 'luminar'])
+@pytest.mark.parametrize(
+    'path, fmt, storage, cloud_topic',
+    [
+        (TUM, 'ros1', 'ros1', '/camera/depth/points'),
+        (BALM, 'ros2', 'mcap', '/livox/points'),
+        (NORLAB, 'ros1', 'ros1', '/lidar/points'),
+        (LUMINAR, 'ros1', 'ros1', '/luminar_pointcloud'),
+    ],
+    ids=['tum', 'balm', 'norlab', 'luminar'],
+)
 def test_all_open(path: Path, fmt: str, storage: str, cloud_topic: str) -> None:
     with open_recording(_need(path)) as rec:
         info = rec.info()
@@ -52,7 +57,7 @@ def test_tum_organised_clouds_with_tf_poses() -> None:
             nan = np.isnan(s.points).any(axis=1)
             assert 0.05 < nan.mean() < 0.5
             z = s.points[~nan, 2]
-            assert z.min() > 0.4 and z.max() < 12    # Kinect range (up to ~10.5 m here), z forward
+            assert z.min() > 0.4 and z.max() < 12  # Kinect range (up to ~10.5 m here), z forward
         # first /tf sample (world -> kinect), kinect -> optical is identity
         np.testing.assert_allclose(scans[0].T_world_sensor[:3, 3], (-2.2591, -2.38, 0.5901), atol=1e-6)
         # the depth image, every 2nd pixel, back-projected with K equals the published cloud
@@ -76,7 +81,7 @@ def test_balm_ros2_mcap_tf_poses() -> None:
     assert stream.pose_source == 'tf: map -> livox'
     assert n == 45 and not stream.skipped
     assert min(npts) > 60_000 and max(npts) < 95_000
-    assert 50 < path_len < 90      # README: 74 m path over all 177 scans
+    assert 50 < path_len < 90  # README: 74 m path over all 177 scans
 
 
 def test_norlab_pose_topic_with_static_offset() -> None:
@@ -90,8 +95,9 @@ def test_norlab_pose_topic_with_static_offset() -> None:
     assert stream.pose_source == expected and stream.fixed_frame == 'map'
     assert len(scans) == 14 and not stream.skipped
     # stamps of /icp_odom equal the cloud stamps; the static offset is identity
-    np.testing.assert_allclose(scans[0].T_world_sensor[:3, 3], (0.8582466244697571, -0.1377161741256714,
-                                                                0.03212672472000122), atol=1e-9)
+    np.testing.assert_allclose(
+        scans[0].T_world_sensor[:3, 3], (0.8582466244697571, -0.1377161741256714, 0.03212672472000122), atol=1e-9
+    )
     assert all(abs(len(s.points) - 41_400) < 500 for s in scans)
     r = np.linalg.norm(scans[0].points, axis=1)
     assert r.max() < 200

@@ -1,4 +1,5 @@
 """Recording / ScanStream on bags generated with rosbags Writers (ROS1, ROS2 sqlite3, ROS2 mcap)."""
+
 from __future__ import annotations
 
 import math
@@ -39,8 +40,7 @@ def test_info_describes_the_scene(scene_bag: Path) -> None:
     assert info.start_ns == fx.T0 - 600 * MS
     assert info.duration_s == pytest.approx(1.0, abs=1e-6)
     assert info.tf_tree == {'base': 'map', 'mount': 'base', 'sensor': 'mount', 'cam': 'sensor'}
-    assert {e.child: e.static for e in info.tf_edges} == {'base': False, 'mount': True, 'sensor': True,
-                                                           'cam': True}
+    assert {e.child: e.static for e in info.tf_edges} == {'base': False, 'mount': True, 'sensor': True, 'cam': True}
     assert info.mappable_topics == ['/cloud', '/cam/depth/image', '/cam16/depth/image']
     assert info.cloud_frames == {'/cloud': 'sensor', '/cam/depth/image': 'cam', '/cam16/depth/image': 'cam'}
     kinds = {(p.kind, p.name) for p in info.pose_sources}
@@ -64,12 +64,12 @@ def test_scans_decode_points_and_interpolate_tf_poses(scene_bag: Path) -> None:
         assert s.T_world_sensor.dtype == np.float64 and s.points.dtype == np.float32
         np.testing.assert_allclose(s.T_world_sensor, fx.T_map_sensor(s.stamp_ns), atol=1e-6)
         np.testing.assert_allclose(s.points, clouds[s.index][0], atol=1e-5, equal_nan=True)
-    assert np.isnan(scans[2].points).any(axis=1).sum() == 2   # organised cloud, NaNs kept
+    assert np.isnan(scans[2].points).any(axis=1).sum() == 2  # organised cloud, NaNs kept
 
 
 def test_pose_topic_composed_with_static_offset(scene_bag: Path) -> None:
     with open_recording(scene_bag) as rec:
-        stream = rec.scans(pose_topic='odom')   # leading '/' may be left out
+        stream = rec.scans(pose_topic='odom')  # leading '/' may be left out
         scans = list(stream)
     assert stream.pose_source.startswith('pose topic /odom (nav_msgs/msg/Odometry map -> base)')
     assert 'tf_static base -> mount -> sensor' in stream.pose_source
@@ -111,17 +111,19 @@ def test_poses_files_sensor_frame_and_fixed_frame(scene_bag: Path, tmp_path: Pat
         lines.append(f'{t // 10**9}.{t % 10**9:09d} {i} {2 * i} 0 {q[0]} {q[1]} {q[2]} {q[3]}')
     tum.write_text('\n'.join(lines) + '\n')
     kitti = tmp_path / 'kitti.txt'
-    kitti.write_text('\n'.join(' '.join(map(str, fx.T_of(np.eye(3), (i, 0, 0))[:3].reshape(-1)))
-                               for i in range(3)) + '\n')
+    kitti.write_text(
+        '\n'.join(' '.join(map(str, fx.T_of(np.eye(3), (i, 0, 0))[:3].reshape(-1))) for i in range(3)) + '\n'
+    )
     with open_recording(scene_bag) as rec:
         stream = rec.scans(poses_file=tum)
         scans = list(stream)
         assert stream.pose_source == 'poses file traj.txt (TUM)'
         assert [s.index for s in scans] == [0, 1, 2, 3] and stream.skipped == {'no pose at stamp': 1}
         for s in scans:
-            np.testing.assert_allclose(s.T_world_sensor, fx.T_of(fx.axis_angle((0, 0, 1), 0.1 * s.index),
-                                                                 (s.index, 2 * s.index, 0)), atol=1e-9)
-        stream = rec.scans(poses_file=kitti)          # by index: line i <-> cloud i
+            np.testing.assert_allclose(
+                s.T_world_sensor, fx.T_of(fx.axis_angle((0, 0, 1), 0.1 * s.index), (s.index, 2 * s.index, 0)), atol=1e-9
+            )
+        stream = rec.scans(poses_file=kitti)  # by index: line i <-> cloud i
         assert [s.T_world_sensor[0, 3] for s in stream] == [0.0, 1.0, 2.0]
         assert stream.skipped == {'no pose at stamp': 2}
         stream = rec.scans(poses_file=load_pose_file(tum), every=2)
@@ -130,11 +132,12 @@ def test_poses_files_sensor_frame_and_fixed_frame(scene_bag: Path, tmp_path: Pat
         scans = list(stream)
         assert len(scans) == 5 and all(np.array_equal(s.T_world_sensor, np.eye(4)) for s in scans)
         assert stream.pose_source == "sensor frame 'sensor' (identity poses)"
-        stream = rec.scans(fixed_frame='base')       # static chain below the moving edge
+        stream = rec.scans(fixed_frame='base')  # static chain below the moving edge
         scans = list(stream)
         assert len(scans) == 5 and stream.pose_source == 'tf: base -> mount -> sensor (static)'
-        np.testing.assert_allclose(scans[0].T_world_sensor,
-                                   fx.T_tq(fx.T_BASE_MOUNT_TQ) @ fx.T_tq(fx.T_MOUNT_SENSOR_TQ), atol=1e-9)
+        np.testing.assert_allclose(
+            scans[0].T_world_sensor, fx.T_tq(fx.T_BASE_MOUNT_TQ) @ fx.T_tq(fx.T_MOUNT_SENSOR_TQ), atol=1e-9
+        )
         with pytest.raises(RecordingError, match='give only one pose source'):
             rec.scans(poses_file=tum, sensor_frame_only=True)
 
@@ -171,8 +174,10 @@ def test_missing_cloud_topic_lists_the_mappable_ones(scene_bag: Path) -> None:
 
 def test_several_cloud_topics_need_a_choice(tmp_path: Path) -> None:
     pts = fx.pack_cloud(np.ones((2, 3)))
-    entries = [(t, 'sensor_msgs/msg/PointCloud2', fx.T0 + i, lambda m: m.cloud(fx.T0, 'a', pts))
-               for i, t in enumerate(['/front/points', '/rear/points'])]
+    entries = [
+        (t, 'sensor_msgs/msg/PointCloud2', fx.T0 + i, lambda m: m.cloud(fx.T0, 'a', pts))
+        for i, t in enumerate(['/front/points', '/rear/points'])
+    ]
     with open_recording(_write(tmp_path, 'ros1', entries)) as rec, pytest.raises(RecordingError) as err:
         rec.scans(sensor_frame_only=True)
     assert '2 PointCloud2 topics: /front/points, /rear/points' in str(err.value)
@@ -196,9 +201,11 @@ def test_no_pose_for_cloud_frame_names_existing_frames(tmp_path: Path) -> None:
 
 def test_all_clouds_before_the_poses_end_cleanly(tmp_path: Path) -> None:
     entries = [e for e in fx.scene_entries('ros1', with_odom=False, with_depth=False)]
-    late = 2000 * MS    # the tf samples move 2 s later than every cloud (same clock)
-    entries = [(t, mt, r + late, lambda m, b=b: _shift_tf(b(m), late)) if t == '/tf' else (t, mt, r, b)
-               for t, mt, r, b in entries]
+    late = 2000 * MS  # the tf samples move 2 s later than every cloud (same clock)
+    entries = [
+        (t, mt, r + late, lambda m, b=b: _shift_tf(b(m), late)) if t == '/tf' else (t, mt, r, b)
+        for t, mt, r, b in entries
+    ]
     with open_recording(_write(tmp_path, 'ros1', entries)) as rec:
         stream = rec.scans()
         assert list(stream) == []
@@ -216,11 +223,24 @@ def _shift_tf(msg: object, dt: int) -> object:
 def test_pose_topic_on_another_clock_is_unusable(tmp_path: Path) -> None:
     """Like the Luminar bag: a constant Odometry in simulation time next to wall-clock clouds."""
     pts = fx.pack_cloud(np.array([[10.0, 0, 0]]))
-    entries: list[fx.Entry] = [('/points', 'sensor_msgs/msg/PointCloud2', fx.T0 + i * 100 * MS,
-                                lambda m, i=i: m.cloud(fx.T0 + i * 100 * MS, 'lidar', pts)) for i in range(3)]
-    entries += [('/gt', 'nav_msgs/msg/Odometry', fx.T0 + i * 100 * MS + 1,
-                 lambda m, i=i: m.odometry(60 * 10**9 + i * 100 * MS, 'odom', '', (1, 0, 0), (0, 0, 1, 0)))
-                for i in range(3)]
+    entries: list[fx.Entry] = [
+        (
+            '/points',
+            'sensor_msgs/msg/PointCloud2',
+            fx.T0 + i * 100 * MS,
+            lambda m, i=i: m.cloud(fx.T0 + i * 100 * MS, 'lidar', pts),
+        )
+        for i in range(3)
+    ]
+    entries += [
+        (
+            '/gt',
+            'nav_msgs/msg/Odometry',
+            fx.T0 + i * 100 * MS + 1,
+            lambda m, i=i: m.odometry(60 * 10**9 + i * 100 * MS, 'odom', '', (1, 0, 0), (0, 0, 1, 0)),
+        )
+        for i in range(3)
+    ]
     with open_recording(_write(tmp_path, 'ros1', entries)) as rec:
         with pytest.raises(RecordingError) as err:
             rec.scans()
@@ -235,16 +255,25 @@ def test_pose_topic_on_another_clock_is_unusable(tmp_path: Path) -> None:
 def test_unknown_point_fields_and_image_encoding_in_a_bag(tmp_path: Path) -> None:
     packed = fx.pack_cloud(np.ones((2, 3)), layout={'x': (0, 'f4'), 'y': (4, 'f4'), 'z': (8, 'f4')})
     packed.fields = [('u', 0, 7), ('v', 4, 7), ('range', 8, 7)]
-    entries: list[fx.Entry] = [('/scan_cloud', 'sensor_msgs/msg/PointCloud2', fx.T0,
-                                lambda m: m.cloud(fx.T0, 'lidar', packed))]
-    entries += [('/cam/rgb/image', 'sensor_msgs/msg/Image', fx.T0,
-                 lambda m: m.image(fx.T0, 'cam', np.zeros((5, 8)), 'mono16')),
-                ('/cam/rgb/camera_info', 'sensor_msgs/msg/CameraInfo', fx.T0,
-                 lambda m: m.camera_info(fx.T0, 'cam', 5, 8, **fx.DEPTH_K))]
+    entries: list[fx.Entry] = [
+        ('/scan_cloud', 'sensor_msgs/msg/PointCloud2', fx.T0, lambda m: m.cloud(fx.T0, 'lidar', packed))
+    ]
+    entries += [
+        ('/cam/rgb/image', 'sensor_msgs/msg/Image', fx.T0, lambda m: m.image(fx.T0, 'cam', np.zeros((5, 8)), 'mono16')),
+        (
+            '/cam/rgb/camera_info',
+            'sensor_msgs/msg/CameraInfo',
+            fx.T0,
+            lambda m: m.camera_info(fx.T0, 'cam', 5, 8, **fx.DEPTH_K),
+        ),
+    ]
     with open_recording(_write(tmp_path, 'mcap', entries)) as rec:
-        assert rec.info().mappable_topics == ['/scan_cloud']      # mono16 is not a depth encoding
-        with pytest.raises(RecordingError, match=r'no x/y/z field; fields present: u \(FLOAT32 at offset 0\), '
-                                                 r'v \(FLOAT32 at offset 4\), range'):
+        assert rec.info().mappable_topics == ['/scan_cloud']  # mono16 is not a depth encoding
+        with pytest.raises(
+            RecordingError,
+            match=r'no x/y/z field; fields present: u \(FLOAT32 at offset 0\), '
+            r'v \(FLOAT32 at offset 4\), range',
+        ):
             list(rec.scans(sensor_frame_only=True))
         with pytest.raises(RecordingError, match="encoding 'mono16' is not supported"):
             list(rec.scans(cloud_topic='/cam/rgb/image', sensor_frame_only=True))
@@ -278,12 +307,12 @@ def test_bad_paths(tmp_path: Path) -> None:
 def test_truncated_bags(tmp_path: Path) -> None:
     bag = _write(tmp_path, 'ros1', fx.scene_entries('ros1'))
     cut = tmp_path / 'cut.bag'
-    cut.write_bytes(bag.read_bytes()[:bag.stat().st_size // 2])
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
     with pytest.raises(RecordingError, match=r'truncated or corrupt.*rosbag reindex'):
         open_recording(cut)
     ros2 = _write(tmp_path, 'mcap', fx.scene_entries('mcap'), name='cut2')
     mcap = next(ros2.glob('*.mcap'))
-    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
     with pytest.raises(RecordingError, match=r'cannot read .*cut2_mcap'), open_recording(ros2) as rec:
         list(rec.scans())
 
@@ -312,15 +341,19 @@ def test_slerp_midpoint_in_bag_is_exact(tmp_path: Path) -> None:
     pts = fx.pack_cloud(np.ones((1, 3)))
     entries: list[fx.Entry] = [
         ('/tf', 'tf2_msgs/msg/TFMessage', fx.T0, lambda m: m.tf([(fx.T0, 'odom', 'lidar', (0, 0, 0), q0)])),
-        ('/points', 'sensor_msgs/msg/PointCloud2', fx.T0 + 250 * MS,
-         lambda m: m.cloud(fx.T0 + 250 * MS, 'lidar', pts)),
-        ('/tf', 'tf2_msgs/msg/TFMessage', fx.T0 + 1000 * MS,
-         lambda m: m.tf([(fx.T0 + 1000 * MS, 'odom', 'lidar', (4, -8, 2), q1)])),
+        ('/points', 'sensor_msgs/msg/PointCloud2', fx.T0 + 250 * MS, lambda m: m.cloud(fx.T0 + 250 * MS, 'lidar', pts)),
+        (
+            '/tf',
+            'tf2_msgs/msg/TFMessage',
+            fx.T0 + 1000 * MS,
+            lambda m: m.tf([(fx.T0 + 1000 * MS, 'odom', 'lidar', (4, -8, 2), q1)]),
+        ),
     ]
     with open_recording(_write(tmp_path, 'sqlite3', entries)) as rec:
         (scan,) = list(rec.scans())
-    np.testing.assert_allclose(scan.T_world_sensor,
-                               fx.T_of(fx.axis_angle((0, 0, 1), math.pi / 8), (1, -2, 0.5)), atol=1e-12)
+    np.testing.assert_allclose(
+        scan.T_world_sensor, fx.T_of(fx.axis_angle((0, 0, 1), math.pi / 8), (1, -2, 0.5)), atol=1e-12
+    )
 
 
 def test_posestamped_and_transformstamped_topics(tmp_path: Path) -> None:
@@ -332,10 +365,18 @@ def test_posestamped_and_transformstamped_topics(tmp_path: Path) -> None:
         tr = fx.base_translation(t)
         entries += [
             ('/pose', 'geometry_msgs/msg/PoseStamped', t, lambda m, t=t, q=q, tr=tr: m.pose_stamped(t, 'map', tr, q)),
-            ('/tfs', 'geometry_msgs/msg/TransformStamped', t + 1,
-             lambda m, t=t, q=q, tr=tr: m.transform(t, 'map', 'lidar', tr, q)),
-            ('/points', 'sensor_msgs/msg/PointCloud2', t + 100 * MS + 2,
-             lambda m, t=t: m.cloud(t + 100 * MS, 'lidar', pts)),
+            (
+                '/tfs',
+                'geometry_msgs/msg/TransformStamped',
+                t + 1,
+                lambda m, t=t, q=q, tr=tr: m.transform(t, 'map', 'lidar', tr, q),
+            ),
+            (
+                '/points',
+                'sensor_msgs/msg/PointCloud2',
+                t + 100 * MS + 2,
+                lambda m, t=t: m.cloud(t + 100 * MS, 'lidar', pts),
+            ),
         ]
     with open_recording(_write(tmp_path, 'sqlite3', sorted(entries, key=lambda e: e[2]))) as rec:
         with pytest.raises(RecordingError) as err:
@@ -345,7 +386,7 @@ def test_posestamped_and_transformstamped_topics(tmp_path: Path) -> None:
             stream = rec.scans(pose_topic=topic)
             scans = list(stream)
             assert stream.fixed_frame == 'map' and [s.index for s in scans] == [0, 1]
-            assert stream.skipped == {'no pose at stamp': 1}     # the last cloud is 0.1 s after the last pose
+            assert stream.skipped == {'no pose at stamp': 1}  # the last cloud is 0.1 s after the last pose
             for s in scans:
                 np.testing.assert_allclose(s.T_world_sensor, fx.T_map_base(s.stamp_ns), atol=1e-9)
         assert 'no child frame' in rec.scans(pose_topic='/pose').pose_source

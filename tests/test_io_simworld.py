@@ -1,4 +1,5 @@
 """Bags written by ../shared/tools/simworld.py read back to the exact poses and points of its npz."""
+
 from __future__ import annotations
 
 import subprocess
@@ -20,9 +21,27 @@ pytestmark = pytest.mark.skipif(not fx.SIMWORLD.is_file(), reason=f'{fx.SIMWORLD
 def simworld_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp('simworld')
     for name, storage in (('hall', 'mcap'), ('hall_sqlite', 'sqlite3')):
-        subprocess.run([sys.executable, str(fx.SIMWORLD), '--scans', '4', '--stride', '10', '--az-step', '2',
-                        '--out', str(out), '--name', name, '--ros2-storage', storage],
-                       check=True, capture_output=True, timeout=120)
+        subprocess.run(
+            [
+                sys.executable,
+                str(fx.SIMWORLD),
+                '--scans',
+                '4',
+                '--stride',
+                '10',
+                '--az-step',
+                '2',
+                '--out',
+                str(out),
+                '--name',
+                name,
+                '--ros2-storage',
+                storage,
+            ],
+            check=True,
+            capture_output=True,
+            timeout=120,
+        )
     return out
 
 
@@ -41,6 +60,6 @@ def test_simworld_poses_and_points(simworld_dir: Path, bag: str) -> None:
     for i, s in enumerate(scans):
         assert s.index == i and s.frame_id == 'velodyne' and s.stamp_ns == npz['stamps_ns'][i]
         np.testing.assert_allclose(s.T_world_sensor, npz['poses'][i], atol=1e-6)
-        expect = npz['points'][offs[i]:offs[i + 1]][~nr[offs[i]:offs[i + 1]]]
+        expect = npz['points'][offs[i] : offs[i + 1]][~nr[offs[i] : offs[i + 1]]]
         assert s.points.shape == expect.shape
         np.testing.assert_array_equal(s.points, expect)

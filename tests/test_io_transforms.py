@@ -1,4 +1,5 @@
 """PoseTrack interpolation, TfBuffer lookups and TUM/KITTI pose files."""
+
 from __future__ import annotations
 
 import math
@@ -38,20 +39,20 @@ def test_quaternion_round_trip_all_pivots() -> None:
 def test_posetrack_interpolates_translation_linearly_and_rotation_by_slerp() -> None:
     axis = (0.2, -1.0, 0.5)
     stamps = [10 * S, 12 * S, 13 * S]
-    angles = [0.1, 1.3, 2.9]      # 2.9 - 1.3 > 90 deg: slerp, not nlerp
+    angles = [0.1, 1.3, 2.9]  # 2.9 - 1.3 > 90 deg: slerp, not nlerp
     trans = [(0, 0, 0), (2, -4, 6), (3, -4, 0)]
     track = PoseTrack(stamps, [fx.T_of(fx.axis_angle(axis, a), t) for a, t in zip(angles, trans, strict=True)])
     for s, f_ang, f_t in [(11 * S, 0.7, (1, -2, 3)), (12 * S + S // 4, 1.3 + 0.25 * 1.6, (2.25, -4, 4.5))]:
         T = track.at(s, 0)
         np.testing.assert_allclose(T[:3, :3], fx.axis_angle(axis, f_ang), atol=1e-12)
         np.testing.assert_allclose(T[:3, 3], f_t, atol=1e-12)
-    np.testing.assert_array_equal(track.at(12 * S), track.poses[1])   # exact sample returned untouched
+    np.testing.assert_array_equal(track.at(12 * S), track.poses[1])  # exact sample returned untouched
 
 
 def test_posetrack_tolerance_clamps_and_returns_none_outside() -> None:
     track = PoseTrack([5 * S, 6 * S], [np.eye(4), fx.T_of(np.eye(3), (1, 0, 0))])
     tol = 50_000_000
-    np.testing.assert_array_equal(track.at(5 * S - tol, tol), np.eye(4))           # clamped, not extrapolated
+    np.testing.assert_array_equal(track.at(5 * S - tol, tol), np.eye(4))  # clamped, not extrapolated
     np.testing.assert_array_equal(track.at(6 * S + tol, tol)[:3, 3], (1, 0, 0))
     assert track.at(5 * S - tol - 1, tol) is None
     assert track.at(6 * S + tol + 1, tol) is None
@@ -71,7 +72,7 @@ def _chain_buffer() -> TfBuffer:
     for t in fx.TF_TIMES:
         tf.add('map', 'base', t, tuple(fx.base_translation(t)), fx.quat_axis_angle(fx.AXIS, fx.base_angle(t)))
     tf.add('base', 'mount', 0, *fx.T_BASE_MOUNT_TQ, static=True)
-    tf.add('/mount', 'sensor', 0, *fx.T_MOUNT_SENSOR_TQ, static=True)   # leading '/' as in ROS1 tf
+    tf.add('/mount', 'sensor', 0, *fx.T_MOUNT_SENSOR_TQ, static=True)  # leading '/' as in ROS1 tf
     tf.add('map', 'marker', 0, (5.0, 5.0, 0.0), fx.quat_axis_angle((0, 0, 1), 1.0), static=True)
     return tf
 
@@ -102,8 +103,9 @@ def test_tf_lookup_up_then_down() -> None:
     np.testing.assert_allclose(tf.lookup('marker', 'sensor', t, 0), expect, atol=1e-12)
     np.testing.assert_allclose(tf.lookup('sensor', 'marker', t, 0), np.linalg.inv(expect), atol=1e-12)
     # static-only path: valid at any time
-    np.testing.assert_allclose(tf.lookup('base', 'sensor', 0, 0),
-                               fx.T_tq(fx.T_BASE_MOUNT_TQ) @ fx.T_tq(fx.T_MOUNT_SENSOR_TQ), atol=1e-12)
+    np.testing.assert_allclose(
+        tf.lookup('base', 'sensor', 0, 0), fx.T_tq(fx.T_BASE_MOUNT_TQ) @ fx.T_tq(fx.T_MOUNT_SENSOR_TQ), atol=1e-12
+    )
 
 
 def test_tf_errors_name_frames_and_time_gap() -> None:
@@ -112,8 +114,10 @@ def test_tf_errors_name_frames_and_time_gap() -> None:
     with pytest.raises(RecordingError) as err:
         tf.lookup('map', 'lidar', fx.T0, 0)
     assert "'lidar' is not in the TF tree" in str(err.value) and 'base, map, marker, mount, odom' in str(err.value)
-    with pytest.raises(RecordingError, match="not connected by TF: 'map' is in the tree rooted at 'map', "
-                                             "'wheel' in the tree rooted at 'odom'"):
+    with pytest.raises(
+        RecordingError,
+        match="not connected by TF: 'map' is in the tree rooted at 'map', 'wheel' in the tree rooted at 'odom'",
+    ):
         tf.lookup('map', 'wheel', fx.T0, 0)
     with pytest.raises(TransformTimeError) as err:
         tf.lookup('map', 'sensor', fx.T0 - 300 * fx.MS, 50 * fx.MS)
@@ -121,8 +125,9 @@ def test_tf_errors_name_frames_and_time_gap() -> None:
     with pytest.raises(TransformTimeError, match=r'0\.100 s after the last'):
         tf.lookup('map', 'sensor', fx.T0 + 500 * fx.MS, 0)
     # within the tolerance: clamped to the first sample
-    np.testing.assert_allclose(tf.lookup('map', 'base', fx.T0 - 40 * fx.MS, 50 * fx.MS), fx.T_map_base(fx.T0),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        tf.lookup('map', 'base', fx.T0 - 40 * fx.MS, 50 * fx.MS), fx.T_map_base(fx.T0), atol=1e-12
+    )
 
 
 def test_tf_conflicting_parent_and_static_over_dynamic_are_noted() -> None:
@@ -140,11 +145,13 @@ def test_tf_conflicting_parent_and_static_over_dynamic_are_noted() -> None:
 def test_tum_file(tmp_path: Path) -> None:
     p = tmp_path / 'gt.txt'
     q = fx.quat_axis_angle((0, 0, 1), 0.5)
-    p.write_text('# ground truth\n# timestamp tx ty tz qx qy qz qw\n'
-                 f'1311877813.991479 1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}\n\n'
-                 '1311877812.5 0 0 0 0 0 0 1  # comment after data\n')
+    p.write_text(
+        '# ground truth\n# timestamp tx ty tz qx qy qz qw\n'
+        f'1311877813.991479 1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}\n\n'
+        '1311877812.5 0 0 0 0 0 0 1  # comment after data\n'
+    )
     track = load_pose_file(p)
-    assert track.stamps_ns.tolist() == [1311877812_500000000, 1311877813_991479000]   # exact, sorted
+    assert track.stamps_ns.tolist() == [1311877812_500000000, 1311877813_991479000]  # exact, sorted
     np.testing.assert_allclose(track.poses[1], fx.T_of(fx.axis_angle((0, 0, 1), 0.5), (1, 2, 3)), atol=1e-12)
     mid = track.at(1311877812_500000000 + (1_491_479_000 // 2))
     np.testing.assert_allclose(mid[:3, 3], (0.5, 1, 1.5), atol=1e-9)
@@ -162,20 +169,22 @@ def test_kitti_file_by_index_and_with_stamps(tmp_path: Path) -> None:
     st = tmp_path / 'times.txt'
     st.write_text('100.0\n100.1\n100.2\n')
     stamped = load_pose_file(p, stamps=st)
-    assert not stamped.by_index and stamped.stamps_ns.tolist() == [100_000_000_000, 100_100_000_000,
-                                                                    100_200_000_000]
+    assert not stamped.by_index and stamped.stamps_ns.tolist() == [100_000_000_000, 100_100_000_000, 100_200_000_000]
     np.testing.assert_allclose(stamped.at(100_050_000_000)[:3, 3], (0.5, 0, 1), atol=1e-9)
 
 
-@pytest.mark.parametrize('text, match', [
-    ('1 2 3 4 5 6 7\n', r'bad\.txt:1: 7 columns; expected 8 \(TUM.*or 12 \(KITTI'),
-    ('# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n', r'bad\.txt:3: 7 columns, but the file is TUM with 8'),
-    ('1 0 0 0 0 0 0 1\n2 0 0 zero 0 0 0 1\n', r"bad\.txt:2: 'zero' \(column 4\) is not a number"),
-    ('1 0 0 0 0 0 0 2\n', r'bad\.txt:1: quaternion .* has norm 2\.0000, not 1'),
-    ('1 0 0 nan 0 0 0 1\n', r'bad\.txt:1: non-finite'),
-    ('1 0 0 0 0 2 0 0 0 0 1 0\n', r'bad\.txt:1: the 3x3 part is not a rotation'),
-    ('# only a comment\n', r'no poses'),
-])
+@pytest.mark.parametrize(
+    'text, match',
+    [
+        ('1 2 3 4 5 6 7\n', r'bad\.txt:1: 7 columns; expected 8 \(TUM.*or 12 \(KITTI'),
+        ('# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n', r'bad\.txt:3: 7 columns, but the file is TUM with 8'),
+        ('1 0 0 0 0 0 0 1\n2 0 0 zero 0 0 0 1\n', r"bad\.txt:2: 'zero' \(column 4\) is not a number"),
+        ('1 0 0 0 0 0 0 2\n', r'bad\.txt:1: quaternion .* has norm 2\.0000, not 1'),
+        ('1 0 0 nan 0 0 0 1\n', r'bad\.txt:1: non-finite'),
+        ('1 0 0 0 0 2 0 0 0 0 1 0\n', r'bad\.txt:1: the 3x3 part is not a rotation'),
+        ('# only a comment\n', r'no poses'),
+    ],
+)
 def test_bad_pose_files_name_the_line(tmp_path: Path, text: str, match: str) -> None:
     p = tmp_path / 'bad.txt'
     p.write_text(text)

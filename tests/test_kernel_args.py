@@ -27,8 +27,13 @@ def _scale(out: F64, l_hit: ti.f64, l_min: ti.f32, n: ti.i32, rec_n: I32, rec_fr
 
 
 def _records(k: int) -> Records:
-    return Records(rec_n=np.arange(k, dtype=np.int32), rec_cell=np.zeros((k, 3), np.int32),
-                   rec_mean=np.zeros((k, 3)), rec_scat=np.zeros((k, 6)), rec_free=np.full(k, 100, np.int32))  # fmt: skip
+    return Records(
+        rec_n=np.arange(k, dtype=np.int32),
+        rec_cell=np.zeros((k, 3), np.int32),
+        rec_mean=np.zeros((k, 3)),
+        rec_scat=np.zeros((k, 6)),
+        rec_free=np.full(k, 100, np.int32),
+    )
 
 
 def test_bound_kernel_flattens_groups_in_declared_order():
@@ -104,13 +109,25 @@ def assert_same_map(ref, m):
         np.testing.assert_array_equal(ga[key], gb[key])
 
 
-@pytest.mark.parametrize("plan", [{"row_flags": "always"}, {"row_flags": "never"}, {"one_pass": False},
-                                  {"touched_rows": 1}, {"u16_rays": U16_MAX_RAYS}, {"u16_rays": U16_MAX_RAYS, "row_flags": "never"},
-                                  {"u16_rays": U16_MAX_RAYS, "row_flags": "always"}, {"block_cells": 0}])  # fmt: skip
+@pytest.mark.parametrize(
+    "plan",
+    [
+        {"row_flags": "always"},
+        {"row_flags": "never"},
+        {"one_pass": False},
+        {"touched_rows": 1},
+        {"u16_rays": U16_MAX_RAYS},
+        {"u16_rays": U16_MAX_RAYS, "row_flags": "never"},
+        {"u16_rays": U16_MAX_RAYS, "row_flags": "always"},
+        {"block_cells": 0},
+    ],
+)
 @pytest.mark.parametrize("model", ["paper", "ndt"])
 def test_every_plan_gives_the_same_map(rng, plan, model):
     d = rng.normal(size=(3000, 3))
-    scans = [(d * rng.uniform(2.0, 8.0, (3000, 1)) / np.linalg.norm(d, axis=1, keepdims=True), np.eye(4)) for _ in range(3)]
+    scans = [
+        (d * rng.uniform(2.0, 8.0, (3000, 1)) / np.linalg.norm(d, axis=1, keepdims=True), np.eye(4)) for _ in range(3)
+    ]
     for s, (_, T) in enumerate(scans):
         T[:3, 3] = [0.3 * s, -0.2 * s, 0.1]
     ref, m = NdtOmMap(0.25, miss_model=model), NdtOmMap(0.25, miss_model=model)
@@ -118,7 +135,11 @@ def test_every_plan_gives_the_same_map(rng, plan, model):
         setattr(m.plan, k, v)
     for pts, T in scans:
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
-        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
+        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (
+            rb.cells_hit,
+            rb.cells_passed,
+            rb.ray_cell_visits,
+        )
         assert (rb.ray_batches > 0) == (plan.get("one_pass") is False)
         st = runtime.storage(m.layout)
         assert not st.block_buf.any() and not st.bflag_buf.any()  # counts, marks and flags cleared
@@ -144,7 +165,11 @@ def test_a_few_far_points_give_the_same_map(rng, model):
     for pts, T in scans:
         ra, rb = ref.insert_scan(pts, T), m.insert_scan(pts, T)
         assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits, ra.gaussians_erased) == (
-            rb.cells_hit, rb.cells_passed, rb.ray_cell_visits, rb.gaussians_erased)  # fmt: skip
+            rb.cells_hit,
+            rb.cells_passed,
+            rb.ray_cell_visits,
+            rb.gaussians_erased,
+        )
         st = runtime.storage(m.layout)
         assert not st.block_buf.any() and not st.bflag_buf.any()
     assert_same_map(ref, m)
@@ -184,17 +209,34 @@ def test_kernels_compile_as_a_map_needs_them_and_once(tmp_path):
     from conftest import SIMWORLD, _simworld
 
     npz = _simworld(tmp_path, "--scans", "12", "--stride", "10", "--no-bags") / "hall.npz"
-    p = subprocess.run([sys.executable, "-c", _COMPILES, str(SIMWORLD.parent), str(npz)], capture_output=True,
-                       text=True, timeout=600)  # fmt: skip
+    p = subprocess.run(
+        [sys.executable, "-c", _COMPILES, str(SIMWORLD.parent), str(npz)], capture_output=True, text=True, timeout=600
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     out = json.loads(p.stdout.strip().splitlines()[-1])
     # The dense block's path, then the tree's (compile_tree_path: far points, memory pressure).
     # Both paths' merge is one variant on the CPU (it sums each cell's points in the scan's
     # order, whichever path grouped them: test_determinism.py).
-    assert out["paper"]["first"] == ["prepare", "rays", "hits_dense", "merge", "block_apply",
-                                     "rays", "hits_count", "hits_group", "apply_free"], out  # fmt: skip
+    assert out["paper"]["first"] == [
+        "prepare",
+        "rays",
+        "hits_dense",
+        "merge",
+        "block_apply",
+        "rays",
+        "hits_count",
+        "hits_group",
+        "apply_free",
+    ], out
     # The NDT miss model's map then needs its own variants of four, and two kernels more.
-    assert out["ndt"]["first"] == ["mark_gaussians", "rays", "merge", "apply_marked", "block_apply",
-                                   "rays", "apply_free"], out  # fmt: skip
+    assert out["ndt"]["first"] == [
+        "mark_gaussians",
+        "rays",
+        "merge",
+        "apply_marked",
+        "block_apply",
+        "rays",
+        "apply_free",
+    ], out
     assert out["paper"]["later"] == [] and out["ndt"]["later"] == [], out
     assert "Warning" not in p.stderr, p.stderr[-3000:]

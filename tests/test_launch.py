@@ -23,8 +23,15 @@ def _mix(a: F64, b: I32_2, out: F64, k: ti.i32, u: ti.u32, x: ti.f64, pts: ti.ty
 
 
 def _args(rng, n, pts_dtype=np.float64):
-    return [rng.normal(size=n), rng.integers(-9, 9, (n, 2)).astype(np.int32), np.zeros(n), -3, 7, 0.5,
-            rng.normal(size=n).astype(pts_dtype)]  # fmt: skip
+    return [
+        rng.normal(size=n),
+        rng.integers(-9, 9, (n, 2)).astype(np.int32),
+        np.zeros(n),
+        -3,
+        7,
+        0.5,
+        rng.normal(size=n).astype(pts_dtype),
+    ]
 
 
 def _expect(a, b, out, k, u, x, pts):
@@ -105,7 +112,11 @@ def test_maps_through_both_calls_are_identical(sim_hall_dynamic, monkeypatch):
     for i in range(0, 8, 2):
         pts, T = d.scan(i), d.poses[i]
         ra, rb = a.insert_scan(pts, T), b.insert_scan(pts, T)
-        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (rb.cells_hit, rb.cells_passed, rb.ray_cell_visits)
+        assert (ra.cells_hit, ra.cells_passed, ra.ray_cell_visits) == (
+            rb.cells_hit,
+            rb.cells_passed,
+            rb.ray_cell_visits,
+        )
     ka, kb = a.known_cells(), b.known_cells()
     np.testing.assert_array_equal(ka["index"], kb["index"])
     np.testing.assert_array_equal(ka["logodds"], kb["logodds"])
@@ -119,8 +130,12 @@ def _queue_kernel(threads, chunk):
     q = make_queue(threads, cpu=True)
 
     @ti.kernel
-    def take(taken: ti.types.ndarray(dtype=ti.i32, ndim=1), seq: ti.types.ndarray(dtype=ti.i32, ndim=1),
-             ctr: ti.types.ndarray(dtype=ti.i64, ndim=1), n: ti.i32):  # fmt: skip
+    def take(
+        taken: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        seq: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        ctr: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        n: ti.i32,
+    ):
         for wq in range(q.span(n, chunk)):
             j = q.first(wq, ctr, 0)
             while j < q.end(n, chunk):

@@ -26,8 +26,14 @@ def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
     assert slot not in st.free_slots and st.nodes(slot).sum() > 0
     m.close()
     assert m.closed and slot in st.free_slots and st.nodes(slot).sum() == 0
-    for call in (lambda: m.insert_scan(*scan(rng)), m.known_cells, m.gaussians, lambda: len(m), m.memory_report,
-                 lambda: m.save("x.ndtom")):  # fmt: skip
+    for call in (
+        lambda: m.insert_scan(*scan(rng)),
+        m.known_cells,
+        m.gaussians,
+        lambda: len(m),
+        m.memory_report,
+        lambda: m.save("x.ndtom"),
+    ):
         with pytest.raises(ValueError, match="closed"):
             call()
     assert "closed" in repr(m)

@@ -1,4 +1,5 @@
-"""Lint, format and type checks of the package (ndtom_ti, kernels, viewer), run with the tests.
+"""Lint and type checks of the package (ndtom_ti, kernels, viewer) and the format of all the
+Python of the repository (package, tests, benchmarks), run with the tests.
 
 Settings live in pyproject.toml ([tool.ruff], [tool.pyright]); the tools come with the dev extra.
 """
@@ -42,7 +43,7 @@ def test_ruff_check() -> None:
 
 def test_ruff_format() -> None:
     _tool("ruff")
-    p = _run("ruff", "format", "--check", "--no-cache", *PACKAGE)
+    p = _run("ruff", "format", "--check", "--no-cache", *PACKAGE, "tests", "benchmarks")
     assert p.returncode == 0, "run `ruff format FILE` on:\n" + p.stdout + p.stderr
 
 

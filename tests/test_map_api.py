@@ -370,8 +370,12 @@ def test_cached_node_counts_follow_the_regions_of_reused_slots(rng):
     st = runtime.storage(ndtom_ti.Layout())
 
     def fresh(slot):
-        return [np.count_nonzero(st.occ_regions[slot]), st.leaf_count[slot, 0],
-                np.count_nonzero(st.gidx_regions[slot]), st.leaf_count[slot, 1]]  # fmt: skip
+        return [
+            np.count_nonzero(st.occ_regions[slot]),
+            st.leaf_count[slot, 0],
+            np.count_nonzero(st.gidx_regions[slot]),
+            st.leaf_count[slot, 1],
+        ]
 
     m, _ = scene_map(rng, scans=2)
     slot = m._slot.index
@@ -454,8 +458,13 @@ FILL = textwrap.dedent(
 def test_filling_the_pool_ends_in_a_clear_refusal_not_a_crash():
     """With the budget lifted, this workload segfaulted Taichi 1.7.4 after 76 scans
     (~2.1 GiB of pool); with it, the maps refuse cleanly and stay usable."""
-    out = subprocess.run([sys.executable, "-c", FILL, "0.875"], capture_output=True, text=True, timeout=600,
-                         env={**os.environ, "NDTOM_ARCH": "cpu"})  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", FILL, "0.875"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "NDTOM_ARCH": "cpu"},
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     line = [s for s in out.stdout.splitlines() if s.startswith("REFUSED")][0]
     _, k, pool, ok, *_ = line.split()

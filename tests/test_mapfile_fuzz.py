@@ -172,8 +172,12 @@ def mutate_rows(draw, data: bytes) -> bytes:
     if rows <= len(a):
         arrays[name] = a[:rows]
     else:
-        extra = draw(st.binary(min_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0,
-                               max_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0))  # fmt: skip
+        extra = draw(
+            st.binary(
+                min_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0,
+                max_size=(rows - len(a)) * a[:1].nbytes if len(a) else 0,
+            )
+        )
         if len(a):
             arrays[name] = np.concatenate([a, np.frombuffer(extra, a.dtype).reshape(-1, *a.shape[1:])])
     return join(head, header, repack(header, arrays, head))
@@ -259,8 +263,13 @@ def mutate_bytes(draw, data: bytes) -> bytes:
 def mutated_file(draw) -> tuple[str, bytes]:
     name = draw(st.sampled_from(sorted(bases())))
     data = bases()[name]
-    kinds = {"header": mutate_header, "rows": mutate_rows, "shape": mutate_shape, "value": mutate_value,
-             "bytes": mutate_bytes}  # fmt: skip
+    kinds = {
+        "header": mutate_header,
+        "rows": mutate_rows,
+        "shape": mutate_shape,
+        "value": mutate_value,
+        "bytes": mutate_bytes,
+    }
     steps = draw(st.lists(st.sampled_from(sorted(kinds)), min_size=1, max_size=3))
     for kind in steps:
         try:
@@ -313,8 +322,13 @@ def validate(m: NdtOmMap, data: bytes, path: Path) -> None:
     del back
 
 
-@settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=EXAMPLES <= 500,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    database=None,
+    derandomize=EXAMPLES <= 500,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much],
+)
 @given(case=mutated_file())
 def test_mutated_map_files_raise_map_file_error_or_load_valid(case):
     kinds, data = case
@@ -382,6 +396,7 @@ def codec_arrays(draw) -> dict[str, np.ndarray]:
     """Arrays of every name the codec knows, of one row count per group: sorted distinct
     cells, float64 values of any bits (NaN with payloads, -0.0, infinities, subnormals),
     rows of the scatter all zero or zero but for one -0.0."""
+
     def cells(n: int) -> np.ndarray:
         base = draw(st.sampled_from([0, -(2**31) + 1, 2**31 - 2**20 - 1, -12345]))  # (the key bounds: |lo| < 2**31)
         rows = draw(st.sets(st.tuples(st.integers(0, 2**20), st.integers(0, 300), st.integers(0, 300)), max_size=n))
@@ -417,8 +432,13 @@ def codec_arrays(draw) -> dict[str, np.ndarray]:
     }
 
 
-@settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=EXAMPLES <= 500,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    database=None,
+    derandomize=EXAMPLES <= 500,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 @given(arrays=codec_arrays(), version=st.sampled_from([4, mapcodec.VERSION]))
 def test_codec_round_trip_is_bit_for_bit(arrays, version):
     """Whatever bits the arrays hold, encode then decode gives them back exactly (dtype,

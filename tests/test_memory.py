@@ -23,8 +23,14 @@ NORLAB = DATA / "norlab_outdoor_stationary_14.bag"
 
 def run_py(code: str, *args: str, timeout: int = 900) -> str:
     """Run ``code`` in a fresh CPU process (a process has one Taichi pool) and return stdout."""
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code), *args], capture_output=True, text=True, check=False,
-                         timeout=timeout, env={**os.environ, "NDTOM_ARCH": "cpu"})  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code), *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=timeout,
+        env={**os.environ, "NDTOM_ARCH": "cpu"},
+    )
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     return out.stdout
 
@@ -301,14 +307,28 @@ def big_state(rng, cells: int, gaussians: int) -> dict:
     d = rng.uniform(1e-4, 2e-3, (gaussians, 3)) * n[:, None]
     off = 0.2 * rng.uniform(-1.0, 1.0, (gaussians, 3)) * np.minimum(d[:, [0, 0, 1]], d[:, [1, 2, 2]])
     scat = np.column_stack([d[:, 0], off[:, 0], off[:, 1], d[:, 1], off[:, 2], d[:, 2]])
-    return {"occ_index": idx, "occ_logodds": lo, "g_index": idx[g], "g_n": n,
-            "g_mean_rel": rng.uniform(-0.05, 0.05, (gaussians, 3)), "g_scatter": scat}  # fmt: skip
+    return {
+        "occ_index": idx,
+        "occ_logodds": lo,
+        "g_index": idx[g],
+        "g_n": n,
+        "g_mean_rel": rng.uniform(-0.05, 0.05, (gaussians, 3)),
+        "g_scatter": scat,
+    }
 
 
 def snapshot_of(state: dict, resolution: float) -> MapSnapshot:
     """Cell arrays (as big_state makes them) with a new map's settings, to load into a map."""
-    return MapSnapshot(resolution=resolution, occupancy_enabled=True, config=ndtom_ti.MapConfig(),
-                       layout=ndtom_ti.Layout(), metadata={}, scans_inserted=0, points_inserted=0, **state)  # fmt: skip
+    return MapSnapshot(
+        resolution=resolution,
+        occupancy_enabled=True,
+        config=ndtom_ti.MapConfig(),
+        layout=ndtom_ti.Layout(),
+        metadata={},
+        scans_inserted=0,
+        points_inserted=0,
+        **state,
+    )
 
 
 def test_a_multi_million_cell_map_saves_loads_and_coarsens(rng, tmp_path, capsys):
@@ -337,8 +357,10 @@ def test_a_multi_million_cell_map_saves_loads_and_coarsens(rng, tmp_path, capsys
     kc = c.known_cells()
     assert np.array_equal(kc["index"], ref["occ_index"]) and np.array_equal(kc["logodds"], ref["occ_logodds"])
     with capsys.disabled():
-        print(f"\n3 M cells: load {t1 - t0:.2f} s, known_cells {t2 - t1:.2f} s, coarsen(2) {t3 - t2:.2f} s, "
-              f"gaussians {t4 - t3:.2f} s")  # fmt: skip
+        print(
+            f"\n3 M cells: load {t1 - t0:.2f} s, known_cells {t2 - t1:.2f} s, coarsen(2) {t3 - t2:.2f} s, "
+            f"gaussians {t4 - t3:.2f} s"
+        )
     del m, c
     gc.collect()
 
@@ -389,8 +411,9 @@ def test_cli_memory_limit_rejects_bad_values_in_its_own_terms(value, tmp_path):
     from ndtom_ti.cli import app
 
     old = runtime.pool_limit()
-    r = CliRunner().invoke(app, ["map", str(tmp_path / "none.bag"), "-r", "0.5", "--memory-limit", value,
-                                 "-o", str(tmp_path / "m.ndtom")])  # fmt: skip
+    r = CliRunner().invoke(
+        app, ["map", str(tmp_path / "none.bag"), "-r", "0.5", "--memory-limit", value, "-o", str(tmp_path / "m.ndtom")]
+    )
     assert runtime.pool_limit() == old
     assert r.exit_code == 2 and "--memory-limit" in r.output and "memory_limit_GB" not in r.output, r.output
 

@@ -40,7 +40,7 @@ def test_command_list_shows_each_short_help_whole() -> None:
     characters with "..."; each command names its own, on one line at 80 columns."""
     r = run("--help", columns=80)
     assert r.exit_code == 0
-    lines = r.output[r.output.index("Commands:"):].splitlines()[1:]
+    lines = r.output[r.output.index("Commands:") :].splitlines()[1:]
     listed = {}
     for line in lines:
         assert line.startswith("  ") and not line.startswith("   "), line  # no wrapped line
@@ -87,22 +87,39 @@ def test_experiments_names_its_simworld_option(tmp_path: Path) -> None:
 
 def test_no_taichi_start_line(tmp_path: Path) -> None:
     """Neither the library's init nor a command prints Taichi's start-up line."""
-    code = ("import ndtom_ti, numpy as np\nndtom_ti.init('cpu')\nm = ndtom_ti.NdtOmMap(0.5)\n"
-            "m.insert_scan(np.ones((10, 3)), np.eye(4))\n")
+    code = (
+        "import ndtom_ti, numpy as np\nndtom_ti.init('cpu')\nm = ndtom_ti.NdtOmMap(0.5)\n"
+        "m.insert_scan(np.ones((10, 3)), np.eye(4))\n"
+    )
     env = {**os.environ, "NDTOM_PIN_THREADS": "0"}
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env, check=False)
     assert p.returncode == 0, p.stderr
     assert p.stdout == "" and "[Taichi]" not in p.stderr
-    p = subprocess.run([sys.executable, "-m", "ndtom_ti", "demo", "--scans", "2", "--no-progress", "--out",
-                        str(tmp_path / "d")], capture_output=True, text=True, timeout=300, env=env, check=False)
+    p = subprocess.run(
+        [sys.executable, "-m", "ndtom_ti", "demo", "--scans", "2", "--no-progress", "--out", str(tmp_path / "d")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        check=False,
+    )
     assert p.returncode == 0, p.stderr
     assert "[Taichi]" not in p.stdout + p.stderr
 
 
 def test_map_options_are_keywords() -> None:
     sig = inspect.signature(NdtOmMap.__init__)
-    for name in ("p_occupied", "p_empty", "logodds_min", "logodds_max", "min_points", "min_range", "max_range",
-                 "max_range_mode", "n_max"):
+    for name in (
+        "p_occupied",
+        "p_empty",
+        "logodds_min",
+        "logodds_max",
+        "min_points",
+        "min_range",
+        "max_range",
+        "max_range_mode",
+        "n_max",
+    ):
         assert sig.parameters[name].kind is inspect.Parameter.KEYWORD_ONLY, name
     assert "resolution" in (NdtOmMap.__init__.__doc__ or "") and "p_occupied" in NdtOmMap.__init__.__doc__
     m = NdtOmMap(0.5, p_occupied=0.7, max_range=30.0)
@@ -162,11 +179,12 @@ def test_readme_reads_a_bag_with_ndtom_ti_io() -> None:
         pytest.skip("shared data not present")
     text = (ROOT / "README.md").read_text()
     at = text.index("from ndtom_ti.io import open_recording")
-    code = text[text.rindex("```python", 0, at) + len("```python"):text.index("```", at)]
+    code = text[text.rindex("```python", 0, at) + len("```python") : text.index("```", at)]
     code = code.replace("../shared/data", str(DATA))
     env = {**os.environ, "NDTOM_PIN_THREADS": "0"}
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env,
-                       cwd=ROOT, check=False)
+    p = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env, cwd=ROOT, check=False
+    )
     assert p.returncode == 0, p.stderr
     first, second = p.stdout.splitlines()
     assert "scans=23, gaussians=" in first and "[-23.4, -45. ,  -3.6]" in first

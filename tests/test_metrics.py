@@ -200,9 +200,7 @@ def test_similarity_vs_numerical_integration():
     assert 0.05 < sim < 0.95
     assert sim == pytest.approx(num, abs=1e-3)
     # the norm formula itself: ||f||^2 = (4 pi)^(-3/2) det(C)^(-1/2)
-    assert np.sum(f1 * f1) * dv == pytest.approx(
-        (4 * np.pi) ** -1.5 / np.sqrt(np.linalg.det(C1)), rel=1e-3
-    )
+    assert np.sum(f1 * f1) * dv == pytest.approx((4 * np.pi) ** -1.5 / np.sqrt(np.linalg.det(C1)), rel=1e-3)
 
 
 def test_similarity_properties():
@@ -345,9 +343,7 @@ def test_ray_negative_coordinates():
     # x planes -1.0 (t=0.2/1.5), -0.5 (t=0.7/1.5), 0.0 (t=1.2/1.5); y plane -0.5 (t=0.4/0.6)
     got = ray_cells([-1.2, -0.1, -0.2], [0.3, -0.7, -0.2], 0.5)
     # t: x@0.1333, x@0.4667, y@0.6667, x@0.8
-    np.testing.assert_array_equal(
-        got, _cells([-3, -1, -1], [-2, -1, -1], [-1, -1, -1], [-1, -2, -1], [0, -2, -1])
-    )
+    np.testing.assert_array_equal(got, _cells([-3, -1, -1], [-2, -1, -1], [-1, -1, -1], [-1, -2, -1], [0, -2, -1]))
     # starting exactly on a plane and going -x: the origin's own cell comes first
     got = ray_cells([0.0, 0.1, 0.1], [-0.3, 0.1, 0.1], 0.25)
     np.testing.assert_array_equal(got, _cells([0, 0, 0], [-1, 0, 0], [-2, 0, 0]))

@@ -40,6 +40,7 @@ def sigma_s(res: float) -> float:
     """The default config's sigma_s on a map of this resolution."""
     return MapConfig().sigma_s_at(res)
 
+
 L_HIT = math.log(0.6 / 0.4)
 L_FREE = math.log(0.49 / 0.51)
 
@@ -198,8 +199,11 @@ def test_first_points_where_rays_held_the_cell_at_the_free_clamp_restart_lower(r
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(max(passes * L_FREE, -2.0), abs=1e-5)
         insert_world(m, hit_from, [[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]])
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(min(start + 2 * L_HIT, 2.0), abs=1e-5)
-        ref, _ = ndt_om_logodds([(origin, np.array(far * passes)),
-                                 (hit_from, np.array([[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]]))], res, miss_model="ndt")
+        ref, _ = ndt_om_logodds(
+            [(origin, np.array(far * passes)), (hit_from, np.array([[2.2, 0.2, 0.2], [2.3, 0.3, 0.3]]))],
+            res,
+            miss_model="ndt",
+        )
         assert logodds_of(m)[(4, 0, 0)] == pytest.approx(ref[(4, 0, 0)], abs=2e-6)
     # At the clamp, the two points are kept but free (-0.19): not reported as a Gaussian.
     m = NdtOmMap(res, config=MapConfig(**NDT))
@@ -373,8 +377,9 @@ def test_a_hit_ray_tests_no_gaussian_in_its_last_cells(rng):
         term = ndt_miss_term(o, z, True, mu, g["cov"][0], ETA, 3.0, int(g["n"][0]))
         assert change == pytest.approx(term if tested else 0.0, abs=1e-6)
         assert term < -0.03 and (abs(change) > 0.03) == tested  # (the skipped term is not negligible)
-        ref_lo, ref_pts = ndt_om_logodds([(np.array([0.25, 0.25, 0.25]), pts), (o, np.array([z]))], res, eta=ETA,
-                                         sigma_s=3.0)  # fmt: skip
+        ref_lo, ref_pts = ndt_om_logodds(
+            [(np.array([0.25, 0.25, 0.25]), pts), (o, np.array([z]))], res, eta=ETA, sigma_s=3.0
+        )
         assert_matches(m, ref_lo, ref_pts)
 
 
@@ -428,15 +433,21 @@ def test_sigma_s_defaults_to_fifteen_cells(rng, tmp_path):
     scans = random_scans(rng, n_scans=2)
     logs = {}
     free = dict(max_range=6.0, max_range_mode="free")
-    for name, cfg in (("default", MapConfig(**NDT, **free)), ("1.5", MapConfig(**NDT, **free, sigma_s=1.5)),
-                      ("3", MapConfig(**NDT, **free, sigma_s=3.0))):  # fmt: skip
+    for name, cfg in (
+        ("default", MapConfig(**NDT, **free)),
+        ("1.5", MapConfig(**NDT, **free, sigma_s=1.5)),
+        ("3", MapConfig(**NDT, **free, sigma_s=3.0)),
+    ):
         m = build(scans, 0.1, cfg)
         logs[name] = m.known_cells()["logodds"]
         if name == "default":
             assert NdtOmMap.load(m.save(tmp_path / "m.ndtom")).config.sigma_s is None
     assert np.array_equal(logs["default"], logs["1.5"]) and not np.array_equal(logs["default"], logs["3"])
     # At 0.05 m the floor: 1.5 m, not 15 cells (0.75 m).
-    fine = {ss: build(scans, 0.05, MapConfig(**NDT, **free, sigma_s=ss)).known_cells()["logodds"] for ss in (None, 1.5, 0.75)}
+    fine = {
+        ss: build(scans, 0.05, MapConfig(**NDT, **free, sigma_s=ss)).known_cells()["logodds"]
+        for ss in (None, 1.5, 0.75)
+    }
     assert np.array_equal(fine[None], fine[1.5]) and not np.array_equal(fine[None], fine[0.75])
     ref_lo, ref_pts = ndt_om_logodds(reference_scans(scans, 6.0), 0.1, eta=ETA, sigma_s=1.5)
     assert_matches(build(scans, 0.1, MapConfig(**NDT, **free)), ref_lo, ref_pts)
@@ -471,7 +482,9 @@ def random_scans(rng, n_scans=5, n=500):
     scans = []
     for k in range(n_scans):
         o = rng.uniform(-1.0, 1.0, 3)
-        wall = np.column_stack([np.full(n, 4.0) + rng.normal(size=n) * 0.03, rng.uniform(-3, 3, n), rng.uniform(-1, 2, n)])
+        wall = np.column_stack(
+            [np.full(n, 4.0) + rng.normal(size=n) * 0.03, rng.uniform(-3, 3, n), rng.uniform(-1, 2, n)]
+        )
         blobs = rng.normal(size=(n // 2, 3)) * 0.15 + rng.choice([[2.0, 0.5, 0.3], [2.5, -1.0, 0.0]], n // 2)
         ends = np.concatenate([wall, blobs])
         hit = rng.uniform(size=len(ends)) > 0.1

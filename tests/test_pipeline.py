@@ -21,8 +21,6 @@ from ndtom_ti.io import RecordingError  # noqa: E402
 from ndtom_ti.pipeline import config_with_ranges, load_config_file, map_recording, map_scans  # noqa: E402
 
 
-
-
 @pytest.mark.parametrize("fmt", ["ros1", "sqlite3", "mcap"])
 def test_plane_recording_maps_to_the_plane(tmp_path: Path, fmt: str) -> None:
     bag = pb.write_plane_bag(tmp_path, fmt, early_cloud=True)
@@ -196,9 +194,12 @@ def test_config_files(tmp_path: Path) -> None:
     assert load_config_file(t) == {"min_points": 5, "max_range_mode": "drop"}
     cfg = config_with_ranges(load_config_file(j), max_range=10.0, min_range=0.5)
     assert cfg == MapConfig(p_occupied=0.7, max_range=10.0, min_range=0.5)
-    for text, suffix, msg in (("{nope", ".json", "not valid JSON"), ("a = [", ".toml", "not valid TOML"),
-                              ('{"resolution": 0.1}', ".json", "unknown options"),
-                              ('p_empty = 0.7', ".toml", "p_empty must be in")):
+    for text, suffix, msg in (
+        ("{nope", ".json", "not valid JSON"),
+        ("a = [", ".toml", "not valid TOML"),
+        ('{"resolution": 0.1}', ".json", "unknown options"),
+        ('p_empty = 0.7', ".toml", "p_empty must be in"),
+    ):
         f = tmp_path / f"bad{suffix}"
         f.write_text(text)
         with pytest.raises(ValueError, match=msg):
@@ -250,8 +251,15 @@ def test_points_per_second_leaves_the_first_scan_out() -> None:
     from ndtom_ti.pipeline import MappingSummary
 
     s = MappingSummary()
-    rep = SimpleNamespace(points_in=10**6, points_used=10**6, free_rays=0, dropped_nonfinite=0, dropped_range=0,
-                          dropped_outside_grid=0, seconds=0.5)
+    rep = SimpleNamespace(
+        points_in=10**6,
+        points_used=10**6,
+        free_rays=0,
+        dropped_nonfinite=0,
+        dropped_range=0,
+        dropped_outside_grid=0,
+        seconds=0.5,
+    )
     s.add(rep)
     s.wall_first_scan = s.wall_seconds = 10.0  # the first scan compiled the kernels
     assert s.points_per_second == pytest.approx(1e5)  # alone: all there is

@@ -74,14 +74,26 @@ def write_plane_bag(
     rng = np.random.default_rng(42)
     e: list = []
     if with_tf:
-        e.append(("/tf_static", "tf2_msgs/msg/TFMessage", T0 - 900 * MS,
-                  lambda m: m.tf([(T0, "base", "lidar", *BASE_MOUNT)])))
+        e.append(
+            (
+                "/tf_static",
+                "tf2_msgs/msg/TFMessage",
+                T0 - 900 * MS,
+                lambda m: m.tf([(T0, "base", "lidar", *BASE_MOUNT)]),
+            )
+        )
         for k in range(n_clouds):
             T = T_map_base(k)
             q = fx.quat_axis_angle((0, 0, 1), 0.05 * k) if k else (0.0, 0.0, 0.0, 1.0)
             t = STAMPS[k]
-            e.append(("/tf", "tf2_msgs/msg/TFMessage", t,
-                      lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.tf([(t, "map", "base", tr, q)])))
+            e.append(
+                (
+                    "/tf",
+                    "tf2_msgs/msg/TFMessage",
+                    t,
+                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.tf([(t, "map", "base", tr, q)]),
+                )
+            )
     clouds = []
     if early_cloud:
         clouds.append((T0 - 500 * MS, sensor_points(0, rng)))
@@ -90,11 +102,11 @@ def write_plane_bag(
         packed = fx.pack_cloud(pts)
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]
-        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1,
-                  lambda m, t=t, p=packed: m.cloud(t, "lidar", p)))
+        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, "lidar", p)))
         if second_topic:
-            e.append(("/points_front", "sensor_msgs/msg/PointCloud2", t + 2,
-                      lambda m, t=t, p=packed: m.cloud(t, "lidar", p)))
+            e.append(
+                ("/points_front", "sensor_msgs/msg/PointCloud2", t + 2, lambda m, t=t, p=packed: m.cloud(t, "lidar", p))
+            )
     e.sort(key=lambda x: x[2])
     return fx.write_bag(fx.bag_path(root, fmt, name), fmt, e)
 

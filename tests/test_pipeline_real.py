@@ -22,8 +22,6 @@ NORLAB = DATA / "norlab_outdoor_stationary_14.bag"
 LUMINAR = DATA / "luminar_embag_test.bag"
 
 
-
-
 def need(p: Path) -> Path:
     if not p.exists():
         pytest.skip(f"{p} not available")
@@ -107,12 +105,36 @@ def test_norlab_long_ranges_fit_the_memory_budget(tmp_path: Path) -> None:
     assert np.linalg.norm(g["mean"][:, :2], axis=1).max() > 150  # the far returns are in the map
 
     fine = tmp_path / "fine.ndtom"
-    r = subprocess.run([sys.executable, "-m", "ndtom_ti", "map", str(NORLAB), "-r", "0.1", "-o", str(fine),
-                        "--no-progress", "--memory-limit", "0.875", "--arch", "cpu"],
-                       capture_output=True, text=True, timeout=300, check=False, env={**os.environ, "COLUMNS": "200"})  # fmt: skip
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ndtom_ti",
+            "map",
+            str(NORLAB),
+            "-r",
+            "0.1",
+            "-o",
+            str(fine),
+            "--no-progress",
+            "--memory-limit",
+            "0.875",
+            "--arch",
+            "cpu",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     text = r.stdout + r.stderr
     assert r.returncode == 1, text
-    assert "scan 1 was refused: it could take Taichi's memory pool past its 0.88 GiB budget" in text and "--memory-limit" in text and "-r 0.2" in text
+    assert (
+        "scan 1 was refused: it could take Taichi's memory pool past its 0.88 GiB budget" in text
+        and "--memory-limit" in text
+        and "-r 0.2" in text
+    )
     assert "Traceback" not in text and "memory_limit_GB" not in text and "--every" not in text
     assert "Nothing was mapped; no map written" in text and not fine.exists()
 
@@ -131,7 +153,7 @@ def test_luminar_fields_decode_and_missing_poses_are_reported(tmp_path: Path) ->
     assert len(fields) == 7 and msg.point_step == 32
     assert all(fields[a][1] == 7 for a in "xyz")  # FLOAT32
     buf = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step)
-    xyz = np.stack([buf[:, fields[a][0]: fields[a][0] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1)
+    xyz = np.stack([buf[:, fields[a][0] : fields[a][0] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1)
     with open_recording(LUMINAR) as rec:
         scan = next(iter(rec.scans(sensor_frame_only=True)))
     np.testing.assert_array_equal(scan.points, xyz)
@@ -151,8 +173,15 @@ def test_luminar_fields_decode_and_missing_poses_are_reported(tmp_path: Path) ->
 def test_info_on_the_real_recordings() -> None:
     r = cli("info", need(TUM))
     assert r.exit_code == 0, r.output
-    for text in ("/camera/depth/points", "openni_depth_optical_frame", "world", "kinect", "Pose sources",
-                 "tf: world -> kinect -> openni_depth_optical_frame", "Ready: ndtom map"):
+    for text in (
+        "/camera/depth/points",
+        "openni_depth_optical_frame",
+        "world",
+        "kinect",
+        "Pose sources",
+        "tf: world -> kinect -> openni_depth_optical_frame",
+        "Ready: ndtom map",
+    ):
         assert text in r.output, text
     r = cli("info", need(NORLAB))
     assert r.exit_code == 0 and "/icp_odom" in r.output and "nav_msgs/msg/Odometry" in r.output

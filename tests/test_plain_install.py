@@ -26,13 +26,16 @@ TUM = DATA / "tum_fr2_pioneer_slam2_10f.bag"
 
 
 def ndtom(cwd: Path, *args: object, hide: tuple[str, ...] = OPTIONAL) -> subprocess.CompletedProcess:
-    code = ("import sys\n"
-            f"for name in {list(hide)!r}:\n    sys.modules[name] = None\n"
-            f"sys.argv = ['ndtom'] + {[str(a) for a in args]!r}\n"
-            "from ndtom_ti.cli import main\nmain()\n")
+    code = (
+        "import sys\n"
+        f"for name in {list(hide)!r}:\n    sys.modules[name] = None\n"
+        f"sys.argv = ['ndtom'] + {[str(a) for a in args]!r}\n"
+        "from ndtom_ti.cli import main\nmain()\n"
+    )
     env = {**os.environ, "COLUMNS": "250", "NDTOM_PIN_THREADS": "0"}
-    r = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300,
-                       check=False)
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300, check=False
+    )
     r.output = r.stdout + r.stderr  # type: ignore[attr-defined]
     assert "Traceback" not in r.output and "internal error" not in r.output, r.output
     return r
@@ -52,22 +55,28 @@ def map_file(tmp_path_factory, bag) -> Path:
 
 
 def test_the_optional_packages_are_hidden(tmp_path: Path) -> None:
-    code = ("import sys\nfor n in ('viser', 'matplotlib', 'pyoctomap'):\n    sys.modules[n] = None\n"
-            "from ndtom_ti import extras\nprint([extras.available(n) for n in ('viser', 'matplotlib', 'pyoctomap')])\n"
-            "import matplotlib\n")
+    code = (
+        "import sys\nfor n in ('viser', 'matplotlib', 'pyoctomap'):\n    sys.modules[n] = None\n"
+        "from ndtom_ti import extras\nprint([extras.available(n) for n in ('viser', 'matplotlib', 'pyoctomap')])\n"
+        "import matplotlib\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert r.stdout.strip() == "[False, False, False]" and "ModuleNotFoundError" in r.stderr
 
 
-@pytest.mark.parametrize("args", [
-    ["info", "{bag}"],
-    ["info", "{map}"],
-    ["map", "{bag}", "-r", "0.5", "--no-progress", "-o", "again.ndtom"],
-    ["demo", "--scans", "2", "--no-progress", "--out", "demo"],
-    ["export", "{map}", "-o", "cells.bt"],
-    ["export", "{map}", "-o", "floor.pgm", "--z-min", "1", "--z-max", "2"],
-    ["export", "{map}", "-o", "means.ply"],
-], ids=["info-bag", "info-map", "map", "demo", "export-bt", "export-grid", "export-ply"])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["info", "{bag}"],
+        ["info", "{map}"],
+        ["map", "{bag}", "-r", "0.5", "--no-progress", "-o", "again.ndtom"],
+        ["demo", "--scans", "2", "--no-progress", "--out", "demo"],
+        ["export", "{map}", "-o", "cells.bt"],
+        ["export", "{map}", "-o", "floor.pgm", "--z-min", "1", "--z-max", "2"],
+        ["export", "{map}", "-o", "means.ply"],
+    ],
+    ids=["info-bag", "info-map", "map", "demo", "export-bt", "export-grid", "export-ply"],
+)
 def test_commands_that_need_no_extra(tmp_path: Path, bag: Path, map_file: Path, args: list[str]) -> None:
     r = ndtom(tmp_path, *(a.format(bag=bag, map=map_file) for a in args))
     assert r.returncode == 0, r.output
@@ -102,12 +111,16 @@ def test_experiments_without_matplotlib_writes_the_csvs(tmp_path: Path) -> None:
     assert (tmp_path / "ex" / "summary.json").exists() and not list((tmp_path / "ex").glob("*.png"))
 
 
-@pytest.mark.parametrize("args", [
-    ["view", "{map}"],
-    ["view", "{map}", "--html", "page.html"],
-    ["map", "{bag}", "-r", "0.5", "--view", "-o", "live.ndtom"],
-    ["demo", "--view"],
-], ids=["view", "view-html", "map-view", "demo-view"])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["view", "{map}"],
+        ["view", "{map}", "--html", "page.html"],
+        ["map", "{bag}", "-r", "0.5", "--view", "-o", "live.ndtom"],
+        ["demo", "--view"],
+    ],
+    ids=["view", "view-html", "map-view", "demo-view"],
+)
 def test_viewer_commands_without_viser_stop_first(tmp_path: Path, bag: Path, map_file: Path, args: list[str]) -> None:
     r = ndtom(tmp_path, *(a.format(bag=bag, map=map_file) for a in args))
     assert r.returncode == 1, r.output
@@ -120,8 +133,9 @@ def test_viewer_commands_without_viser_stop_first(tmp_path: Path, bag: Path, map
 def test_install_hint_outside_a_repository(monkeypatch) -> None:
     assert extras.repo_root() == REPO  # the tests run on an editable install
     monkeypatch.setattr(extras, "repo_root", lambda: None)
-    assert extras.install_hint("viewer") == ('in the ndtom_ti repository folder: pip install ".[viewer]"  '
-                                             "(or: pip install viser)")
+    assert extras.install_hint("viewer") == (
+        'in the ndtom_ti repository folder: pip install ".[viewer]"  (or: pip install viser)'
+    )
 
 
 def test_run_experiments_checks_matplotlib_before_reading(monkeypatch, tmp_path: Path) -> None:

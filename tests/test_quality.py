@@ -17,7 +17,9 @@ from ndtom_ti.cellkeys import isin_rows
 def scan(points, dynamic, origin=(0.0, 0.0, 0.0), dyn_box=None):
     T = np.eye(4)
     T[:3, 3] = origin
-    lo, hi = (np.zeros((0, 3)), np.zeros((0, 3))) if dyn_box is None else (np.array([dyn_box[0]]), np.array([dyn_box[1]]))
+    lo, hi = (
+        (np.zeros((0, 3)), np.zeros((0, 3))) if dyn_box is None else (np.array([dyn_box[0]]), np.array([dyn_box[1]]))
+    )
     return q.LabelledScan(np.asarray(points, float), np.asarray(dynamic, bool), np.asarray(origin, float), T, lo, hi)
 
 
@@ -36,8 +38,19 @@ def test_ghost_candidates_need_three_points_and_a_free_cell_at_the_end():
     # (8,0,0): 3 points but the object still stands there at the end; (11,0,0): 3 points
     # beside a static box (touching it once grown by the margin).
     s0 = scan([[2.5, 0.5, 0.5], [2.6, 0.5, 0.5], [5.5, 0.5, 0.5], [8.5, 0.5, 0.5], [11.5, 0.5, 0.5]], [1, 1, 1, 1, 1])
-    s1 = scan([[2.4, 0.4, 0.4], [5.4, 0.5, 0.5], [8.4, 0.5, 0.5], [8.6, 0.5, 0.5], [11.4, 0.5, 0.5], [11.6, 0.5, 0.5],
-               [0.5, 3.5, 0.5]], [1, 1, 1, 1, 1, 1, 0], dyn_box=([8.2, 0.2, 0.2], [8.8, 0.8, 0.8]))  # fmt: skip
+    s1 = scan(
+        [
+            [2.4, 0.4, 0.4],
+            [5.4, 0.5, 0.5],
+            [8.4, 0.5, 0.5],
+            [8.6, 0.5, 0.5],
+            [11.4, 0.5, 0.5],
+            [11.6, 0.5, 0.5],
+            [0.5, 3.5, 0.5],
+        ],
+        [1, 1, 1, 1, 1, 1, 0],
+        dyn_box=([8.2, 0.2, 0.2], [8.8, 0.8, 0.8]),
+    )
     static = (np.array([[12.05, -1.0, -1.0]]), np.array([[13.0, 2.0, 2.0]]))
     c = q.ghost_candidates([s0, s1], res, 0.1, static)
     assert c.cells.tolist() == [[2, 0, 0]] and c.last_hit.tolist() == [1]
@@ -64,8 +77,9 @@ def test_observed_only_by_rays_after_the_last_moving_point():
 
 def test_score_and_conflicting_on_known_maps(rng):
     res = 0.5
-    cand = q.GhostCandidates(np.array([[1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]]), np.zeros(4, int),
-                             np.array([True, True, True, False]))  # fmt: skip
+    cand = q.GhostCandidates(
+        np.array([[1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]]), np.zeros(4, int), np.array([True, True, True, False])
+    )
     static = np.array([[0, 5, 0], [1, 5, 0]])
     occupied = q.score(lambda cells: cells[:, 0] == 2, cand, static)
     assert occupied.ghosts == pytest.approx(1 / 3) and occupied.ghost_cells == 3
@@ -94,9 +108,27 @@ def test_logodds_at_reads_cells_and_rejects_bad_indices():
 def test_quality_benchmark_end_to_end(tmp_path):
     """benchmarks/quality.py on a small hall: table, CSV with both models, a top view."""
     out = tmp_path / "q"
-    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"), "--scene", "hall", "--scans", "8",
-                        "--res", "0.4", "--no-octomap", "--out", str(out), "--simworld", str(SIMWORLD)],
-                       check=False, capture_output=True, text=True, timeout=600)  # fmt: skip
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "quality.py"),
+            "--scene",
+            "hall",
+            "--scans",
+            "8",
+            "--res",
+            "0.4",
+            "--no-octomap",
+            "--out",
+            str(out),
+            "--simworld",
+            str(SIMWORLD),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "ndtom-ndt" in r.stdout and "ndtom-paper" in r.stdout and "static kept" in r.stdout
     with open(out / "quality.csv") as fh:
@@ -137,10 +169,32 @@ def test_quality_benchmark_grid_reaches_simworld(tmp_path):
     import json
 
     out = tmp_path / "g"
-    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"), "--scene", "hall", "--scans", "3",
-                        "--res", "0.4", "--seed", "5", "--no-octomap", "--out", str(out), "--simworld", str(SIMWORLD),
-                        "--combo", "default", "speed=2,roll=1,pitch=3,noise=0.04,stride=5"],
-                       check=False, capture_output=True, text=True, timeout=600)  # fmt: skip
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "quality.py"),
+            "--scene",
+            "hall",
+            "--scans",
+            "3",
+            "--res",
+            "0.4",
+            "--seed",
+            "5",
+            "--no-octomap",
+            "--out",
+            str(out),
+            "--simworld",
+            str(SIMWORLD),
+            "--combo",
+            "default",
+            "speed=2,roll=1,pitch=3,noise=0.04,stride=5",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     info = json.loads((out / "hall_s5_n3_v2_r1_p3_e0.04_k5_info.json").read_text())["params"]
     assert (info["speed"], info["range_sigma"], info["stride"], info["seed"]) == (2.0, 0.04, 5, 5)
@@ -149,11 +203,27 @@ def test_quality_benchmark_grid_reaches_simworld(tmp_path):
     assert (out / "hall_s5_n3_v2_r1_p3_e0.04_k5_static_info.json").exists()
     with open(out / "quality.csv") as fh:
         rows = list(csv.DictReader(fh))
-    for col in ("scene", "seed", "speed", "roll", "pitch", "noise", "stride", "resolution", "mapper", "ghosts_pct",
-                "static_kept_pct", "conflicting_static_pct", "ghosts_vs_octomap"):  # fmt: skip
+    for col in (
+        "scene",
+        "seed",
+        "speed",
+        "roll",
+        "pitch",
+        "noise",
+        "stride",
+        "resolution",
+        "mapper",
+        "ghosts_pct",
+        "static_kept_pct",
+        "conflicting_static_pct",
+        "ghosts_vs_octomap",
+    ):
         assert col in rows[0]
     assert [(x["speed"], x["pitch"], x["stride"], x["mapper"]) for x in rows] == [
-        ("1.0", "0.0", "10", "ndtom-ndt"), ("1.0", "0.0", "10", "ndtom-paper"),
-        ("2.0", "3.0", "5", "ndtom-ndt"), ("2.0", "3.0", "5", "ndtom-paper")]  # fmt: skip
+        ("1.0", "0.0", "10", "ndtom-ndt"),
+        ("1.0", "0.0", "10", "ndtom-paper"),
+        ("2.0", "3.0", "5", "ndtom-ndt"),
+        ("2.0", "3.0", "5", "ndtom-paper"),
+    ]
     assert all(x["ghosts_vs_octomap"] == "" for x in rows)  # no OctoMap, no ratio
     assert "ndt/octo" in r.stdout and "v2 r1 p3 e0.04 k5" in r.stdout

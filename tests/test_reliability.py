@@ -39,8 +39,6 @@ from ndtom_ti.pipeline import map_scans
 ROOT = Path(__file__).resolve().parents[1]
 
 
-
-
 def run_cli(*args: object):
     r = CliRunner(env={"COLUMNS": "250"}).invoke(app, [str(a) for a in args])
     assert "Traceback" not in r.output, r.output
@@ -146,8 +144,12 @@ def test_readers_and_writer_on_one_map(tmp_path):
         except BaseException as exc:  # noqa: BLE001
             errors.append(exc)
 
-    threads = [threading.Thread(target=writer), threading.Thread(target=reader, args=(0,)),
-               threading.Thread(target=reader, args=(1,)), threading.Thread(target=saver)]
+    threads = [
+        threading.Thread(target=writer),
+        threading.Thread(target=reader, args=(0,)),
+        threading.Thread(target=reader, args=(1,)),
+        threading.Thread(target=saver),
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -273,11 +275,25 @@ class Ndtom:
         self.lines: queue.Queue = queue.Queue()
         self.seen: list[str] = []
         self.p = subprocess.Popen(
-            [sys.executable, str(shim), "map", str(bag), "-r", str(res), "-o", str(out), "--no-progress",
-             "--arch", "cpu"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp,
+            [
+                sys.executable,
+                str(shim),
+                "map",
+                str(bag),
+                "-r",
+                str(res),
+                "-o",
+                str(out),
+                "--no-progress",
+                "--arch",
+                "cpu",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp,
             env={**os.environ, "COLUMNS": "200", **env},
-        )  # fmt: skip
+        )
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -492,8 +508,9 @@ def _raise(what: str):
     raise AssertionError(what)
 
 
-def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None,
-          version: int = RAW_VERSION) -> bytes:
+def build(
+    header: dict, arrays: dict, *, table=None, header_bytes: bytes | None = None, version: int = RAW_VERSION
+) -> bytes:
     """A map file of raw ``arrays`` (format 3 or older, in header order) with a consistent
     table and a valid checksum, unless ``table`` (a function of the table) or
     ``header_bytes`` change it. (The values' checks are the same for every version.)"""
@@ -502,8 +519,9 @@ def build(header: dict, arrays: dict, *, table=None, header_bytes: bytes | None 
     entries, blobs, off = [], [], 0
     for e in header["arrays"]:
         a = np.ascontiguousarray(arrays[e["name"]], dtype=e["dtype"])
-        entries.append({"name": e["name"], "dtype": e["dtype"], "shape": list(a.shape), "offset": off,
-                        "nbytes": a.nbytes})  # fmt: skip
+        entries.append(
+            {"name": e["name"], "dtype": e["dtype"], "shape": list(a.shape), "offset": off, "nbytes": a.nbytes}
+        )
         blobs.append(a.tobytes())
         off += a.nbytes
     header["arrays"] = table(entries) if table else entries
@@ -556,8 +574,11 @@ CRAFTED = {
     "array twice": (None, lambda t: [*t, t[0]], "twice"),
     "array missing": (None, lambda t: t[1:], "missing"),
     "unknown array": (None, lambda t: [*t, {**t[0], "name": "extra"}], "unexpected array"),
-    "shape of strings": (None, lambda t: [{**e, "shape": ["3", 3]} if e["name"] == "g_index" else e for e in t],
-                         "shape"),
+    "shape of strings": (
+        None,
+        lambda t: [{**e, "shape": ["3", 3]} if e["name"] == "g_index" else e for e in t],
+        "shape",
+    ),
     # values
     "nan log-odds": (setv("occ_logodds", 0, np.nan), None, "occ_logodds"),
     "log-odds past the clamp": (setv("occ_logodds", 1, 7.5), None, "occ_logodds"),
@@ -754,8 +775,11 @@ def test_maps_are_saved_in_format_5_and_load_bit_for_bit(tmp_path, good_file):
     v4 = s.save(tmp_path / "v4.ndtom", version=4)
     h4 = read_header(v4)
     assert struct.unpack("<I", v4.read_bytes()[8:12])[0] == 4 == h4["version"]
-    assert {e["name"]: e["coding"] for e in h4["arrays"]} == {**mapcodec.CODINGS[4], "occ_index": "delta",
-                                                              "g_index": "delta"}  # fmt: skip
+    assert {e["name"]: e["coding"] for e in h4["arrays"]} == {
+        **mapcodec.CODINGS[4],
+        "occ_index": "delta",
+        "g_index": "delta",
+    }
     assert len(good_file) < v4.stat().st_size
     for path in (raw, v4, s.save(tmp_path / "again.ndtom")):
         back = MapSnapshot.load(path)
@@ -860,9 +884,11 @@ def test_decompression_never_inflates_past_the_declared_size(tmp_path, good_file
         tracemalloc.stop()
     assert peak < 32 * 2**20, peak
     raw = inflate(header, payload, "g_ndt_state", 0)
-    for frame, message in ((zstd(raw, write_content_size=False), "does not declare its size"),
-                           (zstd(raw) + b"\0" * 8, "trailing|not a zstd frame|decompress"),
-                           (zstd(raw[:-1] + b"\x07"), "g_ndt_state")):  # fmt: skip
+    for frame, message in (
+        (zstd(raw, write_content_size=False), "does not declare its size"),
+        (zstd(raw) + b"\0" * 8, "trailing|not a zstd frame|decompress"),
+        (zstd(raw[:-1] + b"\x07"), "g_ndt_state"),
+    ):
         with pytest.raises(MapFileError, match=message):
             MapSnapshot.load(_write(tmp_path / "f.ndtom", restream(header, payload, "g_ndt_state", 0, frame, len(raw))))
     # a table that declares more rows than a frame of its size can hold: refused unread
@@ -916,13 +942,27 @@ CRAFTED4 = {
     "zero key difference (a cell twice)": (lambda h, p: _delta_case(h, p, "zero difference"), "differences outside"),
     "negative key difference": (lambda h, p: _delta_case(h, p, "negative"), "differences outside"),
     "key past the span": (lambda h, p: _delta_case(h, p, "past the span"), "past its span"),
-    "unknown coding": (lambda h, p: join4({**h, "arrays": [{**e, "coding": "lz4"} if e["name"] == "g_n" else e
-                                                          for e in h["arrays"]]}, p), "coding"),  # fmt: skip
+    "unknown coding": (
+        lambda h, p: join4(
+            {**h, "arrays": [{**e, "coding": "lz4"} if e["name"] == "g_n" else e for e in h["arrays"]]}, p
+        ),
+        "coding",
+    ),
     "stream sizes off": (lambda h, p: join4(h, p + b"\0"), "streams hold"),
-    "stream missing": (lambda h, p: join4({**h, "arrays": [{**e, "streams": e["streams"][:1]} for e in h["arrays"]]},
-                                          p), "streams"),  # fmt: skip
-    "span too wide": (lambda h, p: join4({**h, "arrays": [{**e, "span": [2**31, 2**31, 2**31]} if e["name"] == "g_index"
-                                                          else e for e in h["arrays"]]}, p), "key bounds"),  # fmt: skip
+    "stream missing": (
+        lambda h, p: join4({**h, "arrays": [{**e, "streams": e["streams"][:1]} for e in h["arrays"]]}, p),
+        "streams",
+    ),
+    "span too wide": (
+        lambda h, p: join4(
+            {
+                **h,
+                "arrays": [{**e, "span": [2**31, 2**31, 2**31]} if e["name"] == "g_index" else e for e in h["arrays"]],
+            },
+            p,
+        ),
+        "key bounds",
+    ),
 }
 
 
@@ -935,7 +975,11 @@ def test_crafted_compressed_streams_are_map_file_errors(tmp_path, good_file, cas
     if version == 4:
         if case.startswith("scatter:"):
             pytest.skip("format 4 stores the scatter raw")
-        good_file = MapSnapshot.load(_write(tmp_path / "g.ndtom", good_file)).save(tmp_path / "v4.ndtom", version=4).read_bytes()  # fmt: skip
+        good_file = (
+            MapSnapshot.load(_write(tmp_path / "g.ndtom", good_file))
+            .save(tmp_path / "v4.ndtom", version=4)
+            .read_bytes()
+        )
     header, payload = split4(good_file)
     assert header["version"] == version
     path = _write(tmp_path / "c.ndtom", fn(header, payload))
@@ -1073,8 +1117,9 @@ def test_init_checks_memory_sizes_before_using_them():
             ndtom_ti.init(memory_limit_GB=bad)
 
 
-@pytest.mark.parametrize("text", ['{"p_occupied": "0.7"}', '{"min_points": [3]}', '{"max_range_mode": 1}',
-                                  '{"logodds_max": true}'])
+@pytest.mark.parametrize(
+    "text", ['{"p_occupied": "0.7"}', '{"min_points": [3]}', '{"max_range_mode": 1}', '{"logodds_max": true}']
+)
 def test_config_values_of_the_wrong_type_are_clear_errors(tmp_path, plane_bag, text):
     cfg = tmp_path / "cfg.json"
     cfg.write_text(text)

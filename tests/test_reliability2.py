@@ -23,7 +23,9 @@ from ndtom_ti import NdtOmMap
 
 def digest(path: Path) -> str:
     if path.is_dir():
-        return hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file())).hexdigest()
+        return hashlib.sha256(
+            b"".join(p.name.encode() + p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file())
+        ).hexdigest()
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
@@ -137,8 +139,14 @@ def with_config(data: bytes, **config) -> bytes:
 
 
 ISSUE_FILE_CASES = [
-    {"min_points": math.inf}, {"n_max": math.inf}, {"min_points": 2e70}, {"sigma_s": 2e70}, {"sigma_s": 1e308},
-    {"max_range": 2**63}, {"min_range": 1e308}, {"n_max": 2**63},
+    {"min_points": math.inf},
+    {"n_max": math.inf},
+    {"min_points": 2e70},
+    {"sigma_s": 2e70},
+    {"sigma_s": 1e308},
+    {"max_range": 2**63},
+    {"min_range": 1e308},
+    {"n_max": 2**63},
 ]
 
 
@@ -157,11 +165,22 @@ def test_map_files_with_out_of_range_settings_are_refused_by_every_reader(tmp_pa
     assert r.exit_code == 2 and "Error:" in r.output, r.output
 
 
-@pytest.mark.parametrize("config", [
-    {"min_points": float("inf")}, {"sigma_s": 2**70}, {"min_points": 2e70}, {"sigma_s": 1e308},
-    {"max_range": 2**63}, {"min_range": 1e308}, {"n_max": 2**63}, {"n_max": 10**400}, {"logodds_max": 1e-50},
-    {"min_points": 2**31},
-], ids=lambda c: str(c)[:40])
+@pytest.mark.parametrize(
+    "config",
+    [
+        {"min_points": float("inf")},
+        {"sigma_s": 2**70},
+        {"min_points": 2e70},
+        {"sigma_s": 1e308},
+        {"max_range": 2**63},
+        {"min_range": 1e308},
+        {"n_max": 2**63},
+        {"n_max": 10**400},
+        {"logodds_max": 1e-50},
+        {"min_points": 2**31},
+    ],
+    ids=lambda c: str(c)[:40],
+)
 def test_api_refuses_settings_outside_what_the_kernels_hold(config):
     with pytest.raises(ValueError, match="MapConfig"):
         NdtOmMap(0.2, **config)
@@ -183,11 +202,17 @@ def test_sigma_s_in_cells_must_fit_at_the_map_resolution():
     NdtOmMap(1e-6, sigma_s=1e5, miss_model="paper").close()  # the paper's model does not use it
 
 
-@pytest.mark.parametrize("text,name", [
-    ('{"min_points": Infinity}', "c.json"), ('{"n_max": 1e400}', "c.json"), ('{"sigma_s": 1e308}', "c.json"),
-    ('{"max_range": 9223372036854775808}', "c.json"), ("min_points = inf", "c.toml"),
-    ("[map]\nn_max = 9223372036854775807", "c.toml"),
-])
+@pytest.mark.parametrize(
+    "text,name",
+    [
+        ('{"min_points": Infinity}', "c.json"),
+        ('{"n_max": 1e400}', "c.json"),
+        ('{"sigma_s": 1e308}', "c.json"),
+        ('{"max_range": 9223372036854775808}', "c.json"),
+        ("min_points = inf", "c.toml"),
+        ("[map]\nn_max = 9223372036854775807", "c.toml"),
+    ],
+)
 def test_config_file_settings_out_of_range_are_bad_input(tmp_path, text, name):
     bag = pb.write_plane_bag(tmp_path)
     cfg = tmp_path / name
@@ -229,11 +254,50 @@ def test_a_gaussian_at_the_point_limit_keeps_its_points(tmp_path, good_file):
 # Property-based: any value of any setting, through the API, a map file and --config, gives a
 # clear error (ValueError/TypeError naming the setting; MapFileError) or a map that works.
 FIELDS = [f for f in MapConfig.__dataclass_fields__]
-SPECIAL = [0, -1, 1, 2, 3, 0.5, 0.49, 0.6, -2.0, 2.0, 1e-50, 1e-300, 5e-324, 1e-6, 1e6, 1e15, 2e15, 1e308,
-           2e70, math.inf, -math.inf, math.nan, 2**30, 2**30 + 1, 2**31 - 1, 2**31, 2**63, 2**70, 10**400,
-           3.0, 3.5, True, "3", None, [1], "ndt", "paper", "drop", "free"]
-value = st.one_of(st.sampled_from(SPECIAL), st.floats(), st.floats(-10, 10), st.integers(-(2**70), 2**70),
-                  st.integers(0, 10))
+SPECIAL = [
+    0,
+    -1,
+    1,
+    2,
+    3,
+    0.5,
+    0.49,
+    0.6,
+    -2.0,
+    2.0,
+    1e-50,
+    1e-300,
+    5e-324,
+    1e-6,
+    1e6,
+    1e15,
+    2e15,
+    1e308,
+    2e70,
+    math.inf,
+    -math.inf,
+    math.nan,
+    2**30,
+    2**30 + 1,
+    2**31 - 1,
+    2**31,
+    2**63,
+    2**70,
+    10**400,
+    3.0,
+    3.5,
+    True,
+    "3",
+    None,
+    [1],
+    "ndt",
+    "paper",
+    "drop",
+    "free",
+]
+value = st.one_of(
+    st.sampled_from(SPECIAL), st.floats(), st.floats(-10, 10), st.integers(-(2**70), 2**70), st.integers(0, 10)
+)
 configs = st.dictionaries(st.sampled_from(FIELDS), value, max_size=4)
 PROPERTY = dict(deadline=None, suppress_health_check=list(HealthCheck), database=None, derandomize=True)
 
@@ -294,8 +358,7 @@ def test_property_api_maps_of_accepted_settings_work(cfg, res):
 
 @settings(max_examples=700, **PROPERTY)
 @given(cfg=configs, res=st.one_of(st.sampled_from([1e-7, 0.25, 1e3, 2e300]), st.floats(1e-9, 1e9)), data=st.data())
-def test_property_map_file_settings_give_a_map_file_error_or_a_valid_map(tmp_path_factory, good_file, cfg, res,
-                                                                         data):
+def test_property_map_file_settings_give_a_map_file_error_or_a_valid_map(tmp_path_factory, good_file, cfg, res, data):
     path = tmp_path_factory.getbasetemp() / "prop.ndtom"
     header, _ = r1.parse(good_file)
     path.write_bytes(with_header(good_file, resolution=res, config={**header["config"], **cfg}))
@@ -392,15 +455,27 @@ def test_ci_switch_makes_missing_shared_data_a_failure(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "NDTOM_SHARED": str(tmp_path / "nothing"), "NDTOM_REQUIRE_SHARED": "1"}
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider",
-                        "tests/test_docs.py"], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider", "tests/test_docs.py"],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "NDTOM_REQUIRE_SHARED" in r.stdout + r.stderr, r.stdout + r.stderr
     from conftest import SHARED
 
     if all((SHARED / p).exists() for p in ("data", "tools")):  # the real folder is there: the switch passes
         env["NDTOM_SHARED"] = str(SHARED)
-        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider",
-                            "tests/test_docs.py"], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "--collect-only", "-p", "no:cacheprovider", "tests/test_docs.py"],
+            cwd=root,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert r.returncode == 0, r.stdout + r.stderr
     assert "NDTOM_REQUIRE_SHARED=1" in (root / ".ci" / "run").read_text()
 
@@ -471,8 +546,13 @@ def test_first_taichi_use_from_a_worker_thread(tmp_path, case):
 
     script = tmp_path / "first_use.py"
     script.write_text(FIRST_USE)
-    r = subprocess.run([sys.executable, str(script), case], capture_output=True, text=True, timeout=400,
-                       env={**os.environ, "NDTOM_PIN_THREADS": "0"})
+    r = subprocess.run(
+        [sys.executable, str(script), case],
+        capture_output=True,
+        text=True,
+        timeout=400,
+        env={**os.environ, "NDTOM_PIN_THREADS": "0"},
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "ERRORS []" in r.stdout
 
@@ -500,8 +580,9 @@ def test_map_view_names_the_signal_and_exits_with_its_code(tmp_path, monkeypatch
     monkeypatch.setattr(NdtOmMap, "insert_scan", insert_then_signal)
     before = signal.getsignal(signum)
     out = tmp_path / "live.ndtom"
-    r = run_cli("map", bag, "-r", pb.RES, "-o", out, "--view", "--no-wait", "--rate", "0.5", "--port", "0",
-                "--no-progress")
+    r = run_cli(
+        "map", bag, "-r", pb.RES, "-o", out, "--view", "--no-wait", "--rate", "0.5", "--port", "0", "--no-progress"
+    )
     assert signal.getsignal(signum) == before
     assert r.exit_code == code, r.output
     assert f"({name}; the map is marked incomplete)" in r.output, r.output
@@ -526,8 +607,10 @@ def test_live_default_finish_exits_143_on_sigterm(tmp_path, monkeypatch):
             yield s
 
     out = tmp_path / "d.ndtom"
-    assert vcli.live_command(scans(), 0.5, "127.0.0.1", 0, speed=None, wait_for_browser=False, save=out,
-                             compare=False) == 143
+    assert (
+        vcli.live_command(scans(), 0.5, "127.0.0.1", 0, speed=None, wait_for_browser=False, save=out, compare=False)
+        == 143
+    )
     assert NdtOmMap.load(out).scans_inserted >= 1
 
 
@@ -543,8 +626,10 @@ def test_view_html_follows_links_as_map_saves_do(tmp_path, small_map_file):
     assert link.is_symlink() and os.readlink(link) == str(target)  # the link stays
     assert "<html" in target.read_text().lower()
     # a dangling link: written through to where it points, exactly as a map save does
-    for name, write in (("page.html", lambda p: run_cli("view", small_map_file, "--html", p)),
-                        ("map.ndtom", lambda p: MapSnapshot.load(small_map_file).save(p))):
+    for name, write in (
+        ("page.html", lambda p: run_cli("view", small_map_file, "--html", p)),
+        ("map.ndtom", lambda p: MapSnapshot.load(small_map_file).save(p)),
+    ):
         dangling = tmp_path / f"dangling-{name}"
         dangling.symlink_to(tmp_path / f"absent-{name}")
         write(dangling)
@@ -639,8 +724,12 @@ def test_a_huge_damaged_file_is_refused_in_bounded_memory(tmp_path):
     script = tmp_path / "zeros.py"
     script.write_text(BIG_ZEROS)
     rows = 80_000_000  # 1.28 GB of occ_index and occ_logodds, all zeros
-    r = subprocess.run([sys.executable, str(script), str(tmp_path / "zeros.ndtom"), str(rows)],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "zeros.ndtom"), str(rows)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert "REFUSED" in r.stdout and "checksum" in r.stdout, r.stdout + r.stderr[-2000:]
 
 
@@ -665,6 +754,7 @@ def test_export_that_cannot_write_exits_1_whenever_it_finds_out(tmp_path, small_
     import ndtom_ti.atomic as atomic
 
     if where.startswith("before"):
+
         def refuse(*a, **k):
             raise OSError(errno.EROFS, os.strerror(errno.EROFS))
 

@@ -26,8 +26,6 @@ from ndtom_ti.snapshot import ARRAYS, MapSnapshot
 SUFFIX = {"ply": ".ply", "pcd": ".pcd", "npz": ".npz", "csv": ".csv", "bt": ".bt", "grid": ".pgm"}
 
 
-
-
 def dicts_equal(a: dict, b: dict) -> None:
     assert a.keys() == b.keys()
     for k in a:
@@ -50,8 +48,12 @@ def snapshot_equals_map(s: MapSnapshot, m: NdtOmMap) -> None:
     st = m.state()
     for name in ARRAYS:
         assert getattr(s, name).dtype == st[name].dtype and np.array_equal(getattr(s, name), st[name]), name
-    assert (s.resolution, s.occupancy_enabled, s.config, s.layout) == (m.resolution, m.occupancy_enabled,
-                                                                        m.config, m.layout)  # fmt: skip
+    assert (s.resolution, s.occupancy_enabled, s.config, s.layout) == (
+        m.resolution,
+        m.occupancy_enabled,
+        m.config,
+        m.layout,
+    )
     assert (s.metadata, s.scans_inserted, s.points_inserted) == (m.metadata, m.scans_inserted, m.points_inserted)
 
 
@@ -111,11 +113,23 @@ def test_snapshot_is_frozen_and_does_not_follow_the_map(rng):
 
 def test_constructor_copies_and_checks_its_arrays():
     g_index = np.array([[2, 1, 0], [0, 0, 5]], np.int64)  # not the stored dtype: converted
-    arrays = {"occ_index": np.array([[0, 0, 5], [2, 1, 0]]), "occ_logodds": np.array([-0.5, 1.0]),
-              "g_index": g_index, "g_n": np.array([3, 1]), "g_mean_rel": np.zeros((2, 3)),
-              "g_scatter": np.zeros((2, 6))}  # fmt: skip
-    settings = {"resolution": 0.5, "occupancy_enabled": True, "config": MapConfig(), "layout": Layout(),
-                "metadata": {}, "scans_inserted": 1, "points_inserted": 4}  # fmt: skip
+    arrays = {
+        "occ_index": np.array([[0, 0, 5], [2, 1, 0]]),
+        "occ_logodds": np.array([-0.5, 1.0]),
+        "g_index": g_index,
+        "g_n": np.array([3, 1]),
+        "g_mean_rel": np.zeros((2, 3)),
+        "g_scatter": np.zeros((2, 6)),
+    }
+    settings = {
+        "resolution": 0.5,
+        "occupancy_enabled": True,
+        "config": MapConfig(),
+        "layout": Layout(),
+        "metadata": {},
+        "scans_inserted": 1,
+        "points_inserted": 4,
+    }
     s = MapSnapshot(**settings, **arrays)
     assert s.g_index.dtype == np.int32 and s.occ_logodds.dtype == np.float32
     g_index[0, 0] = 7  # the caller's array is not the snapshot's
@@ -123,13 +137,21 @@ def test_constructor_copies_and_checks_its_arrays():
     # rows sorted by cell, each group's arrays together
     assert s.occ_index.tolist() == [[0, 0, 5], [2, 1, 0]] and s.g_index.tolist() == [[0, 0, 5], [2, 1, 0]]
     assert s.g_n.tolist() == [1, 3] and s.logodds_at(np.array([[2, 1, 0], [0, 0, 5], [9, 9, 9]])).tolist() == [
-        1.0, -0.5, 0.0]
+        1.0,
+        -0.5,
+        0.0,
+    ]
     with NdtOmMap.from_snapshot(s) as m:
         dicts_equal(m.gaussians(min_points=1, min_probability=0), s.gaussians(min_points=1, min_probability=0))
         dicts_equal(m.known_cells(), s.known_cells())
-    for bad, message in [({"g_n": np.array([3])}, "g_n has 1 rows"), ({"g_scatter": np.zeros((2, 3))}, "shape"),
-                         ({"resolution": 0.0}, "resolution"), ({"scans_inserted": -1}, "scans_inserted"),
-                         ({"config": {}}, "MapConfig"), ({"occ_index": [[0, 0, 5], [0, 0, 5]]}, "twice")]:  # fmt: skip
+    for bad, message in [
+        ({"g_n": np.array([3])}, "g_n has 1 rows"),
+        ({"g_scatter": np.zeros((2, 3))}, "shape"),
+        ({"resolution": 0.0}, "resolution"),
+        ({"scans_inserted": -1}, "scans_inserted"),
+        ({"config": {}}, "MapConfig"),
+        ({"occ_index": [[0, 0, 5], [0, 0, 5]]}, "twice"),
+    ]:
         with pytest.raises((ValueError, TypeError), match=message):
             MapSnapshot(**{**settings, **arrays, **bad})
     # a snapshot with cells beyond the grid: no map of it, and no slot kept by the attempt
@@ -147,8 +169,13 @@ def test_constructor_copies_and_checks_its_arrays():
 def test_queries_answer_as_the_maps(rng, occupancy):
     m, world = scene_map(rng, occupancy=occupancy)
     s = m.snapshot()
-    for kw in ({}, {"min_probability": 0.0}, {"min_points": 0, "min_probability": 0.0}, {"min_points": 10},
-               {"min_probability": 0.8}):  # fmt: skip
+    for kw in (
+        {},
+        {"min_probability": 0.0},
+        {"min_points": 0, "min_probability": 0.0},
+        {"min_points": 10},
+        {"min_probability": 0.8},
+    ):
         dicts_equal(s.gaussians(**kw), m.gaussians(**kw))
     dicts_equal(s.known_cells(), m.known_cells())
     assert len(s) == len(m) > 0
@@ -233,10 +260,18 @@ def test_every_export_from_a_snapshot_equals_the_maps(scene_file, tmp_path, fmt,
 # --------------------------------------------------------------------------- map files
 
 
-@pytest.mark.parametrize("kind,message", [("empty", "not an ndtom_ti map"), ("header_cut", "truncated"),
-                                          ("payload_cut", "truncated"), ("trailing", "trailing bytes"),
-                                          ("flip_payload", "checksum"), ("flip_header", "corrupt"),
-                                          ("newer", "version 99")])  # fmt: skip
+@pytest.mark.parametrize(
+    "kind,message",
+    [
+        ("empty", "not an ndtom_ti map"),
+        ("header_cut", "truncated"),
+        ("payload_cut", "truncated"),
+        ("trailing", "trailing bytes"),
+        ("flip_payload", "checksum"),
+        ("flip_header", "corrupt"),
+        ("newer", "version 99"),
+    ],
+)
 def test_broken_files_are_refused_as_the_map_refuses_them(rng, tmp_path, kind, message):
     m, _ = scene_map(rng, scans=1)
     bad = tmp_path / "bad.ndtom"
@@ -260,8 +295,10 @@ def _rewrite(path: Path, out: Path, header_edit=None, arrays_edit=None) -> Path:
     hlen = struct.unpack("<Q", data[12:20])[0]
     header = json.loads(data[20 : 20 + hlen])
     payload = data[20 + hlen :]
-    arrays = {e["name"]: np.frombuffer(payload, e["dtype"], int(np.prod(e["shape"])), e["offset"]).reshape(e["shape"])
-              for e in header["arrays"]}  # fmt: skip
+    arrays = {
+        e["name"]: np.frombuffer(payload, e["dtype"], int(np.prod(e["shape"])), e["offset"]).reshape(e["shape"])
+        for e in header["arrays"]
+    }
     if arrays_edit:
         arrays = arrays_edit(arrays)
     if header_edit:
@@ -319,8 +356,10 @@ def test_a_multi_million_cell_file_opens_as_a_snapshot(rng, tmp_path, capsys):
         assert np.array_equal(c.occ_index, cm.state()["occ_index"]) and np.array_equal(c.g_n, cm.state()["g_n"])
     m.close()
     with capsys.disabled():
-        print(f"\n3 M cells: MapSnapshot.load {t1 - t0:.2f} s, NdtOmMap.load {t2 - t1:.2f} s; "
-              f"coarsen(2): snapshot {t4 - t3:.2f} s, map {t5 - t4:.2f} s")  # fmt: skip
+        print(
+            f"\n3 M cells: MapSnapshot.load {t1 - t0:.2f} s, NdtOmMap.load {t2 - t1:.2f} s; "
+            f"coarsen(2): snapshot {t4 - t3:.2f} s, map {t5 - t4:.2f} s"
+        )
 
 
 # --------------------------------------------------------------------------- no map slot needed
@@ -389,8 +428,13 @@ def test_export_of_a_file_starts_no_taichi(scene_file, tmp_path):
         "s = MapSnapshot.load(sys.argv[1]).coarsen(2)\n"
         "print('RESULT', r.exit_code, runtime.current_arch(), len(s.gaussians()['n']) > 0)\n"
     )
-    out = subprocess.run([sys.executable, "-c", script, str(scene_file), str(tmp_path / "x.ply")],
-                         capture_output=True, text=True, timeout=300, check=False)  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", script, str(scene_file), str(tmp_path / "x.ply")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert "RESULT 0 None True" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
 
 

@@ -20,8 +20,11 @@ def test_run_sweep_rows_and_floor(rng):
         scans.append((d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0, T))
     rows = sweep.run_sweep(scans, [0.5, 1.0], warmup=1)
     assert [(r.mapper, r.resolution) for r in rows] == [
-        ("ndtom", 0.5), ("ndtom-floor", 0.5), ("ndtom", 1.0), ("ndtom-floor", 1.0)
-    ]  # fmt: skip
+        ("ndtom", 0.5),
+        ("ndtom-floor", 0.5),
+        ("ndtom", 1.0),
+        ("ndtom-floor", 1.0),
+    ]
     for r in rows:
         assert r.scans == 3 and r.ms_median > 0 and r.ms_p95 >= r.ms_median and r.visits_per_s > 0
     full, fl = rows[0], rows[1]
@@ -51,8 +54,21 @@ def test_run_sweep_rejects_bad_input():
 
 @pytest.mark.skipif(not sweep.octomap_available(), reason="pyoctomap not installed")
 def test_cli_sweep_synthetic_with_octomap(tmp_path):
-    res = CliRunner(env={"COLUMNS": "250"}).invoke(app, ["sweep", "--synthetic", "--scans", "2", "--resolutions", "0.5",
-                                                         "--baseline", "octomap", "--out", str(tmp_path / "sw")])  # fmt: skip
+    res = CliRunner(env={"COLUMNS": "250"}).invoke(
+        app,
+        [
+            "sweep",
+            "--synthetic",
+            "--scans",
+            "2",
+            "--resolutions",
+            "0.5",
+            "--baseline",
+            "octomap",
+            "--out",
+            str(tmp_path / "sw"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     with open(tmp_path / "sw" / "sweep.csv") as fh:
         header = next(csv.reader(fh))
@@ -61,8 +77,11 @@ def test_cli_sweep_synthetic_with_octomap(tmp_path):
     assert [r["mapper"] for r in rows] == ["ndtom", "ndtom-floor", "octomap"]
     assert int(rows[0]["gaussians"]) > 0 and rows[1]["gaussians"] == rows[2]["gaussians"] == ""  # not 0: none
     assert all(int(r["scans"]) == 2 for r in rows)
-    table = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[1:-1]]
-             for line in res.output.splitlines() if line.startswith("│")}
+    table = {
+        line.split("│")[1].strip(): [c.strip() for c in line.split("│")[1:-1]]
+        for line in res.output.splitlines()
+        if line.startswith("│")
+    }
     assert table["octomap"][7] == table["ndtom-floor"][7] == "-" and table["ndtom"][7] not in ("-", "0")
     assert all(r["arch"] and r["taichi"] and r["machine"] for r in rows)
     from ndtom_ti import runtime

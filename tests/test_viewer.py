@@ -70,11 +70,14 @@ def test_ellipsoids_reproduce_the_covariances(rng):
     assert wxyz.shape == (200, 4) and scales.shape == (200, 3)
     assert wxyz.dtype == np.float32 and scales.dtype == np.float32
     w, x, y, z = wxyz.astype(np.float64).T
-    R = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)  # fmt: skip
+    R = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
     assert np.allclose(np.linalg.det(R), 1.0, atol=1e-5)  # proper rotations (det<0 flipped)
     rebuilt = R @ (scales.astype(np.float64)[:, :, None] ** 2 * np.swapaxes(R, 1, 2))
     assert np.allclose(rebuilt, cov, rtol=1e-4, atol=1e-5)
@@ -152,8 +155,11 @@ def test_nothing_non_finite_is_drawn(maps, make_viewer):
     v.set_trajectory([[0, 0, 1], [np.nan, 0, 1], [1, 0, 1]])
     v.set_scan([[1, 2, 0.5], [np.nan, np.nan, np.nan], [2, 2, 0.5]])
     v.refresh()
-    scene_arrays = [v.scene.nodes["scan"].points, v.scene.nodes["trajectory"].points,
-                    v.scene.nodes["gaussians"].batched_positions]  # fmt: skip
+    scene_arrays = [
+        v.scene.nodes["scan"].points,
+        v.scene.nodes["trajectory"].points,
+        v.scene.nodes["gaussians"].batched_positions,
+    ]
     assert v.drawn["scan"] == 2 and all(np.isfinite(np.asarray(a)).all() for a in scene_arrays)
 
 

@@ -38,10 +38,16 @@ from ndtom_ti.viewer import geometry as geo
 
 RES = 0.5
 FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
     "--enable-unsafe-swiftshader",
-]  # fmt: skip
+]
 H, W = 240, 320  # rendered image (the page is 800 x 600)
 
 

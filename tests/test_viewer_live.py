@@ -34,7 +34,9 @@ class StampedScan:
 
 def _scans(stamps_s, n_points=300):
     base = make_scans(len(stamps_s), rings=4, per_ring=n_points // 4)
-    return [StampedScan(s.points, s.T_world_sensor, int(1_700_000_000e9) + round(t * 1e9)) for s, t in zip(base, stamps_s)]
+    return [
+        StampedScan(s.points, s.T_world_sensor, int(1_700_000_000e9) + round(t * 1e9)) for s, t in zip(base, stamps_s)
+    ]
 
 
 class FakeClock:
@@ -64,8 +66,15 @@ def test_scans_play_at_the_recordings_rate_times_speed(viewer):
     stamps = [0.0, 0.1, 0.3, 0.35, 10.35, 10.45]  # a 10 s gap in the recording
     for speed, expected in ((1.0, [0.1, 0.2, 0.05, 2.0, 0.1]), (2.0, [0.05, 0.1, 0.025, 1.0, 0.05])):
         clock = FakeClock()
-        lm = viewer.live(_scans(stamps), NdtOmMap(RES), speed=speed, max_gap_s=2.0, clock=clock,
-                         sleep=clock.sleep, refresh_interval=0.05)  # fmt: skip
+        lm = viewer.live(
+            _scans(stamps),
+            NdtOmMap(RES),
+            speed=speed,
+            max_gap_s=2.0,
+            clock=clock,
+            sleep=clock.sleep,
+            refresh_interval=0.05,
+        )
         lm.play()
         assert lm.wait(timeout=60) and lm.error is None and lm.scans_done == len(stamps)
         # the long gap is shortened to max_gap_s; everything else is the recording's own pace
@@ -202,8 +211,7 @@ def test_a_signal_saves_what_was_mapped(sig, tmp_path, no_serving, capsys):
         m.save(out)
         return 130 if summary.stopped == "interrupted" else 0
 
-    code = cli.live_command(scans, RES, "127.0.0.1", 0, speed=0.5, wait_for_browser=False, finish=finish,
-                            total=30)  # fmt: skip
+    code = cli.live_command(scans, RES, "127.0.0.1", 0, speed=0.5, wait_for_browser=False, finish=finish, total=30)
     assert code == 130
     n, stopped, complete = saved[0]
     assert stopped == "interrupted" and not complete and 3 <= n < 30
@@ -235,8 +243,24 @@ def test_demo_view_writes_its_map_and_the_summary(tmp_path, no_serving, monkeypa
     from ndtom_ti.cli import app
 
     monkeypatch.setattr("ndtom_ti.demo.make_scans", lambda n, **kw: make_scans(n, rings=8, per_ring=120))
-    res = CliRunner().invoke(app, ["demo", "--view", "--no-wait", "--rate", "max", "--port", "0", "--scans", "4",
-                                   "-r", "0.5", "--out", str(tmp_path / "d")])  # fmt: skip
+    res = CliRunner().invoke(
+        app,
+        [
+            "demo",
+            "--view",
+            "--no-wait",
+            "--rate",
+            "max",
+            "--port",
+            "0",
+            "--scans",
+            "4",
+            "-r",
+            "0.5",
+            "--out",
+            str(tmp_path / "d"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     out = tmp_path / "d" / "demo.ndtom"
     assert "Mapping summary" in res.output and "4 of 4" in res.output and str(out) in res.output

@@ -74,10 +74,15 @@ def _get(port: int, host: str, path: str = "/", extra: tuple[str, ...] = ()) -> 
 def _upgrade(port: int, host: str, origin: str | None, extra: tuple[str, ...] = ()) -> bytes:
     key = base64.b64encode(os.urandom(16)).decode()
     lines = [
-        "GET / HTTP/1.1", f"Host: {host}", "Upgrade: websocket", "Connection: Upgrade",
-        f"Sec-WebSocket-Key: {key}", "Sec-WebSocket-Version: 13",
-        f"Sec-WebSocket-Protocol: viser-v{viser.__version__}", *extra,
-    ]  # fmt: skip
+        "GET / HTTP/1.1",
+        f"Host: {host}",
+        "Upgrade: websocket",
+        "Connection: Upgrade",
+        f"Sec-WebSocket-Key: {key}",
+        "Sec-WebSocket-Version: 13",
+        f"Sec-WebSocket-Protocol: viser-v{viser.__version__}",
+        *extra,
+    ]
     if origin is not None:
         lines.append(f"Origin: {origin}")
     return _request(port, lines, read_for=2.5)

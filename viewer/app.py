@@ -147,8 +147,9 @@ class MapViewer:
         self.requested_port = port
         port_free = check_listen(host, port)
 
-        self.caps = Caps(int(max_ellipsoids), int(max_splats), int(max_chosen), int(max_free_cells),
-                         int(max_occupied_cells))  # fmt: skip
+        self.caps = Caps(
+            int(max_ellipsoids), int(max_splats), int(max_chosen), int(max_free_cells), int(max_occupied_cells)
+        )
         self.verbose = verbose
         if progress is None and verbose:
             progress = lambda line: print(line, flush=True)
@@ -177,11 +178,18 @@ class MapViewer:
         self.scene = MapScene(self.server, self.caps)
         try:
             self.controls = Controls(
-                self.server.gui, self.caps, resolution=m.resolution if m is not None else None,
-                threshold=float(threshold), color_mode=color_mode, geometry=geometry, conflicts=compare is not None,
-                on_change=self.request_refresh, on_layer=self._on_layer, on_point_size=self.scene.set_point_size,
+                self.server.gui,
+                self.caps,
+                resolution=m.resolution if m is not None else None,
+                threshold=float(threshold),
+                color_mode=color_mode,
+                geometry=geometry,
+                conflicts=compare is not None,
+                on_change=self.request_refresh,
+                on_layer=self._on_layer,
+                on_point_size=self.scene.set_point_size,
                 on_frame=self.frame,
-            )  # fmt: skip
+            )
             if m is not None and len(m) and verbose:
                 self._say(f"Preparing the scene: {fmt(len(m))} Gaussians at {m.resolution:g} m ...")
             self.refresh()
@@ -314,9 +322,16 @@ class MapViewer:
         if self.live_mapper is not None:
             self.live_mapper.stop()
         lm = LiveMapper(
-            self, scans, m if m is not None else self.map, compare=compare, total=total,
-            refresh_interval=refresh_interval, max_scan_points=max_scan_points, rate_hz=rate_hz, **pacing,
-        )  # fmt: skip
+            self,
+            scans,
+            m if m is not None else self.map,
+            compare=compare,
+            total=total,
+            refresh_interval=refresh_interval,
+            max_scan_points=max_scan_points,
+            rate_hz=rate_hz,
+            **pacing,
+        )
         self.live_mapper = lm
         if play:
             lm.play()
@@ -375,9 +390,13 @@ class MapViewer:
         want = c.wanted()
         with self._scene_lock:
             snap = self.levels.take(
-                want, threshold=float(c.threshold.value), chosen=c.selected_factor(), geometry=c.geometry_choice(),
-                caps=self.caps, find_ceiling=c.zlimits is None,
-            )  # fmt: skip
+                want,
+                threshold=float(c.threshold.value),
+                chosen=c.selected_factor(),
+                geometry=c.geometry_choice(),
+                caps=self.caps,
+                find_ceiling=c.zlimits is None,
+            )
             with self._live_lock:
                 traj, scan = self._trajectory, self._scan_world
             self._draw(snap, want, traj, scan)
@@ -398,14 +417,35 @@ class MapViewer:
 
         def panel(drawn: dict, at_top: float | None) -> None:
             legend = geo.legend_html(
-                color_mode, threshold=snap["threshold"], zrange=drawn["zrange"], conflicts=self.compare is not None,
-                live=c.live_layers, free=want["free"], clip=clip, prange=drawn["prange"], at_top=at_top,
-            )  # fmt: skip
-            c.show(legend=legend, stats=stats_markdown(snap, drawn, self.caps), notes=drawn["notes"],
-                   conflicts=self.compare is not None)  # fmt: skip
+                color_mode,
+                threshold=snap["threshold"],
+                zrange=drawn["zrange"],
+                conflicts=self.compare is not None,
+                live=c.live_layers,
+                free=want["free"],
+                clip=clip,
+                prange=drawn["prange"],
+                at_top=at_top,
+            )
+            c.show(
+                legend=legend,
+                stats=stats_markdown(snap, drawn, self.caps),
+                notes=drawn["notes"],
+                conflicts=self.compare is not None,
+            )
 
-        part = self.scene.draw(snap, g, traj, scan, want, color_mode=color_mode, geometry=c.geometry_choice(),
-                               clip=clip, point_size=float(c.point_size.value), panel=panel)  # fmt: skip
+        part = self.scene.draw(
+            snap,
+            g,
+            traj,
+            scan,
+            want,
+            color_mode=color_mode,
+            geometry=c.geometry_choice(),
+            clip=clip,
+            point_size=float(c.point_size.value),
+            panel=panel,
+        )
         c.redraw.visible = part
         c.relabel_levels(self.map.resolution if self.map is not None else None, self._auto_drawn())
         c.relabel_geometry(self.drawn["geometry"])

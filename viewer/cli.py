@@ -144,9 +144,15 @@ def view_command(
         # a snapshot needs no server beyond this machine, and is lit by plain lights: it draws at
         # once (an environment map fades in slowly)
         with _ticking("preparing the scene"):
-            viewer = MapViewer(m, compare=cmp_map, host="127.0.0.1" if html is not None else host,
-                               port=0 if html is not None else port, verbose=html is None,
-                               environment_map=html is None, progress=_say)  # fmt: skip
+            viewer = MapViewer(
+                m,
+                compare=cmp_map,
+                host="127.0.0.1" if html is not None else host,
+                port=0 if html is not None else port,
+                verbose=html is None,
+                environment_map=html is None,
+                progress=_say,
+            )
     except ValueError as exc:
         _error(
             str(exc),
@@ -165,8 +171,10 @@ def view_command(
             return EXIT_FAILURE
         finally:
             viewer.close()
-        _say(f"Wrote {html.resolve()} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser "
-             f"({html.resolve().as_uri()})")  # fmt: skip
+        _say(
+            f"Wrote {html.resolve()} ({html.stat().st_size / 2**20:.1f} MiB): open it in a browser "
+            f"({html.resolve().as_uri()})"
+        )
         return EXIT_OK
     print("Press Ctrl-C to stop.", flush=True)
     try:
@@ -187,8 +195,9 @@ def parse_rate(text: str) -> float | None:
     except ValueError:
         v = float("nan")
     if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"--rate must be a positive number (1: the recording's own rate, 2: twice as fast) or "
-                         f"max, got {text!r}")  # fmt: skip
+        raise ValueError(
+            f"--rate must be a positive number (1: the recording's own rate, 2: twice as fast) or max, got {text!r}"
+        )
     return v
 
 
@@ -272,8 +281,13 @@ def live_command(
 
     cfg = config_with_ranges(config)
     if summary is None:
-        summary = MappingSummary(source="scans", resolution=float(resolution), occupancy=bool(occupancy),
-                                 config=cfg.to_dict(), scans_expected=total)  # fmt: skip
+        summary = MappingSummary(
+            source="scans",
+            resolution=float(resolution),
+            occupancy=bool(occupancy),
+            config=cfg.to_dict(),
+            scans_expected=total,
+        )
     finish = finish or _default_finish(save)
     m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
     try:
@@ -286,13 +300,24 @@ def live_command(
     lm = None
     try:
         with LiveSignals() as sig:
-            lm = viewer.live(scans, m, compare=compare, play=False, total=total or summary.scans_expected,
-                             speed=speed if speed is not None else math.inf, rate_hz=rate_hz, summary=summary,
-                             progress=progress, after_loop=after_loop)  # fmt: skip
+            lm = viewer.live(
+                scans,
+                m,
+                compare=compare,
+                play=False,
+                total=total or summary.scans_expected,
+                speed=speed if speed is not None else math.inf,
+                rate_hz=rate_hz,
+                summary=summary,
+                progress=progress,
+                after_loop=after_loop,
+            )
             started = True
             if wait_for_browser:
-                _say(f"Waiting for a browser at {viewer.url} (mapping starts when one connects; --no-wait starts "
-                     "at once) ...")  # fmt: skip
+                _say(
+                    f"Waiting for a browser at {viewer.url} (mapping starts when one connects; --no-wait starts "
+                    "at once) ..."
+                )
                 started = _wait_for_browser(viewer, sig.event)
             if started:
                 if progress is not None:
@@ -317,8 +342,10 @@ def live_command(
                 code = _call_finish(finish, m, summary, sig)
             sig.saving = False
             if exc is not None:
-                _error(f"live mapping stopped at scan {summary.scans_used + 1}: {summary.error}",
-                       f"the {summary.scans_used} scans before it are in the map" if summary.scans_used else None)  # fmt: skip
+                _error(
+                    f"live mapping stopped at scan {summary.scans_used + 1}: {summary.error}",
+                    f"the {summary.scans_used} scans before it are in the map" if summary.scans_used else None,
+                )
                 code = EXIT_USAGE if isinstance(exc, (ValueError, TypeError, LookupError)) else EXIT_FAILURE
             if summary.stopped is None and not sig.count:
                 _say(f"Mapping done; the viewer keeps showing the map at {viewer.url}: Ctrl-C to quit.")
@@ -350,8 +377,16 @@ def live_recording_command(
     with open_recording_run(bag, resolution, selection, occupancy=occupancy, config=cfg, metadata=metadata) as run:
         # no Recursive NDT map beside it by default: a recording's map costs what `ndtom map` costs
         live.setdefault("compare", False)
-        return live_command(run.stream, resolution, occupancy=occupancy, config=cfg, summary=run.summary,
-                            metadata=run.extra, after_loop=run.count_clouds, **live)  # fmt: skip
+        return live_command(
+            run.stream,
+            resolution,
+            occupancy=occupancy,
+            config=cfg,
+            summary=run.summary,
+            metadata=run.extra,
+            after_loop=run.count_clouds,
+            **live,
+        )
 
 
 def live_demo_command(
@@ -371,7 +406,13 @@ def live_demo_command(
     from ndtom_ti.pipeline import MappingSummary
 
     scans = scans if scans is not None else make_scans(n_scans)
-    summary = MappingSummary(source="ndtom demo (synthetic room)", pose_source="exact (synthetic)",
-                             fixed_frame="world", resolution=float(resolution), scans_expected=len(scans))  # fmt: skip
-    return live_command(scans, resolution, host, port, compare=True, total=len(scans), speed=speed, summary=summary,
-                        **live)  # fmt: skip
+    summary = MappingSummary(
+        source="ndtom demo (synthetic room)",
+        pose_source="exact (synthetic)",
+        fixed_frame="world",
+        resolution=float(resolution),
+        scans_expected=len(scans),
+    )
+    return live_command(
+        scans, resolution, host, port, compare=True, total=len(scans), speed=speed, summary=summary, **live
+    )

@@ -68,30 +68,56 @@ class Controls:
         self.notice = gui.add_markdown("", visible=False)  # caps and subsampling, where they apply
         self.frame = gui.add_button("Frame the map", hint="move the camera back to the first view of the whole map")
         with gui.add_folder("Map"):
-            self.color_mode = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=color_mode,
-                                               hint="height of the Gaussian's mean, or its occupancy probability")  # fmt: skip
+            self.color_mode = gui.add_dropdown(
+                "Colour by",
+                COLOR_MODES,
+                initial_value=color_mode,
+                hint="height of the Gaussian's mean, or its occupancy probability",
+            )
             self.zclip = gui.add_multi_slider(
-                "Height clip (m)", min=0.0, max=1.0, step=0.05, initial_value=(0.0, 1.0),
+                "Height clip (m)",
+                min=0.0,
+                max=1.0,
+                step=0.05,
+                initial_value=(0.0, 1.0),
                 hint="draw only what lies between these heights (e.g. below a hall's roof)",
-            )  # fmt: skip
+            )
             self.threshold = gui.add_slider(
-                "Occupancy threshold", min=THRESHOLDS[0], max=THRESHOLDS[1], step=0.01, initial_value=threshold,
+                "Occupancy threshold",
+                min=THRESHOLDS[0],
+                max=THRESHOLDS[1],
+                step=0.01,
+                initial_value=threshold,
                 hint="draw Gaussians and occupied cells with occupancy probability above this",
-            )  # fmt: skip
+            )
             self.resolution = gui.add_dropdown(
-                "Resolution", labels, initial_value=labels[-1],
+                "Resolution",
+                labels,
+                initial_value=labels[-1],
                 hint=f"a level is drawn whole (past {fmt(caps.chosen)} Gaussians: the part around the view); "
                 "auto: the level of detail picks the finest level that keeps the page responsive",
-            )  # fmt: skip
+            )
             self.geometry = gui.add_dropdown(
-                "Gaussians as", GEOMETRIES, initial_value=geometry,
+                "Gaussians as",
+                GEOMETRIES,
+                initial_value=geometry,
                 hint=f"auto: ellipsoids up to {fmt(caps.ellipsoids)} Gaussians, splats up to "
                 f"{fmt(caps.splats)}, then a coarser level",
-            )  # fmt: skip
-            self.redraw = gui.add_button("Draw around the view", visible=False,
-                                         hint="draw the chosen level's Gaussians nearest where the view looks")  # fmt: skip
-            self.point_size = gui.add_slider("Point size", min=0.005, max=0.5, step=0.005, initial_value=0.03,
-                                             hint="size (m) of the latest scan's points", visible=False)  # fmt: skip
+            )
+            self.redraw = gui.add_button(
+                "Draw around the view",
+                visible=False,
+                hint="draw the chosen level's Gaussians nearest where the view looks",
+            )
+            self.point_size = gui.add_slider(
+                "Point size",
+                min=0.005,
+                max=0.5,
+                step=0.005,
+                initial_value=0.03,
+                hint="size (m) of the latest scan's points",
+                visible=False,
+            )
         self.legend = gui.add_html("")
         self.layers: dict[str, Any] = {}
         with gui.add_folder("Layers"):

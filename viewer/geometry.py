@@ -56,11 +56,42 @@ def icosphere(subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Unit icosphere: vertices (V, 3) float32 on the unit sphere, faces (F, 3) uint32
     (counter-clockwise seen from outside). ``subdivisions=1``: 42 vertices, 80 faces."""
     t = (1.0 + math.sqrt(5.0)) / 2.0
-    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]  # fmt: skip
-    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
-         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
-         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]  # fmt: skip
+    v = [
+        [-1, t, 0],
+        [1, t, 0],
+        [-1, -t, 0],
+        [1, -t, 0],
+        [0, -1, t],
+        [0, 1, t],
+        [0, -1, -t],
+        [0, 1, -t],
+        [t, 0, -1],
+        [t, 0, 1],
+        [-t, 0, -1],
+        [-t, 0, 1],
+    ]
+    f = [
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ]
     verts = [np.array(p, np.float64) / np.linalg.norm(p) for p in v]
     faces = [tuple(x) for x in f]
 
@@ -90,8 +121,23 @@ def icosphere(subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
 def unit_box() -> tuple[np.ndarray, np.ndarray]:
     """Unit cube centred on the origin: vertices (8, 3) float32, faces (12, 3) uint32 (outward)."""
     V = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)], np.float32)
-    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)  # fmt: skip
+    F = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ],
+        np.uint32,
+    )
     V.setflags(write=False)
     F.setflags(write=False)
     return V, F
@@ -108,20 +154,24 @@ def rotation_to_wxyz(R: np.ndarray) -> np.ndarray:
 
     m = case == 3
     s = np.sqrt(np.maximum(tr[m] + 1.0, 1e-300)) * 2.0
-    q[m] = np.stack([0.25 * s, (R[m, 2, 1] - R[m, 1, 2]) / s, (R[m, 0, 2] - R[m, 2, 0]) / s,
-                     (R[m, 1, 0] - R[m, 0, 1]) / s], axis=1)  # fmt: skip
+    q[m] = np.stack(
+        [0.25 * s, (R[m, 2, 1] - R[m, 1, 2]) / s, (R[m, 0, 2] - R[m, 2, 0]) / s, (R[m, 1, 0] - R[m, 0, 1]) / s], axis=1
+    )
     m = case == 0
     s = np.sqrt(np.maximum(1.0 + R[m, 0, 0] - R[m, 1, 1] - R[m, 2, 2], 1e-300)) * 2.0
-    q[m] = np.stack([(R[m, 2, 1] - R[m, 1, 2]) / s, 0.25 * s, (R[m, 0, 1] + R[m, 1, 0]) / s,
-                     (R[m, 0, 2] + R[m, 2, 0]) / s], axis=1)  # fmt: skip
+    q[m] = np.stack(
+        [(R[m, 2, 1] - R[m, 1, 2]) / s, 0.25 * s, (R[m, 0, 1] + R[m, 1, 0]) / s, (R[m, 0, 2] + R[m, 2, 0]) / s], axis=1
+    )
     m = case == 1
     s = np.sqrt(np.maximum(1.0 + R[m, 1, 1] - R[m, 0, 0] - R[m, 2, 2], 1e-300)) * 2.0
-    q[m] = np.stack([(R[m, 0, 2] - R[m, 2, 0]) / s, (R[m, 0, 1] + R[m, 1, 0]) / s, 0.25 * s,
-                     (R[m, 1, 2] + R[m, 2, 1]) / s], axis=1)  # fmt: skip
+    q[m] = np.stack(
+        [(R[m, 0, 2] - R[m, 2, 0]) / s, (R[m, 0, 1] + R[m, 1, 0]) / s, 0.25 * s, (R[m, 1, 2] + R[m, 2, 1]) / s], axis=1
+    )
     m = case == 2
     s = np.sqrt(np.maximum(1.0 + R[m, 2, 2] - R[m, 0, 0] - R[m, 1, 1], 1e-300)) * 2.0
-    q[m] = np.stack([(R[m, 1, 0] - R[m, 0, 1]) / s, (R[m, 0, 2] + R[m, 2, 0]) / s,
-                     (R[m, 1, 2] + R[m, 2, 1]) / s, 0.25 * s], axis=1)  # fmt: skip
+    q[m] = np.stack(
+        [(R[m, 1, 0] - R[m, 0, 1]) / s, (R[m, 0, 2] + R[m, 2, 0]) / s, (R[m, 1, 2] + R[m, 2, 1]) / s, 0.25 * s], axis=1
+    )
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return q
 
@@ -255,13 +305,17 @@ def legend_html(
     grad = ", ".join(f"{_css(c)} {100 * t:.0f}%" for t, c in zip(ts, cols))
     extra = []
     if conflicts:
-        extra.append(f'<span style="color:{_css(CONFLICT_RGB)}">&#9632;</span> conflicting cells '
-                     "(a Gaussian in Recursive NDT, none in NDT-OM)")  # fmt: skip
+        extra.append(
+            f'<span style="color:{_css(CONFLICT_RGB)}">&#9632;</span> conflicting cells '
+            "(a Gaussian in Recursive NDT, none in NDT-OM)"
+        )
     if free and mode == "height":
         extra.append(f'<span style="color:{_css(FREE_RGB)}">&#9632;</span> free cells')
     if live:
-        extra += [f'<span style="color:{_css(SCAN_RGB)}">&#9632;</span> latest scan',
-                  f'<span style="color:{_css(TRAJECTORY_RGB)}">&#9632;</span> trajectory']  # fmt: skip
+        extra += [
+            f'<span style="color:{_css(SCAN_RGB)}">&#9632;</span> latest scan',
+            f'<span style="color:{_css(TRAJECTORY_RGB)}">&#9632;</span> trajectory',
+        ]
     if clip is not None:
         extra.append(f"Height clip: {clip[0]:.2f} to {clip[1]:.2f} m")
     return (

@@ -194,8 +194,7 @@ class LevelCache:
                 occ = k["p_occ"] > thr
                 free = k["p_occ"] < 0.5
                 out["n_occupied"], out["n_free"] = int(occ.sum()), int(free.sum())
-                for key, sel_mask, cap in (("occupied", occ, caps.occupied_cells),
-                                           ("free", free, caps.free_cells)):  # fmt: skip
+                for key, sel_mask, cap in (("occupied", occ, caps.occupied_cells), ("free", free, caps.free_cells)):
                     if want[key]:
                         rows = np.flatnonzero(sel_mask)
                         rows = rows[geo.cap_rows(len(rows), cap)]

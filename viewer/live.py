@@ -133,8 +133,13 @@ class LiveMapper(Observer):
             )
         if compare is True:
             with viewer.map_lock:
-                compare = NdtOmMap(m.resolution, occupancy=False, config=m.config, layout=m.layout,
-                                   metadata={"role": "Recursive NDT (comparison)"})  # fmt: skip
+                compare = NdtOmMap(
+                    m.resolution,
+                    occupancy=False,
+                    config=m.config,
+                    layout=m.layout,
+                    metadata={"role": "Recursive NDT (comparison)"},
+                )
         elif compare is False:
             compare = None
         self.viewer = viewer
@@ -153,9 +158,17 @@ class LiveMapper(Observer):
         self.paced_by_stamps = speed is not None
         self.max_gap_s = float(max_gap_s)
         self.on_scan = on_scan
-        self.summary = summary if summary is not None else MappingSummary(
-            source="scans", resolution=m.resolution, occupancy=m.occupancy_enabled, config=m.config.to_dict(),
-            scans_expected=total)  # fmt: skip
+        self.summary = (
+            summary
+            if summary is not None
+            else MappingSummary(
+                source="scans",
+                resolution=m.resolution,
+                occupancy=m.occupancy_enabled,
+                config=m.config.to_dict(),
+                scans_expected=total,
+            )
+        )
         self._progress = progress
         self._after_loop = after_loop
         self._clock = clock
@@ -263,12 +276,23 @@ class LiveMapper(Observer):
             c.step = gui.add_button("Step")
             c.scan = gui.add_markdown(self._counter_text())
             if self.paced_by_stamps:
-                c.rate = gui.add_slider("Speed (x recording)", min=0.0, max=10.0, step=0.25,
-                                        initial_value=min(self.speed or 0.0, 10.0),
-                                        hint="1: the recording's own rate; 0: as fast as mapping goes")  # fmt: skip
+                c.rate = gui.add_slider(
+                    "Speed (x recording)",
+                    min=0.0,
+                    max=10.0,
+                    step=0.25,
+                    initial_value=min(self.speed or 0.0, 10.0),
+                    hint="1: the recording's own rate; 0: as fast as mapping goes",
+                )
             else:
-                c.rate = gui.add_slider("Max scans per second", min=0.0, max=50.0, step=0.5,
-                                        initial_value=min(self.rate_hz, 50.0), hint="0: as fast as mapping goes")  # fmt: skip
+                c.rate = gui.add_slider(
+                    "Max scans per second",
+                    min=0.0,
+                    max=50.0,
+                    step=0.5,
+                    initial_value=min(self.rate_hz, 50.0),
+                    hint="0: as fast as mapping goes",
+                )
             c.live_status = gui.add_markdown("Paused: press Play or Step.")
             series = [{"label": "scan"}, {"label": "NDT-OM ms", "stroke": "#c81e1e", "width": 2}]
             if self.compare is not None:

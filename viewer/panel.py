@@ -33,17 +33,21 @@ def stats_markdown(snap: dict, drawn: dict, caps: Caps) -> str:
         ),
     ]
     if "known" in snap:
-        lines.append(f"**Cells**: {fmt(snap['known'])} known, {fmt(snap['n_occupied'])} occupied "
-                     f"(p > {snap['threshold']:.2f}), {fmt(snap['n_free'])} free")  # fmt: skip
-    lines.append(f"**Free cells** drawn at most {fmt(caps.free_cells)}, occupied cells at most "
-                 f"{fmt(caps.occupied_cells)}")  # fmt: skip
+        lines.append(
+            f"**Cells**: {fmt(snap['known'])} known, {fmt(snap['n_occupied'])} occupied "
+            f"(p > {snap['threshold']:.2f}), {fmt(snap['n_free'])} free"
+        )
+    lines.append(
+        f"**Free cells** drawn at most {fmt(caps.free_cells)}, occupied cells at most {fmt(caps.occupied_cells)}"
+    )
     cs = snap.get("compare_stats")
     if cs is not None:
         if cs.get("gaussians") is None:
             lines.append("**Recursive NDT**: loaded (turn on *Conflicting cells* to compare)")
         else:
-            lines.append(f"**Recursive NDT**: {fmt(cs['gaussians'])} Gaussians; "
-                         f"**{fmt(cs['conflicts'])} conflicting cells**")  # fmt: skip
+            lines.append(
+                f"**Recursive NDT**: {fmt(cs['gaussians'])} Gaussians; **{fmt(cs['conflicts'])} conflicting cells**"
+            )
     lines.append(f"**Memory**: {st['memory'] / 2**20:.1f} MiB")
     for note in drawn["notes"]:
         lines.append(f"**Note**: {note}")

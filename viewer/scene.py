@@ -179,8 +179,13 @@ class MapScene:
         drawn only around the view."""
         caps = self.caps
         res = snap.get("resolution") or 0.1
-        drawn: dict[str, Any] = {"factor": snap["factor"], "resolution": snap.get("resolution"),
-                                 "notes": list(snap["notes"]), "skipped": list(snap["skipped"]), "clip": clip}  # fmt: skip
+        drawn: dict[str, Any] = {
+            "factor": snap["factor"],
+            "resolution": snap.get("resolution"),
+            "notes": list(snap["notes"]),
+            "skipped": list(snap["skipped"]),
+            "clip": clip,
+        }
         zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
 
         def inside(z: np.ndarray) -> np.ndarray:
@@ -211,14 +216,18 @@ class MapScene:
                 f"(past {fmt(caps.chosen)} the page stops responding); move the view, then *Draw around the view*"
             )
         elif by_hand and g is not None and n_all > cap:
-            drawn["notes"].append(f"{fmt(n_all)} Gaussians drawn as {use} at {res:g} m: past {fmt(cap)} the page "
-                                  "may respond slowly (Resolution auto keeps it responsive)")  # fmt: skip
+            drawn["notes"].append(
+                f"{fmt(n_all)} Gaussians drawn as {use} at {res:g} m: past {fmt(cap)} the page "
+                "may respond slowly (Resolution auto keeps it responsive)"
+            )
         elif g is not None and n_all > cap:
             rows = geo.cap_rows(n_all, cap)
             g = {k: v[rows] for k, v in g.items()}
             hint = "; a coarser Resolution shows all of the map" if snap["selected"] < FACTORS[-1] else ""
-            drawn["notes"].append(f"{fmt(n_all)} Gaussians to draw as {use}: showing an even {fmt(len(rows))} "
-                                  f"of them (past {fmt(cap)} the page stops responding){hint}")  # fmt: skip
+            drawn["notes"].append(
+                f"{fmt(n_all)} Gaussians to draw as {use}: showing an even {fmt(len(rows))} "
+                f"of them (past {fmt(cap)} the page stops responding){hint}"
+            )
         drawn.update(selected=snap["selected"], gaussians_total=n_all, geometry=use, zrange=zrange, prange=prange)
 
         with self.server.atomic():
@@ -245,8 +254,9 @@ class MapScene:
         elif old is not None:
             old.remove()
 
-    def _draw_gaussians(self, g: dict | None, res: float, use: str, color_mode: str, zrange: tuple,
-                        prange: tuple, visible: bool) -> int:  # fmt: skip
+    def _draw_gaussians(
+        self, g: dict | None, res: float, use: str, color_mode: str, zrange: tuple, prange: tuple, visible: bool
+    ) -> int:
         if g is None or not len(g["n"]):
             self._set("gaussians", None)
             return 0
@@ -267,20 +277,40 @@ class MapScene:
             eps = max(SPLAT_MIN_SIGMA * res, SPLAT_VIEW_SIGMA * radius) ** 2
             cov = g["cov"] + eps * np.eye(3)[None]
             return scene.add_gaussian_splats(
-                name, centers=g["mean"].astype(np.float32), covariances=cov.astype(np.float32),
-                rgbs=colors.astype(np.float32) / 255.0, opacities=np.full((len(cov), 1), 0.9, np.float32),
+                name,
+                centers=g["mean"].astype(np.float32),
+                covariances=cov.astype(np.float32),
+                rgbs=colors.astype(np.float32) / 255.0,
+                opacities=np.full((len(cov), 1), 0.9, np.float32),
                 visible=visible,
-            )  # fmt: skip
+            )
         V, F = geo.icosphere(1)
         wxyz, scales = geo.ellipsoid_instances(g["cov"], min_sigma=0.02 * res)
         return scene.add_batched_meshes_simple(
-            name, V, F, batched_wxyzs=wxyz, batched_positions=g["mean"].astype(np.float32),
-            batched_scales=scales, batched_colors=colors, lod="off", cast_shadow=False, receive_shadow=False,
+            name,
+            V,
+            F,
+            batched_wxyzs=wxyz,
+            batched_positions=g["mean"].astype(np.float32),
+            batched_scales=scales,
+            batched_colors=colors,
+            lod="off",
+            cast_shadow=False,
+            receive_shadow=False,
             visible=visible,
-        )  # fmt: skip
+        )
 
-    def _draw_cells(self, snap: dict, drawn: dict, want: dict[str, bool], res: float, color_mode: str,
-                    zrange: tuple, prange: tuple, inside: Callable | None) -> None:  # fmt: skip
+    def _draw_cells(
+        self,
+        snap: dict,
+        drawn: dict,
+        want: dict[str, bool],
+        res: float,
+        color_mode: str,
+        zrange: tuple,
+        prange: tuple,
+        inside: Callable | None,
+    ) -> None:
         """Occupied cells (square points one cell wide) and free cells (translucent boxes)."""
         scene = self.server.scene
         for key in ("occupied", "free"):
@@ -302,30 +332,48 @@ class MapScene:
             if len(p) and key == "free":
                 self._set(key, lambda centers=centers, cols=cols: self._free_node(centers, cols, res, want["free"]))
             elif len(p):
-                self._set(key, lambda centers=centers, cols=cols, key=key: scene.add_point_cloud(
-                    f"/ndtom/{key}", centers.astype(np.float32), cols, point_size=0.9 * res,
-                    point_shape="square", precision="float32", visible=want[key]))  # fmt: skip
+                self._set(
+                    key,
+                    lambda centers=centers, cols=cols, key=key: scene.add_point_cloud(
+                        f"/ndtom/{key}",
+                        centers.astype(np.float32),
+                        cols,
+                        point_size=0.9 * res,
+                        point_shape="square",
+                        precision="float32",
+                        visible=want[key],
+                    ),
+                )
             else:
                 self._set(key, None)
             drawn[key] = len(p)
-        for key, total, cap in (("occupied", snap.get("n_occupied"), self.caps.occupied_cells),
-                                ("free", snap.get("n_free"), self.caps.free_cells)):  # fmt: skip
+        for key, total, cap in (
+            ("occupied", snap.get("n_occupied"), self.caps.occupied_cells),
+            ("free", snap.get("n_free"), self.caps.free_cells),
+        ):
             if total is not None and key not in snap["skipped"]:
                 drawn[f"{key}_total"] = total
                 if total > cap:
-                    drawn["notes"].append(f"{LAYERS[key]}: {fmt(drawn[key])} of {fmt(total)} drawn "
-                                          f"(cap {fmt(cap)})")  # fmt: skip
+                    drawn["notes"].append(f"{LAYERS[key]}: {fmt(drawn[key])} of {fmt(total)} drawn (cap {fmt(cap)})")
 
     def _free_node(self, centers: np.ndarray, colors: np.ndarray, res: float, visible: bool) -> Any:
         """Free cells as translucent boxes one cell wide: the scene stays visible through them."""
         V, F = geo.unit_box()
         n = len(centers)
         return self.server.scene.add_batched_meshes_simple(
-            "/ndtom/free", V, F, batched_wxyzs=np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
-            batched_positions=centers.astype(np.float32), batched_scales=np.full((n, 3), 0.9 * res, np.float32),
-            batched_colors=colors, opacity=FREE_OPACITY, lod="off", cast_shadow=False, receive_shadow=False,
+            "/ndtom/free",
+            V,
+            F,
+            batched_wxyzs=np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
+            batched_positions=centers.astype(np.float32),
+            batched_scales=np.full((n, 3), 0.9 * res, np.float32),
+            batched_colors=colors,
+            opacity=FREE_OPACITY,
+            lod="off",
+            cast_shadow=False,
+            receive_shadow=False,
             visible=visible,
-        )  # fmt: skip
+        )
 
     def _draw_conflicts(self, snap: dict, drawn: dict, res: float, inside: Callable | None, visible: bool) -> None:
         """The comparison map's Gaussians where NDT-OM has none."""
@@ -348,30 +396,60 @@ class MapScene:
             # at least half a cell in every axis: a few conflicting cells among thousands of
             # Gaussians stay findable (a flat 1-sigma shell vanishes edge-on)
             wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=CONFLICT_MIN_SIGMA * res)
-            self._set("conflicts", lambda: self.server.scene.add_batched_meshes_simple(
-                "/ndtom/conflicts", V, F, batched_wxyzs=wxyz, batched_positions=conf["mean"].astype(np.float32),
-                batched_scales=scales * np.float32(1.2), batched_colors=geo.CONFLICT_RGB,
-                lod="off", cast_shadow=False, receive_shadow=False, visible=visible))  # fmt: skip
+            self._set(
+                "conflicts",
+                lambda: self.server.scene.add_batched_meshes_simple(
+                    "/ndtom/conflicts",
+                    V,
+                    F,
+                    batched_wxyzs=wxyz,
+                    batched_positions=conf["mean"].astype(np.float32),
+                    batched_scales=scales * np.float32(1.2),
+                    batched_colors=geo.CONFLICT_RGB,
+                    lod="off",
+                    cast_shadow=False,
+                    receive_shadow=False,
+                    visible=visible,
+                ),
+            )
         else:
             self._set("conflicts", None)
         drawn["conflicts"] = n_c
 
-    def _draw_live(self, traj: np.ndarray, scan: np.ndarray, drawn: dict, want: dict[str, bool],
-                   point_size: float) -> None:  # fmt: skip
+    def _draw_live(
+        self, traj: np.ndarray, scan: np.ndarray, drawn: dict, want: dict[str, bool], point_size: float
+    ) -> None:
         """The trajectory (a polyline) and the latest scan (points)."""
         scene = self.server.scene
         if len(traj) >= 2:
             seg = np.stack([traj[:-1], traj[1:]], axis=1).astype(np.float32)
-            self._set("trajectory", lambda: scene.add_line_segments(
-                "/ndtom/trajectory", seg, geo.TRAJECTORY_RGB, thickness=3.0, thickness_units="screen",
-                visible=want["trajectory"]))  # fmt: skip
+            self._set(
+                "trajectory",
+                lambda: scene.add_line_segments(
+                    "/ndtom/trajectory",
+                    seg,
+                    geo.TRAJECTORY_RGB,
+                    thickness=3.0,
+                    thickness_units="screen",
+                    visible=want["trajectory"],
+                ),
+            )
         else:
             self._set("trajectory", None)
         drawn["trajectory"] = len(traj)
         if len(scan):
-            self._set("scan", lambda: scene.add_point_cloud(
-                "/ndtom/scan", scan, geo.SCAN_RGB, point_size=point_size,
-                point_shape="circle", precision="float32", visible=want["scan"]))  # fmt: skip
+            self._set(
+                "scan",
+                lambda: scene.add_point_cloud(
+                    "/ndtom/scan",
+                    scan,
+                    geo.SCAN_RGB,
+                    point_size=point_size,
+                    point_shape="circle",
+                    precision="float32",
+                    visible=want["scan"],
+                ),
+            )
         else:
             self._set("scan", None)
         drawn["scan"] = len(scan)

@@ -62,8 +62,9 @@ def start_server(host: str, port: int, *, label: str, guard: AccessGuard, enviro
     if not environment_map:
         # no image-based light: an even sky/ground light keeps the colours readable
         scene.configure_environment_map(hdri=None)
-        scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255),
-                                   ground_color=(160, 160, 160), intensity=1.2)  # fmt: skip
+        scene.add_light_hemisphere(
+            "/lights/hemisphere", sky_color=(255, 255, 255), ground_color=(160, 160, 160), intensity=1.2
+        )
     # no "share" button: it would send the map to a public relay
     server.gui.configure_theme(show_share_button=False)
     # the panel docked at the right edge: the scene is drawn beside it, never under it

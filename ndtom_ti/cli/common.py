@@ -218,11 +218,15 @@ def check_not_input(output: Path, inputs: dict[str, Path | None], option: str = 
             out_stat is not None and (out_stat.st_dev, out_stat.st_ino) == (src_stat.st_dev, src_stat.st_ino)
         )
         if same:
-            fail(f"the output {output} is the {what} {given}: writing it would destroy it",
-                 f"choose another path with {option}")  # fmt: skip
+            fail(
+                f"the output {output} is the {what} {given}: writing it would destroy it",
+                f"choose another path with {option}",
+            )
         if stat.S_ISDIR(src_stat.st_mode) and _lies_in(out.parent, src_stat):
-            fail(f"the output {output} lies inside the {what} {given}: writing it would change it",
-                 f"choose a path outside {given} with {option}")  # fmt: skip
+            fail(
+                f"the output {output} lies inside the {what} {given}: writing it would change it",
+                f"choose a path outside {given} with {option}",
+            )
 
 
 def fmt_mib(b: float) -> str:

@@ -35,8 +35,10 @@ _MAGIC = b"NDTOMTI\n"  # the first bytes of a map file
 def escape(text: str) -> str:
     """``text`` safe to print: rich markup escaped, and control characters (a terminal's
     escape sequences in a map's metadata or a bag's topic names) shown as \\xNN, not sent."""
-    shown = "".join(c if c.isprintable() or c == " " else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}"
-                    for c in str(text))  # fmt: skip
+    shown = "".join(
+        c if c.isprintable() or c == " " else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}"
+        for c in str(text)
+    )
     return _markup_escape(shown)
 
 
@@ -69,8 +71,11 @@ def _info_map(path: Path) -> None:
         gaussians = summary.get("gaussians") if isinstance(summary, dict) else None
         if isinstance(gaussians, int):
             t.add_row("Gaussians", f"{fmt_count(gaussians)} (cells of >= {min_points} points, occupied)")
-        t.add_row("Gaussian records", f"{fmt_count(arrays['g_index'][0])} (every cell with points: the Gaussians, and "
-                  f"those of fewer points or in free cells)")  # fmt: skip
+        t.add_row(
+            "Gaussian records",
+            f"{fmt_count(arrays['g_index'][0])} (every cell with points: the Gaussians, and "
+            f"those of fewer points or in free cells)",
+        )
     if "occ_index" in arrays:
         t.add_row("known cells", fmt_count(arrays["occ_index"][0]))
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
@@ -202,9 +207,11 @@ def info(
     """Show what is in a recording: topics, types, counts, duration, the TF tree, which
     topics can be mapped and which pose sources exist. Given a map file, show its header."""
     # (this command's own hint must not suggest this command again)
-    with user_errors(recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml) "
-                     "or an .ndtom map file", map_file="give a map file written by `ndtom map` or `ndtom demo` "
-                     "(`ndtom info` also takes recordings)"):  # fmt: skip
+    with user_errors(
+        recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml) "
+        "or an .ndtom map file",
+        map_file="give a map file written by `ndtom map` or `ndtom demo` (`ndtom info` also takes recordings)",
+    ):
         is_map = path.suffix.lower() == ".ndtom"  # named a map file: its faults are a map file's, not a bag's
         if path.is_file() and not is_map:
             with path.open("rb") as fh:

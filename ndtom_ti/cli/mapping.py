@@ -196,8 +196,11 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
         f"{fmt_mib(summary.pool_budget_bytes)}",
     )
     if summary.scan_seconds:
-        t.add_row("time per scan", f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms"
-                  f" (first scan {summary.ms_first_scan:.0f} ms, kernels compiled)")  # fmt: skip
+        t.add_row(
+            "time per scan",
+            f"median {summary.ms_per_scan_median:.1f} ms, p95 {summary.ms_per_scan_p95:.1f} ms"
+            f" (first scan {summary.ms_first_scan:.0f} ms, kernels compiled)",
+        )
     later = " after the first scan" if summary.scans_used > 1 else ""
     t.add_row("total", f"{summary.wall_seconds:.2f} s ({summary.points_per_second / 1e6:.2f} M points/s{later})")
     if output is not None:
@@ -402,14 +405,24 @@ def map_(
                     f"{physical_memory() / 2**30:.1f} GiB of memory"
                 )
         cfg = pipeline.load_config_file(config) if config is not None else None
-        mapcfg = pipeline.config_with_ranges(cfg, min_range=min_range, max_range=max_range,
-                                    miss_model=miss_model.value if miss_model else None)  # fmt: skip
+        mapcfg = pipeline.config_with_ranges(
+            cfg, min_range=min_range, max_range=max_range, miss_model=miss_model.value if miss_model else None
+        )
         out_path = output if output is not None else default_output(bag)
         check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
         out_path = check_writable(out_path, "map file")
-        selection = ScanSelection(cloud_topic=cloud_topic, fixed_frame=fixed_frame, pose_topic=pose_topic,
-                                  poses_file=poses, sensor_frame_only=sensor_frame, every=every,
-                                  every_distance=every_distance, t_start=start, t_end=end, max_scans=max_scans)  # fmt: skip
+        selection = ScanSelection(
+            cloud_topic=cloud_topic,
+            fixed_frame=fixed_frame,
+            pose_topic=pose_topic,
+            poses_file=poses,
+            sensor_frame_only=sensor_frame,
+            every=every,
+            every_distance=every_distance,
+            t_start=start,
+            t_end=end,
+            max_scans=max_scans,
+        )
         if view:
             need_extra("viser", "the live viewer (--view)")
             from ..viewer.cli import live_recording_command, parse_rate
@@ -419,11 +432,19 @@ def map_(
             bar = _Bar(arch, progress, memory_limit)
             try:
                 code = live_recording_command(
-                    bag, resolution, selection=selection, occupancy=occupancy, config=mapcfg, host=host, port=port,
-                    speed=speed, wait_for_browser=not no_wait,
+                    bag,
+                    resolution,
+                    selection=selection,
+                    occupancy=occupancy,
+                    config=mapcfg,
+                    host=host,
+                    port=port,
+                    speed=speed,
+                    wait_for_browser=not no_wait,
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
-                    progress=bar, finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
-                )  # fmt: skip
+                    progress=bar,
+                    finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
+                )
             finally:
                 bar.stop()
             raise typer.Exit(code)
@@ -433,10 +454,14 @@ def map_(
         with stop_signals(restore=not own_process()) as sig:
             try:
                 m, summary = pipeline.map_recording(
-                    bag, resolution, selection, occupancy=occupancy, config=mapcfg,
+                    bag,
+                    resolution,
+                    selection,
+                    occupancy=occupancy,
+                    config=mapcfg,
                     metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
                     progress=bar,
-                )  # fmt: skip
+                )
             except BaseException:
                 bar.stop()
                 raise
@@ -511,11 +536,20 @@ def demo(
             bar = _Bar(arch, progress)
             try:
                 code = live_demo_command(
-                    "127.0.0.1", port, resolution=resolution, n_scans=scans, scans=data, speed=speed,
-                    wait_for_browser=not no_wait, progress=bar,
-                    metadata={"command": "ndtom demo --view", "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"}},
+                    "127.0.0.1",
+                    port,
+                    resolution=resolution,
+                    n_scans=scans,
+                    scans=data,
+                    speed=speed,
+                    wait_for_browser=not no_wait,
+                    progress=bar,
+                    metadata={
+                        "command": "ndtom demo --view",
+                        "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"},
+                    },
                     finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
-                )  # fmt: skip
+                )
             finally:
                 bar.stop()
             raise typer.Exit(code)

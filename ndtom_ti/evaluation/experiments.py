@@ -192,42 +192,50 @@ class _Run:
             "er": self.er.gaussians(),
         }
         scores = {m: mean_l2_score(g[m], batch) for m in MAPPERS}
-        self.fig1.append({
-            "scan": i,
-            "points": len(w),
-            "points_total": int(sum(len(x) for x in self.worlds)),
-            "batch_gaussians": len(batch["index"]),
-            **{f"{m}_gaussians": len(g[m]["index"]) for m in MAPPERS},
-            **{f"score_{m}": scores[m] for m in MAPPERS},
-            **{f"ms_{m}": self.times[m][-1] * 1e3 for m in MAPPERS},
-        })  # fmt: skip
+        self.fig1.append(
+            {
+                "scan": i,
+                "points": len(w),
+                "points_total": int(sum(len(x) for x in self.worlds)),
+                "batch_gaussians": len(batch["index"]),
+                **{f"{m}_gaussians": len(g[m]["index"]) for m in MAPPERS},
+                **{f"score_{m}": scores[m] for m in MAPPERS},
+                **{f"ms_{m}": self.times[m][-1] * 1e3 for m in MAPPERS},
+            }
+        )
 
         lo = self.ndt.known_cells()["logodds"]
         occ, emp = lo[lo > 0], lo[lo < 0]
-        self.fig3.append({
-            "scan": i,
-            "mean_logodds_occupied": float(occ.mean()) if len(occ) else math.nan,
-            "mean_logodds_empty": float(emp.mean()) if len(emp) else math.nan,
-            "occupied_cells": len(occ),
-            "empty_cells": len(emp),
-        })  # fmt: skip
+        self.fig3.append(
+            {
+                "scan": i,
+                "mean_logodds_occupied": float(occ.mean()) if len(occ) else math.nan,
+                "mean_logodds_empty": float(emp.mean()) if len(emp) else math.nan,
+                "occupied_cells": len(occ),
+                "empty_cells": len(emp),
+            }
+        )
 
         n_c = int((~isin_rows(g["rcu"]["index"], g["ndtom"]["index"])).sum())
         n_nd, n_rc = len(g["ndtom"]["index"]), len(g["rcu"]["index"])
         n_c2 = int((~isin_rows(g["rcu"]["index"], g["ndtom_ndt"]["index"])).sum())
         n_nd2 = len(g["ndtom_ndt"]["index"])
-        self.fig4b.append({
-            "scan": i,
-            "conflicting": n_c,
-            "ndtom_gaussians": n_nd,
-            "rcu_gaussians": n_rc,
-            "fraction": n_c / n_nd if n_nd else math.nan,
-            "fraction_of_rcu": n_c / n_rc if n_rc else math.nan,
-            "conflicting_ndt": n_c2,
-            "fraction_ndt": n_c2 / n_nd2 if n_nd2 else math.nan,
-        })  # fmt: skip
-        return (f"{len(w)} points; vs batch rcu {scores['rcu']:.4f} ndtom {scores['ndtom']:.4f} "
-                f"er {scores['er']:.4f}; conflicting {n_c} ({self.fig4b[-1]['fraction']:.1%})")  # fmt: skip
+        self.fig4b.append(
+            {
+                "scan": i,
+                "conflicting": n_c,
+                "ndtom_gaussians": n_nd,
+                "rcu_gaussians": n_rc,
+                "fraction": n_c / n_nd if n_nd else math.nan,
+                "fraction_of_rcu": n_c / n_rc if n_rc else math.nan,
+                "conflicting_ndt": n_c2,
+                "fraction_ndt": n_c2 / n_nd2 if n_nd2 else math.nan,
+            }
+        )
+        return (
+            f"{len(w)} points; vs batch rcu {scores['rcu']:.4f} ndtom {scores['ndtom']:.4f} "
+            f"er {scores['er']:.4f}; conflicting {n_c} ({self.fig4b[-1]['fraction']:.1%})"
+        )
 
 
 # ============================================================================ after the last scan
@@ -287,15 +295,16 @@ def _final_conflicts(run: _Run, dynamic: bool) -> tuple[dict, list[dict], list[s
         "count_empty": int((conflict_lo < 0).sum()),  # NDT-OM log-odds < 0 there (seen free)
         "horizontal": int(horizontal.sum()),
         "other": int((~horizontal).sum()),
-        "other_fraction": (json_float((~horizontal).sum() / last["ndtom_gaussians"]) if last["ndtom_gaussians"]
-                           else None),
+        "other_fraction": (
+            json_float((~horizontal).sum() / last["ndtom_gaussians"]) if last["ndtom_gaussians"] else None
+        ),
         "ndtom_gaussians": last["ndtom_gaussians"],
         "rcu_gaussians": last["rcu_gaussians"],
         "count_ndt_miss_model": last["conflicting_ndt"],
         "fraction_ndt_miss_model": json_float(last["fraction_ndt"]),
         "definition": CONFLICT_DEFINITION,
         "horizontal_definition": HORIZONTAL_DEFINITION,
-    }  # fmt: skip
+    }
     conflict_dyn = None
     if dynamic:
         dc = np.unique(np.concatenate(run.dyn_cells), axis=0) if run.dyn_cells else np.zeros((0, 3), np.int64)
@@ -304,18 +313,26 @@ def _final_conflicts(run: _Run, dynamic: bool) -> tuple[dict, list[dict], list[s
         conflicting["dynamic_point_cells"] = len(dc)
     rows = [
         {
-            "i": int(k[0]), "j": int(k[1]), "k": int(k[2]),
-            "x": float(c[0]), "y": float(c[1]), "z": float(c[2]),
+            "i": int(k[0]),
+            "j": int(k[1]),
+            "k": int(k[2]),
+            "x": float(c[0]),
+            "y": float(c[1]),
+            "z": float(c[2]),
             "rcu_n": int(n),
             "ndtom_logodds": float(lo),
             "horizontal": int(h),
             **({"dynamic_points": int(dy)} if conflict_dyn is not None else {}),
         }
         for k, c, n, lo, h, dy in zip(
-            conflict_idx, rcu["mean"][final_conflict], rcu["n"][final_conflict], conflict_lo, horizontal,
+            conflict_idx,
+            rcu["mean"][final_conflict],
+            rcu["n"][final_conflict],
+            conflict_lo,
+            horizontal,
             conflict_dyn if conflict_dyn is not None else np.zeros(len(conflict_idx)),
         )
-    ]  # fmt: skip
+    ]
     columns = CONFLICT_COLUMNS + (["dynamic_points"] if conflict_dyn is not None else [])
     return conflicting, rows, columns, conflict_idx
 
@@ -374,7 +391,9 @@ def _summary(
         "ndtom_vs_batch": ndtom_vs_batch,
         "fig2_mean_score": {m: json_float(np.nanmean([r[f"score_{m}"] for r in fig2])) for m in MAPPERS},
         "fig2_mean_coverage": {m: json_float(np.mean([r[f"coverage_{m}"] for r in fig2])) for m in MAPPERS},
-        "fig3_final": {k: (json_float(v) if isinstance(v, float) else v) for k, v in run.fig3[-1].items() if k != "scan"},
+        "fig3_final": {
+            k: (json_float(v) if isinstance(v, float) else v) for k, v in run.fig3[-1].items() if k != "scan"
+        },
         "conflicting_cells": conflicting,
         "fig4d": fig4d,
         "time_per_scan_ms": {m: json_float(np.median(run.times[m]) * 1e3) for m in MAPPERS},
@@ -390,7 +409,7 @@ def _summary(
         },
         "paper": PAPER,
         "fig5": None,
-    }  # fmt: skip
+    }
 
 
 def _fig5(
@@ -406,13 +425,26 @@ def _fig5(
     rows = sw.run_sweep(data.scans, list(resolutions), baseline=baseline, progress=say)
     files = [sw.write_csv(rows, out / "fig5_sweep.csv", sw.machine_tags(runtime.current_arch() or "cpu"))]
     if plots:
-        files.append(sw.plot(rows, out / "fig5_time_per_scan.png",
-                             f"Fig. 5: {len(data.scans)} scans, {points_per_scan:.0f} points/scan"))  # fmt: skip
+        files.append(
+            sw.plot(
+                rows,
+                out / "fig5_time_per_scan.png",
+                f"Fig. 5: {len(data.scans)} scans, {points_per_scan:.0f} points/scan",
+            )
+        )
     fig5 = {
         "baseline": baseline,
-        "rows": [{"mapper": r.mapper, "resolution": r.resolution, "ms_median": json_float(r.ms_median),
-                  "ms_p95": json_float(r.ms_p95), "ratio_to_ndtom": json_float(r.ratio_to_ndtom)} for r in rows],
-    }  # fmt: skip
+        "rows": [
+            {
+                "mapper": r.mapper,
+                "resolution": r.resolution,
+                "ms_median": json_float(r.ms_median),
+                "ms_p95": json_float(r.ms_p95),
+                "ratio_to_ndtom": json_float(r.ratio_to_ndtom),
+            }
+            for r in rows
+        ],
+    }
     return fig5, files
 
 
@@ -509,8 +541,9 @@ def run_experiments(
         fig4d, coarse_gauss = _coarsened(run, int(coarsen))
     finally:
         run.close()  # before the sweep: it makes its own maps
-    summary = _summary(data, run, ndtom_vs_batch=ndtom_vs_batch, fig2=fig2, conflicting=conflicting, fig4d=fig4d,
-                       er_eps_min=er_eps_min)  # fmt: skip
+    summary = _summary(
+        data, run, ndtom_vs_batch=ndtom_vs_batch, fig2=fig2, conflicting=conflicting, fig4d=fig4d, er_eps_min=er_eps_min
+    )
 
     files = [
         write_csv(out / "fig1_vs_batch.csv", run.fig1),
@@ -523,8 +556,19 @@ def run_experiments(
         from .plots import plot_figures
 
         say("plots")
-        files += plot_figures(out, run.fig1, fig2, run.fig3, run.fig4b, run.gauss, conflict_idx, coarse_gauss,
-                              resolution, fig4d, data.description)  # fmt: skip
+        files += plot_figures(
+            out,
+            run.fig1,
+            fig2,
+            run.fig3,
+            run.fig4b,
+            run.gauss,
+            conflict_idx,
+            coarse_gauss,
+            resolution,
+            fig4d,
+            data.description,
+        )
     if sweep:
         summary["fig5"], more = _fig5(data, sweep, out, plots, summary["points_per_scan"], say)
         files += more

@@ -60,8 +60,19 @@ def make_simworld(
     variant; ``tools_dir``: the script or its folder) and return the written ``hall.npz``."""
     script = find_simworld(tools_dir)
     out = Path(out_dir)
-    args = [sys.executable, str(script), "--scans", str(int(n_scans)), "--stride", str(int(stride)),
-            "--seed", str(int(seed)), "--no-bags", "--out", str(out)]  # fmt: skip
+    args = [
+        sys.executable,
+        str(script),
+        "--scans",
+        str(int(n_scans)),
+        "--stride",
+        str(int(stride)),
+        "--seed",
+        str(int(seed)),
+        "--no-bags",
+        "--out",
+        str(out),
+    ]
     if static:
         args.append("--static")
     res = subprocess.run(args, capture_output=True, text=True, check=False)
@@ -82,8 +93,7 @@ def _read_npz(path: Path, every: int, max_scans: int | None) -> ScanSet:
             continue
         a, b = off[i], off[i + 1]
         keep = ~nr[a:b]
-        scans.append(Scan(np.ascontiguousarray(pts[a:b][keep], np.float32), np.asarray(poses[i], np.float64),
-                          index=i))  # fmt: skip
+        scans.append(Scan(np.ascontiguousarray(pts[a:b][keep], np.float32), np.asarray(poses[i], np.float64), index=i))
         dyn.append(hit[a:b][keep] >= n_static)
         if max_scans is not None and len(scans) >= max_scans:
             break
@@ -130,8 +140,14 @@ def load_scans(
         if variant not in ("dynamic", "static"):
             raise ValueError(f"unknown synthetic source {s!r}; use 'sim:dynamic' or 'sim:static'")
         with tempfile.TemporaryDirectory(prefix="ndtom_sim_") as tmp:
-            npz = make_simworld(tmp, n_scans=sim_scans, stride=sim_stride, static=variant == "static", seed=sim_seed,
-                                tools_dir=tools_dir)  # fmt: skip
+            npz = make_simworld(
+                tmp,
+                n_scans=sim_scans,
+                stride=sim_stride,
+                static=variant == "static",
+                seed=sim_seed,
+                tools_dir=tools_dir,
+            )
             out = _read_npz(npz, every, max_scans)
         out.description = f"simworld hall ({variant}), {sim_scans} scans, stride {sim_stride}, seed {sim_seed}"
         return out

@@ -42,11 +42,17 @@ class ScanSelection:
         absolute path)."""
         poses = self.poses_file
         return {
-            "cloud_topic": self.cloud_topic, "fixed_frame": self.fixed_frame, "pose_topic": self.pose_topic,
+            "cloud_topic": self.cloud_topic,
+            "fixed_frame": self.fixed_frame,
+            "pose_topic": self.pose_topic,
             "poses_file": str(Path(poses).resolve()) if poses is not None else None,  # type: ignore[arg-type]
-            "sensor_frame_only": self.sensor_frame_only, "every": self.every, "every_distance": self.every_distance,
-            "start": self.t_start, "end": self.t_end, "max_scans": self.max_scans,
-        }  # fmt: skip
+            "sensor_frame_only": self.sensor_frame_only,
+            "every": self.every,
+            "every_distance": self.every_distance,
+            "start": self.t_start,
+            "end": self.t_end,
+            "max_scans": self.max_scans,
+        }
 
     def expected_scans(self, rec: Any, topic: str) -> int | None:
         """About how many scans of ``topic`` in recording ``rec`` this selection keeps (for a
