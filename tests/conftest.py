@@ -1,5 +1,6 @@
 """Shared fixtures: one Taichi init per session (arch from NDTOM_ARCH, default cpu)."""
 
+import functools
 import os
 import subprocess
 import sys
@@ -53,6 +54,7 @@ def close_maps(monkeypatch):
     made = weakref.WeakSet()
     init = NdtOmMap.__init__
 
+    @functools.wraps(init)  # its signature and docstring stay inspectable
     def tracked(self, *args, **kwargs):
         init(self, *args, **kwargs)
         made.add(self)
