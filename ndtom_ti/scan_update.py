@@ -119,128 +119,32 @@ class PreparedRays:
     hit_nodes: tuple[np.ndarray, np.ndarray] | None  # (nodes the hits add, hit cells) when batched
 
 
-class ScanUpdate:
-    """Runs the updates of one map (in its :class:`~ndtom_ti.slot.MapSlot` ``slot``)."""
+class RayTracer:
+    """The rays of one map's scans (owned by :class:`ScanUpdate`): the dense ray-count block
+    near the sensor (its box, its buffers, the empty blocks), the list of tree cells rays
+    touch, and the ray kernels' driver, in one pass or in batches under memory pressure."""
 
-    def __init__(self, *, slot: MapSlot, plan: UpdatePlan, config, resolution: float, occupancy: bool, arch: str):
+    def __init__(self, *, slot: MapSlot, plan: UpdatePlan, ctr: np.ndarray, resolution: float, ndt: bool, arch: str):
         self.st, self.slot, self.k = slot.storage, slot.index, slot.kernels
         self.records, self.budget, self.plan = slot.records, slot.budget, plan
-        self.config, self.resolution, self.occupancy, self.arch = config, resolution, occupancy, arch
-        self.ndt = bool(config.ndt_misses)
+        self.resolution, self.ndt, self.arch = resolution, ndt, arch
         self.layout = slot.layout
-        self.glo = np.array(self.layout.lo, np.int64)
-        self.ghi = np.array(self.layout.hi, np.int64)
-        self.ctr = np.zeros(CTR_SIZE, np.int64)
-        self.chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
+        self.ctr = ctr  # the update's counters
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
-        self.model = Model(
-            l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min), l_max=float(config.logodds_max)
-        )
         self._touched_rows = 0
-        self._sync_touched()
-        self._tree_ready = False  # compile_tree_path done
-        self._empty = {
+        self.sync_touched()
+        self.empty = {
             bt: Block.of(np.zeros((0, 0, 0), dt), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32))
             for bt, dt in (("u16", np.uint16), ("i32", np.int32))
         }
 
-    def _sync_touched(self) -> None:
+    def sync_touched(self) -> None:
+        """(Re)allocate the touched list to ``plan.touched_rows`` rows when that changed."""
         if self.plan.touched_rows != self._touched_rows:
             self.touched = np.empty((self.plan.touched_rows, 3), np.int32)
             self.touched_group = Touched(touched=self.touched, cap=len(self.touched))
             self._touched_rows = self.plan.touched_rows
-
-    def _ndt_kw(self) -> dict:
-        return {"ndt": self.records.ndt_group} if self.ndt else {}
-
-    # ------------------------------------------------------------------ preparation
-
-    def prepare(self, points: Any, T_world_sensor: Any) -> PreparedRays:
-        """Validate a scan and turn it into world endpoints and their cells (hits first,
-        then free rays), reserving the pool memory the update may need."""
-        pts = as_points(points)
-        T = as_pose(T_world_sensor)
-        cfg = self.config
-        res = self.resolution
-        rep = ScanReport(points_in=len(pts))
-
-        origin = np.ascontiguousarray(T[:3, 3])
-        ocell = np.floor(origin / res).astype(np.int64)
-        if ((ocell < self.glo) | (ocell >= self.ghi)).any():
-            lo, hi = self.glo * res, self.ghi * res
-            raise ValueError(
-                f"sensor origin {origin.tolist()} is outside the map grid "
-                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
-            )
-
-        n = len(pts)
-        world = np.empty((n, 3), np.float64)
-        cells = np.empty((n, 3), np.int32)
-        status = np.empty(n, np.int8)
-        free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
-        r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
-        if n:
-            self.k.prepare()(
-                pts=pts,
-                n=n,
-                rot=np.ascontiguousarray(T[:3, :3]).reshape(-1),
-                trans=origin,
-                res=res,
-                r2=r2,
-                out_world=world,
-                out_cells=cells,
-                status=status,
-            )
-        cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
-        n_hit, n_free = int(cnt[0]), int(cnt[1])
-        if n_hit + n_free < n:
-            hit = status == 0
-            if n_free:
-                free = status == 1
-                world = np.concatenate([world[hit], world[free]])
-                cells = np.concatenate([cells[hit], cells[free]])
-            else:
-                world, cells = world[hit], cells[hit]
-        elif n_free:  # nothing dropped, but hits must come first
-            order = np.argsort(status, kind="stable")
-            world, cells = world[order], cells[order]
-        rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
-        rep.points_used = n_hit
-        rep.free_rays = n_free
-        box = cell_box(cells) if len(cells) else None
-
-        # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
-        # fit and the rays are traced in batches, each checked against exact counts.
-        budget = self.budget
-        bound = budget.scan_bound(cells, n_hit, ocell, box=box)
-        one_pass = self.plan.one_pass and budget.fits(bound)
-        hit_nodes = None
-        if not one_pass:
-            # The index tree takes only hit cells: count its new nodes exactly and retry.
-            new = budget.new_hit_nodes(cells[:n_hit])
-            bound[2:] = new[2:]
-            one_pass = self.plan.one_pass and budget.fits(bound)
-            if not one_pass:
-                budget.reserve(new)
-                # What the hits write after the batched rays: each batch must leave room for it.
-                hit_nodes = (new, cells[:n_hit])
-        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
-
-    # ------------------------------------------------------------------ rays
-
-    def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
-        """The benchmark floor (NdtOmMap.traverse_only)."""
-        t0 = time.perf_counter()
-        self._sync_touched()
-        p = self.prepare(points, T_world_sensor)
-        self.ctr[:] = 0
-        if len(p.world):
-            self.trace("floor", p)
-        rep = p.report
-        rep.ray_cell_visits = total(self.ctr, C_VISITS)
-        rep.seconds = time.perf_counter() - t0
-        return rep
 
     def trace(self, mode: str, p: PreparedRays):
         """Run the ray kernel of ``mode`` ("full" or "floor") over all rays, in batches
@@ -251,7 +155,7 @@ class ScanUpdate:
         # 16-bit counts on the CPU only: NVIDIA GPUs have no 16-bit atomics.
         bt = "u16" if self.arch == "cpu" and len(p.world) <= self.plan.u16_rays else "i32"
         ndt = mode == "full" and self.ndt
-        blk = self.block_for(self._block_box(p) if dense else None, p.ocell, bt)
+        blk = self.block_for(self.block_box(p) if dense else None, p.ocell, bt)
         common = {
             "slot": slot,
             "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution),
@@ -351,7 +255,7 @@ class ScanUpdate:
                 budget.refuse(need)  # nothing of this scan is kept
         return None
 
-    def _block_box(self, p: PreparedRays):
+    def block_box(self, p: PreparedRays):
         """The cell box the dense block should cover: the scan's, or, when that is larger
         than the block can be, the box of all but its farthest 0.1% of points on each axis.
         A few stray far points (a real recording: 0.1% of them 25-160 m away) otherwise
@@ -374,7 +278,7 @@ class ScanUpdate:
         leaf = self.layout.leaf
         limit = self.plan.block_cells
         if box is None or limit < leaf**3:
-            return self._empty[bt]
+            return self.empty[bt]
         dtype = np.uint16 if bt == "u16" else np.int32
         oleaf = ocell // leaf
         lo = np.minimum(box[0] // leaf, oleaf)  # in leaves
@@ -397,6 +301,118 @@ class ScanUpdate:
         block = st.block_buf.view(dtype)[:n].reshape(shape)
         bflag = st.bflag_buf[: n // leaf].reshape(shape[0], shape[1], shape[2] // leaf)
         return Block.of(block, bflag, (lo * leaf).astype(np.int32))
+
+
+class ScanUpdate:
+    """Runs the updates of one map (in its :class:`~ndtom_ti.slot.MapSlot` ``slot``)."""
+
+    def __init__(self, *, slot: MapSlot, plan: UpdatePlan, config, resolution: float, occupancy: bool, arch: str):
+        self.st, self.slot, self.k = slot.storage, slot.index, slot.kernels
+        self.records, self.budget, self.plan = slot.records, slot.budget, plan
+        self.config, self.resolution, self.occupancy, self.arch = config, resolution, occupancy, arch
+        self.ndt = bool(config.ndt_misses)
+        self.layout = slot.layout
+        self.glo = np.array(self.layout.lo, np.int64)
+        self.ghi = np.array(self.layout.hi, np.int64)
+        self.ctr = np.zeros(CTR_SIZE, np.int64)
+        self.chunks = np.empty(HIT_CHUNKS + 1, np.int32)  # hits_dense's scratch
+        self.model = Model(
+            l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min), l_max=float(config.logodds_max)
+        )
+        # The rays: the dense block, the touched list, one pass or batches.
+        self.tracer = RayTracer(slot=slot, plan=plan, ctr=self.ctr, resolution=resolution, ndt=self.ndt, arch=arch)
+        self._tree_ready = False  # compile_tree_path done
+
+    def _ndt_kw(self) -> dict:
+        return {"ndt": self.records.ndt_group} if self.ndt else {}
+
+    # ------------------------------------------------------------------ preparation
+
+    def prepare(self, points: Any, T_world_sensor: Any) -> PreparedRays:
+        """Validate a scan and turn it into world endpoints and their cells (hits first,
+        then free rays), reserving the pool memory the update may need."""
+        pts = as_points(points)
+        T = as_pose(T_world_sensor)
+        cfg = self.config
+        res = self.resolution
+        rep = ScanReport(points_in=len(pts))
+
+        origin = np.ascontiguousarray(T[:3, 3])
+        ocell = np.floor(origin / res).astype(np.int64)
+        if ((ocell < self.glo) | (ocell >= self.ghi)).any():
+            lo, hi = self.glo * res, self.ghi * res
+            raise ValueError(
+                f"sensor origin {origin.tolist()} is outside the map grid "
+                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
+            )
+
+        n = len(pts)
+        world = np.empty((n, 3), np.float64)
+        cells = np.empty((n, 3), np.int32)
+        status = np.empty(n, np.int8)
+        free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
+        r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
+        if n:
+            self.k.prepare()(
+                pts=pts,
+                n=n,
+                rot=np.ascontiguousarray(T[:3, :3]).reshape(-1),
+                trans=origin,
+                res=res,
+                r2=r2,
+                out_world=world,
+                out_cells=cells,
+                status=status,
+            )
+        cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
+        n_hit, n_free = int(cnt[0]), int(cnt[1])
+        if n_hit + n_free < n:
+            hit = status == 0
+            if n_free:
+                free = status == 1
+                world = np.concatenate([world[hit], world[free]])
+                cells = np.concatenate([cells[hit], cells[free]])
+            else:
+                world, cells = world[hit], cells[hit]
+        elif n_free:  # nothing dropped, but hits must come first
+            order = np.argsort(status, kind="stable")
+            world, cells = world[order], cells[order]
+        rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
+        rep.points_used = n_hit
+        rep.free_rays = n_free
+        box = cell_box(cells) if len(cells) else None
+
+        # Memory: the whole scan in one pass when its bound fits; otherwise the hits must
+        # fit and the rays are traced in batches, each checked against exact counts.
+        budget = self.budget
+        bound = budget.scan_bound(cells, n_hit, ocell, box=box)
+        one_pass = self.plan.one_pass and budget.fits(bound)
+        hit_nodes = None
+        if not one_pass:
+            # The index tree takes only hit cells: count its new nodes exactly and retry.
+            new = budget.new_hit_nodes(cells[:n_hit])
+            bound[2:] = new[2:]
+            one_pass = self.plan.one_pass and budget.fits(bound)
+            if not one_pass:
+                budget.reserve(new)
+                # What the hits write after the batched rays: each batch must leave room for it.
+                hit_nodes = (new, cells[:n_hit])
+        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
+
+    # ------------------------------------------------------------------ rays
+
+    def traverse_only(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """The benchmark floor (NdtOmMap.traverse_only)."""
+        t0 = time.perf_counter()
+        self.tracer.sync_touched()
+        p = self.prepare(points, T_world_sensor)
+        self.ctr[:] = 0
+        if len(p.world):
+            self.tracer.trace("floor", p)
+        rep = p.report
+        rep.ray_cell_visits = total(self.ctr, C_VISITS)
+        rep.seconds = time.perf_counter() - t0
+        return rep
 
     # ------------------------------------------------------------------ the update
 
@@ -429,13 +445,13 @@ class ScanUpdate:
         pts, cells = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int32)
         none = Rays(pts=pts, cells=cells, n_hit=0, n=0)
         sensor = Sensor(origin=np.zeros(3), ocell=np.zeros(3, np.int32), res=self.resolution)
-        blk, nodes, ndt = self._empty[bt], self.budget.nodes, self._ndt_kw()
+        blk, nodes, ndt = self.tracer.empty[bt], self.budget.nodes, self._ndt_kw()
         keep = ctr.copy()  # the queues' counters move
         k.rays(RaysConfig(bt=bt, mode="full", ndt=self.ndt))(
             slot=slot,
             rays=none,
             sensor=sensor,
-            touched=self.touched_group,
+            touched=self.tracer.touched_group,
             ctr=ctr,
             nodes=nodes,
             block=blk,
@@ -462,7 +478,7 @@ class ScanUpdate:
             **ndt,
         )
         k.apply_free(self.ndt)(
-            slot=slot, touched=self.touched_group, nt=0, model=self.model, records=recs.group, ctr=ctr, **ndt
+            slot=slot, touched=self.tracer.touched_group, nt=0, model=self.model, records=recs.group, ctr=ctr, **ndt
         )
         ctr[:] = keep
 
@@ -484,7 +500,7 @@ class ScanUpdate:
 
     def insert(self, points: Any, T_world_sensor: Any) -> ScanReport:
         t0 = time.perf_counter()
-        self._sync_touched()
+        self.tracer.sync_touched()
         p = self.prepare(points, T_world_sensor)
         rep, world, cells, n_hit = p.report, p.world, p.cells, p.n_hit
         n = len(world)
@@ -494,8 +510,8 @@ class ScanUpdate:
         ctr[C_FREE] = recs.nfree
         dense = None
         if self.occupancy and n:
-            dense = self.trace("full", p)  # may refuse
-        blk, flagged, whole = dense if dense is not None else (self._empty["i32"], True, False)
+            dense = self.tracer.trace("full", p)  # may refuse
+        blk, flagged, whole = dense if dense is not None else (self.tracer.empty["i32"], True, False)
         bt = "u16" if blk.block.dtype == np.uint16 else "i32"
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
@@ -586,10 +602,10 @@ class ScanUpdate:
             )
         if self.occupancy and n:
             nt = int(ctr[C_TOUCHED])
-            if 0 < nt <= len(self.touched):
+            if 0 < nt <= len(self.tracer.touched):
                 k.apply_free(self.ndt)(
                     slot=slot,
-                    touched=self.touched_group,
+                    touched=self.tracer.touched_group,
                     nt=nt,
                     model=model,
                     records=recs.group,
@@ -599,13 +615,13 @@ class ScanUpdate:
             elif nt:
                 k.apply_free_all(self.ndt)(slot=slot, model=model, records=recs.group, ctr=ctr, **self._ndt_kw())
                 self.plan.touched_rows = 2 * nt
-                self._sync_touched()
+                self.tracer.sync_touched()
             rep.cells_passed = nt - int(ctr[C_HIT_PASSED]) - int(ctr[C_NDT_STILL]) + total(ctr, C_BLOCK_CELLS)
         self.st.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = total(ctr, C_VISITS)
         rep.gaussians_erased = int(ctr[C_ERASED])
-        rep.ray_batches = self.batches
+        rep.ray_batches = self.tracer.batches
         recs.nfree = int(ctr[C_FREE])
         rep.seconds = time.perf_counter() - t0
         return rep

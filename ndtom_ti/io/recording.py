@@ -244,7 +244,7 @@ class Recording:
             for name, ti in sorted(self._reader.topics.items())
         }
         self._tf: TfBuffer | None = None
-        self._pose_tracks: dict[str, tuple[PoseTrack, str, str | None, list[str]]] = {}
+        self._poses = _PoseSources(self)  # pose topics' tracks and the choice of a pose source
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
 
@@ -329,38 +329,6 @@ class Recording:
     def pose_topics(self) -> list[str]:
         return self._of_type(*POSE_TYPES)
 
-    def _pose_track(self, topic: str) -> tuple[PoseTrack, str, str | None, list[str]]:
-        """(track T_parent_child, parent frame, child frame or None, notes) of a pose topic."""
-        if topic not in self._pose_tracks:
-            msgtype = self._topics[topic][0]
-            stamps: list[int] = []
-            ts: list[tuple[float, float, float]] = []
-            qs: list[tuple[float, float, float, float]] = []
-            notes: list[str] = []
-            parent: str | None = None
-            child: str | None = None
-            for _, mt, raw in self._messages(topic):
-                m = self._deserialize(raw, mt, topic)
-                if msgtype.endswith('TransformStamped'):
-                    v, q = m.transform.translation, m.transform.rotation
-                else:
-                    pose = m.pose.pose if hasattr(m.pose, 'covariance') else m.pose
-                    v, q = pose.position, pose.orientation
-                c = normalize_frame(m.child_frame_id) if hasattr(m, 'child_frame_id') else None
-                p = normalize_frame(m.header.frame_id)
-                if parent is None:
-                    parent, child = p, c
-                elif (p, c) != (parent, child) and not notes:
-                    notes.append(
-                        f'{topic}: frames change from {parent} -> {child} to {p} -> {c}; using {parent} -> {child}'
-                    )
-                stamps.append(stamp_ns(m.header.stamp))
-                ts.append((v.x, v.y, v.z))
-                qs.append((q.x, q.y, q.z, q.w))
-            track = PoseTrack.from_tq(stamps, ts, qs, source=f'pose topic {topic}')
-            self._pose_tracks[topic] = (track, parent or '', child, notes)
-        return self._pose_tracks[topic]
-
     # -- mappable topics
     def _camera_info_topic(self, image_topic: str) -> str | None:
         """The CameraInfo topic beside an image topic (same namespace)."""
@@ -425,171 +393,6 @@ class Recording:
             f'sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
         )
 
-    # -- pose sources
-    def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
-        """True when the pose stamps cannot be on the clock of the clouds: the clouds, which span
-        about the bag duration from the first one, do not overlap [lo - tol, hi + tol] at all."""
-        return first_stamp + self.duration_ns < lo - tol or first_stamp > hi + tol
-
-    def _clock_text(self, what: str, first_stamp: int, lo: int, hi: int) -> str:
-        far = min(abs(first_stamp - lo), abs(first_stamp - hi)) > 86_400 * 10**9
-        return (
-            f'{what} is stamped {_s(lo)} .. {_s(hi)} but the clouds from {_s(first_stamp)} on: the times '
-            'do not overlap'
-            + (' (different clocks, e.g. simulation time, or data of another recording)' if far else '')
-        )
-
-    def _tf_choice(self, frame: str, fixed_frame: str | None, first_stamp: int, tol: int) -> _PoseChoice:
-        tf = self.tf()
-        if not tf.frames():
-            return _PoseChoice(None, 'TF: the recording has no /tf or /tf_static transforms')
-        if frame not in tf:
-            return _PoseChoice(
-                None,
-                f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
-            )
-        fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(frame)
-        if fixed not in tf:
-            return _PoseChoice(
-                None,
-                f"TF: the fixed frame {fixed!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
-            )
-        try:
-            chain = tf.chain_str(fixed, frame)
-            static = tf.chain_is_static(fixed, frame)
-        except RecordingError as err:
-            return _PoseChoice(None, f'TF: {err}')
-        if fixed == frame and not fixed_frame:
-            return _PoseChoice(
-                None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not give its motion'
-            )
-        if static and not fixed_frame:
-            return _PoseChoice(None, f'TF: the chain {chain} is static only (the sensor mounting, not its motion)')
-        rng = tf.dynamic_range_ns(fixed, frame)
-        if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
-            return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
-        return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''), fixed, rng)
-
-    def _topic_choice(
-        self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int, explicit: bool
-    ) -> _PoseChoice:
-        msgtype = self._topics[topic][0]
-        track, parent, child, _ = self._pose_track(topic)
-        label = f'pose topic {topic} ({msgtype} {parent} -> {child if child else "(no child frame)"})'
-        if not len(track):
-            return _PoseChoice(None, f'{label}: no messages')
-        extra = (
-            '; it is also constant (the same pose in every message)' if len(track) > 1 and track.is_constant() else ''
-        )
-        if not explicit and self._clock_mismatch(first_stamp, track.first_ns, track.last_ns, tol):
-            return _PoseChoice(
-                None, f'{label}: ' + self._clock_text('it', first_stamp, track.first_ns, track.last_ns) + extra
-            )
-        tf = self.tf()
-        post: PoseFn | None = None
-        desc = label
-        if not child or child == frame:
-            if not child:
-                desc += f' (the message names no child frame: taken as the pose of {frame!r})'
-        elif child in tf and frame in tf and tf.root_of(child) == tf.root_of(frame):
-            how = 'tf_static' if tf.chain_is_static(child, frame) else 'tf'
-            desc += f' + {how} {tf.chain_str(child, frame)}'
-            post = _tf_fn(tf, child, None, tol)
-        elif explicit:
-            desc += f' (TF does not connect {child!r} to the cloud frame {frame!r}: assuming they coincide)'
-        else:
-            return _PoseChoice(
-                None, f'{label}: TF does not connect its frame {child!r} to the cloud frame {frame!r}' + extra
-            )
-        pre: PoseFn | None = None
-        fixed = parent
-        if fixed_frame and normalize_frame(fixed_frame) != parent:
-            fixed = normalize_frame(fixed_frame)
-            if not (fixed in tf and parent in tf and tf.root_of(fixed) == tf.root_of(parent)):
-                return _PoseChoice(
-                    None,
-                    f'{label}: it gives poses in {parent!r}, and TF does not connect that to the fixed frame {fixed!r}',
-                )
-            desc = f'tf {tf.chain_str(fixed, parent)} + ' + desc
-            pre = _tf_fn(tf, fixed, parent, tol)
-        return _PoseChoice(_track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns))
-
-    def _pose_choice(
-        self,
-        frame: str,
-        first_stamp: int,
-        *,
-        fixed_frame: str | None,
-        pose_topic: str | None,
-        poses_file: str | Path | PoseTrack | None,
-        sensor_frame_only: bool,
-        tol: int,
-        what: str,
-    ) -> _PoseChoice:
-        given = [
-            n
-            for n, v in (
-                ('pose_topic', pose_topic),
-                ('poses_file', poses_file),
-                ('sensor_frame_only', sensor_frame_only),
-            )
-            if v
-        ]
-        if len(given) > 1:
-            raise RecordingError(f'give only one pose source; got {" and ".join(given)}')
-        if sensor_frame_only:
-            return _PoseChoice(_identity, f'sensor frame {frame!r} (identity poses)', frame)
-        if poses_file is not None:
-            track = poses_file if isinstance(poses_file, PoseTrack) else load_pose_file(poses_file)
-            if not len(track):
-                raise RecordingError(f'{track.source}: no poses')
-            rng = None if track.by_index else (track.first_ns, track.last_ns)
-            return _PoseChoice(_track_fn(track, tol), f'poses file {track.source}', fixed_frame or 'world', rng)
-        if pose_topic is not None:
-            name = pose_topic if pose_topic in self._topics else '/' + pose_topic.lstrip('/')
-            if name not in self._topics or self._topics[name][0] not in POSE_TYPES:
-                cands = self.pose_topics()
-                close = difflib.get_close_matches(pose_topic, cands, n=1, cutoff=0.5)
-                why = f'has type {self._topics[name][0]}' if name in self._topics else f'is not in {self.path}'
-                raise RecordingError(
-                    f'pose topic {pose_topic!r} {why}.'
-                    + (f' Did you mean {close[0]!r}?' if close else '')
-                    + f' Pose topics ({", ".join(t.split("/")[-1] for t in POSE_TYPES)}) in the recording: '
-                    + (', '.join(f'{t} ({self._topics[t][0]})' for t in cands) or '(none)')
-                )
-            choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True)
-            if not choice.usable:
-                raise RecordingError(f'{choice.description}. {_SUGGEST}')
-            return choice
-        # automatic: TF first, then a single usable pose topic
-        tf_choice = self._tf_choice(frame, fixed_frame, first_stamp, tol)
-        if tf_choice.usable:
-            return tf_choice
-        topic_choices = [
-            self._topic_choice(t, frame, fixed_frame, first_stamp, tol, explicit=False) for t in self.pose_topics()
-        ]
-        usable = [c for c in topic_choices if c.usable]
-        if len(usable) == 1:
-            return usable[0]
-        if len(usable) > 1:
-            raise RecordingError(
-                f'several pose topics can give the pose of {frame!r}: '
-                + '; '.join(c.description for c in usable)
-                + '. Choose one with pose_topic (--pose-topic).'
-            )
-        reasons = [tf_choice.description] + [c.description for c in topic_choices]
-        if not topic_choices:
-            reasons.append(
-                'no pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped, '
-                'PoseWithCovarianceStamped, TransformStamped)'
-            )
-        # one line per source tried (the message was one ~600-character line)
-        raise RecordingError(
-            f'no usable poses for {what} (frame {frame!r}) in {self.path}:\n'
-            + ''.join(f'  - {r.rstrip(".")}\n'.replace('; ', ';\n    ') for r in reasons)
-            + _SUGGEST
-        )
-
     # -- public API
     def info(self) -> RecordingInfo:
         tf = self.tf()
@@ -629,7 +432,7 @@ class Recording:
                     )
                 )
         for topic in self.pose_topics():
-            track, parent, child, tnotes = self._pose_track(topic)
+            track, parent, child, tnotes = self._poses.track(topic)
             notes.extend(tnotes)
             sources.append(
                 PoseSourceInfo(
@@ -649,7 +452,7 @@ class Recording:
             default_topic, _ = self._resolve_cloud_topic(None)
             first = self._first_message(default_topic)
             assert first is not None
-            choice = self._pose_choice(
+            choice = self._poses.choose(
                 cloud_frames[default_topic],
                 stamp_ns(first[1].header.stamp),
                 fixed_frame=None,
@@ -724,7 +527,7 @@ class Recording:
             raise RecordingError(f'{topic} has no messages')
         frame = normalize_frame(first[1].header.frame_id)
         tol = round(extrapolation_s * 1e9)
-        choice = self._pose_choice(
+        choice = self._poses.choose(
             frame,
             stamp_ns(first[1].header.stamp),
             fixed_frame=sel.fixed_frame,
@@ -757,6 +560,217 @@ class Recording:
             infos,
             selection=sel,
             depth_stride=depth_stride,
+        )
+
+
+# ---------------------------------------------------------------------------- pose sources
+class _PoseSources:
+    """The pose sources of a :class:`Recording` (owned by it): the tracks of its pose topics,
+    read once, and the choice of where a cloud's poses come from (TF, a pose topic, a poses
+    file or the sensor frame), with the reasons each candidate cannot be used."""
+
+    def __init__(self, rec: Recording) -> None:
+        self._rec = rec
+        self._pose_tracks: dict[str, tuple[PoseTrack, str, str | None, list[str]]] = {}
+
+    def track(self, topic: str) -> tuple[PoseTrack, str, str | None, list[str]]:
+        """(track T_parent_child, parent frame, child frame or None, notes) of a pose topic."""
+        if topic not in self._pose_tracks:
+            msgtype = self._rec._topics[topic][0]
+            stamps: list[int] = []
+            ts: list[tuple[float, float, float]] = []
+            qs: list[tuple[float, float, float, float]] = []
+            notes: list[str] = []
+            parent: str | None = None
+            child: str | None = None
+            for _, mt, raw in self._rec._messages(topic):
+                m = self._rec._deserialize(raw, mt, topic)
+                if msgtype.endswith('TransformStamped'):
+                    v, q = m.transform.translation, m.transform.rotation
+                else:
+                    pose = m.pose.pose if hasattr(m.pose, 'covariance') else m.pose
+                    v, q = pose.position, pose.orientation
+                c = normalize_frame(m.child_frame_id) if hasattr(m, 'child_frame_id') else None
+                p = normalize_frame(m.header.frame_id)
+                if parent is None:
+                    parent, child = p, c
+                elif (p, c) != (parent, child) and not notes:
+                    notes.append(
+                        f'{topic}: frames change from {parent} -> {child} to {p} -> {c}; using {parent} -> {child}'
+                    )
+                stamps.append(stamp_ns(m.header.stamp))
+                ts.append((v.x, v.y, v.z))
+                qs.append((q.x, q.y, q.z, q.w))
+            track = PoseTrack.from_tq(stamps, ts, qs, source=f'pose topic {topic}')
+            self._pose_tracks[topic] = (track, parent or '', child, notes)
+        return self._pose_tracks[topic]
+
+    def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
+        """True when the pose stamps cannot be on the clock of the clouds: the clouds, which span
+        about the bag duration from the first one, do not overlap [lo - tol, hi + tol] at all."""
+        return first_stamp + self._rec.duration_ns < lo - tol or first_stamp > hi + tol
+
+    def _clock_text(self, what: str, first_stamp: int, lo: int, hi: int) -> str:
+        far = min(abs(first_stamp - lo), abs(first_stamp - hi)) > 86_400 * 10**9
+        return (
+            f'{what} is stamped {_s(lo)} .. {_s(hi)} but the clouds from {_s(first_stamp)} on: the times '
+            'do not overlap'
+            + (' (different clocks, e.g. simulation time, or data of another recording)' if far else '')
+        )
+
+    def _tf_choice(self, frame: str, fixed_frame: str | None, first_stamp: int, tol: int) -> _PoseChoice:
+        tf = self._rec.tf()
+        if not tf.frames():
+            return _PoseChoice(None, 'TF: the recording has no /tf or /tf_static transforms')
+        if frame not in tf:
+            return _PoseChoice(
+                None,
+                f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+            )
+        fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(frame)
+        if fixed not in tf:
+            return _PoseChoice(
+                None,
+                f"TF: the fixed frame {fixed!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+            )
+        try:
+            chain = tf.chain_str(fixed, frame)
+            static = tf.chain_is_static(fixed, frame)
+        except RecordingError as err:
+            return _PoseChoice(None, f'TF: {err}')
+        if fixed == frame and not fixed_frame:
+            return _PoseChoice(
+                None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not give its motion'
+            )
+        if static and not fixed_frame:
+            return _PoseChoice(None, f'TF: the chain {chain} is static only (the sensor mounting, not its motion)')
+        rng = tf.dynamic_range_ns(fixed, frame)
+        if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
+            return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
+        return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''), fixed, rng)
+
+    def _topic_choice(
+        self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int, explicit: bool
+    ) -> _PoseChoice:
+        msgtype = self._rec._topics[topic][0]
+        track, parent, child, _ = self.track(topic)
+        label = f'pose topic {topic} ({msgtype} {parent} -> {child if child else "(no child frame)"})'
+        if not len(track):
+            return _PoseChoice(None, f'{label}: no messages')
+        extra = (
+            '; it is also constant (the same pose in every message)' if len(track) > 1 and track.is_constant() else ''
+        )
+        if not explicit and self._clock_mismatch(first_stamp, track.first_ns, track.last_ns, tol):
+            return _PoseChoice(
+                None, f'{label}: ' + self._clock_text('it', first_stamp, track.first_ns, track.last_ns) + extra
+            )
+        tf = self._rec.tf()
+        post: PoseFn | None = None
+        desc = label
+        if not child or child == frame:
+            if not child:
+                desc += f' (the message names no child frame: taken as the pose of {frame!r})'
+        elif child in tf and frame in tf and tf.root_of(child) == tf.root_of(frame):
+            how = 'tf_static' if tf.chain_is_static(child, frame) else 'tf'
+            desc += f' + {how} {tf.chain_str(child, frame)}'
+            post = _tf_fn(tf, child, None, tol)
+        elif explicit:
+            desc += f' (TF does not connect {child!r} to the cloud frame {frame!r}: assuming they coincide)'
+        else:
+            return _PoseChoice(
+                None, f'{label}: TF does not connect its frame {child!r} to the cloud frame {frame!r}' + extra
+            )
+        pre: PoseFn | None = None
+        fixed = parent
+        if fixed_frame and normalize_frame(fixed_frame) != parent:
+            fixed = normalize_frame(fixed_frame)
+            if not (fixed in tf and parent in tf and tf.root_of(fixed) == tf.root_of(parent)):
+                return _PoseChoice(
+                    None,
+                    f'{label}: it gives poses in {parent!r}, and TF does not connect that to the fixed frame {fixed!r}',
+                )
+            desc = f'tf {tf.chain_str(fixed, parent)} + ' + desc
+            pre = _tf_fn(tf, fixed, parent, tol)
+        return _PoseChoice(_track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns))
+
+    def choose(
+        self,
+        frame: str,
+        first_stamp: int,
+        *,
+        fixed_frame: str | None,
+        pose_topic: str | None,
+        poses_file: str | Path | PoseTrack | None,
+        sensor_frame_only: bool,
+        tol: int,
+        what: str,
+    ) -> _PoseChoice:
+        given = [
+            n
+            for n, v in (
+                ('pose_topic', pose_topic),
+                ('poses_file', poses_file),
+                ('sensor_frame_only', sensor_frame_only),
+            )
+            if v
+        ]
+        if len(given) > 1:
+            raise RecordingError(f'give only one pose source; got {" and ".join(given)}')
+        if sensor_frame_only:
+            return _PoseChoice(_identity, f'sensor frame {frame!r} (identity poses)', frame)
+        if poses_file is not None:
+            track = poses_file if isinstance(poses_file, PoseTrack) else load_pose_file(poses_file)
+            if not len(track):
+                raise RecordingError(f'{track.source}: no poses')
+            rng = None if track.by_index else (track.first_ns, track.last_ns)
+            return _PoseChoice(_track_fn(track, tol), f'poses file {track.source}', fixed_frame or 'world', rng)
+        if pose_topic is not None:
+            name = pose_topic if pose_topic in self._rec._topics else '/' + pose_topic.lstrip('/')
+            if name not in self._rec._topics or self._rec._topics[name][0] not in POSE_TYPES:
+                cands = self._rec.pose_topics()
+                close = difflib.get_close_matches(pose_topic, cands, n=1, cutoff=0.5)
+                why = (
+                    f'has type {self._rec._topics[name][0]}'
+                    if name in self._rec._topics
+                    else f'is not in {self._rec.path}'
+                )
+                raise RecordingError(
+                    f'pose topic {pose_topic!r} {why}.'
+                    + (f' Did you mean {close[0]!r}?' if close else '')
+                    + f' Pose topics ({", ".join(t.split("/")[-1] for t in POSE_TYPES)}) in the recording: '
+                    + (', '.join(f'{t} ({self._rec._topics[t][0]})' for t in cands) or '(none)')
+                )
+            choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True)
+            if not choice.usable:
+                raise RecordingError(f'{choice.description}. {_SUGGEST}')
+            return choice
+        # automatic: TF first, then a single usable pose topic
+        tf_choice = self._tf_choice(frame, fixed_frame, first_stamp, tol)
+        if tf_choice.usable:
+            return tf_choice
+        topic_choices = [
+            self._topic_choice(t, frame, fixed_frame, first_stamp, tol, explicit=False) for t in self._rec.pose_topics()
+        ]
+        usable = [c for c in topic_choices if c.usable]
+        if len(usable) == 1:
+            return usable[0]
+        if len(usable) > 1:
+            raise RecordingError(
+                f'several pose topics can give the pose of {frame!r}: '
+                + '; '.join(c.description for c in usable)
+                + '. Choose one with pose_topic (--pose-topic).'
+            )
+        reasons = [tf_choice.description] + [c.description for c in topic_choices]
+        if not topic_choices:
+            reasons.append(
+                'no pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped, '
+                'PoseWithCovarianceStamped, TransformStamped)'
+            )
+        # one line per source tried (the message was one ~600-character line)
+        raise RecordingError(
+            f'no usable poses for {what} (frame {frame!r}) in {self._rec.path}:\n'
+            + ''.join(f'  - {r.rstrip(".")}\n'.replace('; ', ';\n    ') for r in reasons)
+            + _SUGGEST
         )
 
 
