@@ -58,6 +58,28 @@ HIT_CHUNK = 64  # hit cells a thread takes from merge's queue at a time
 COLUMN_CHUNK = 32  # block columns a thread takes from block_apply's queue at a time
 
 
+SORT_SMALL = 64  # a hit cell's points up to this many are sorted by insertion
+
+
+@ti.func
+def _sift_down(order: ti.template(), o, root, n):
+    # order[o : o + n] as a binary max-heap: the entry at root moved down to its place.
+    r = root
+    while True:
+        c = 2 * r + 1
+        if c >= n:
+            break
+        if c + 1 < n:  # (nested: Taichi's `and` reads both sides)
+            if order[o + c] < order[o + c + 1]:
+                c += 1
+        if order[o + r] >= order[o + c]:
+            break
+        t = order[o + r]
+        order[o + r] = order[o + c]
+        order[o + c] = t
+        r = c
+
+
 @ti.func
 def cell_sums(order: ti.template(), o, cnt, pts: ti.template(), centre):
     """A hit cell's point sums relative to its centre (sum q (3), sum q q^T (6)), its
@@ -65,16 +87,31 @@ def cell_sums(order: ti.template(), o, cnt, pts: ti.template(), centre):
     grouped them wrote them in any order, and float sums depend on it. Sorted, the sums
     are one sequence whatever the threads, their number, or the path that grouped them
     (hits_dense in the block, the ordered hits_sum in the tree). The threads' runs leave
-    a cell's points mostly in order: insertion sort does little more than read them."""
-    for j in range(o + 1, o + cnt):
-        v = order[j]
-        k = j - 1
-        while k >= o:
-            if order[k] <= v:
-                break
-            order[k + 1] = order[k]
-            k -= 1
-        order[k + 1] = v
+    a cell's points mostly in order: insertion sort does little more than read them. A cell
+    of many points (a wall close to a depth camera at a coarse resolution; 2^20 points in a
+    test) may hold the threads' runs interleaved: heapsort there, O(k log k) in any order."""
+    if cnt <= SORT_SMALL:
+        for j in range(o + 1, o + cnt):
+            v = order[j]
+            k = j - 1
+            while k >= o:
+                if order[k] <= v:
+                    break
+                order[k + 1] = order[k]
+                k -= 1
+            order[k + 1] = v
+    else:
+        s = cnt // 2 - 1
+        while s >= 0:  # a max-heap of the indices
+            _sift_down(order, o, s, cnt)
+            s -= 1
+        end = cnt - 1
+        while end > 0:
+            top = order[o]
+            order[o] = order[o + end]
+            order[o + end] = top
+            _sift_down(order, o, 0, end)
+            end -= 1
     sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
     ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
     for j in range(o, o + cnt):

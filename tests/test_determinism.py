@@ -156,3 +156,36 @@ def test_erased_neighbour_counts_stop_at_six(sim_npz):
         m.insert_scan(d.scan(i), d.poses[i])
     near = m.snapshot().g_erased_near
     assert near.max() <= 6, np.bincount(near)
+
+
+@pytest.mark.parametrize("n", [5, 64, 65, 1 << 20])
+def test_a_cells_points_are_summed_in_scan_order_whatever_order_they_come_in(n):
+    """cell_sums sorts a cell's point indices before summing: insertion sort for a few,
+    heapsort for many (2^20 points in one cell whose threads' runs interleaved took
+    insertion sort minutes). Any order in, the indices come out ascending."""
+    import taichi as ti
+
+    from ndtom_ti.kernels.update import cell_sums
+
+    rng = np.random.default_rng(n)
+    pts = rng.normal(size=(n, 3))
+    order = rng.permutation(n).astype(np.int32)
+    out = np.zeros(9)
+
+    @ti.kernel
+    def sums(
+        order: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        pts: ti.types.ndarray(dtype=ti.f64, ndim=2),
+        out: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        n: ti.i32,
+    ):
+        for _ in range(1):
+            v = cell_sums(order, 0, n, pts, ti.Vector([0.0, 0.0, 0.0], dt=ti.f64))
+            for a in ti.static(range(9)):
+                out[a] = v[a]
+
+    sums(order, pts, out, n)
+    assert (order == np.arange(n)).all()
+    x = pts
+    want = np.r_[x.sum(0), [(x[:, a] * x[:, b]).sum() for a, b in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]]
+    assert np.allclose(out, want, rtol=1e-9, atol=1e-9)
