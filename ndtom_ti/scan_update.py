@@ -132,7 +132,7 @@ class RayTracer:
         self.ctr = ctr  # the update's counters
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
-        self._touched_rows = 0
+        self.touched = np.empty((0, 3), np.int32)  # plan.touched_rows is at least 1
         self.sync_touched()
         self.empty = {
             bt: Block.of(np.zeros((0, 0, 0), dt), np.zeros((0, 0, 0), np.int8), np.zeros(3, np.int32))
@@ -141,10 +141,9 @@ class RayTracer:
 
     def sync_touched(self) -> None:
         """(Re)allocate the touched list to ``plan.touched_rows`` rows when that changed."""
-        if self.plan.touched_rows != self._touched_rows:
+        if self.plan.touched_rows != len(self.touched):
             self.touched = np.empty((self.plan.touched_rows, 3), np.int32)
             self.touched_group = Touched(touched=self.touched, cap=len(self.touched))
-            self._touched_rows = self.plan.touched_rows
 
     def trace(self, mode: str, p: PreparedRays):
         """Run the ray kernel of ``mode`` ("full" or "floor") over all rays, in batches
