@@ -126,6 +126,9 @@ class KernelSet:
     def ndt_refresh(self):
         return self._get(update.ndt_refresh, None)
 
+    def erased_near(self):
+        return self._get(update.erased_near, None)
+
     # queries, export, load (plain Taichi kernels, few arguments)
     @property
     def io(self) -> SimpleNamespace:

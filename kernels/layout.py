@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -53,13 +53,52 @@ def chunk_bytes(node_bytes: int) -> tuple[int, int]:
     return n, n * node_bytes
 
 
+# Spatial hash of a tile's indices (Teschner et al. 2003): neighbouring tiles land on
+# different workers without a table, the same in numpy and in the kernels (int64).
+TILE_HASH = (73856093, 19349663, 83492791)
+
+
+@dataclass(frozen=True)
+class TileOwner:
+    """The cells a worker of a tiled map owns: cubes of ``tile`` cells a side on the global
+    cell indices, each given to one of ``workers`` by a hash of its indices. A map whose
+    layout has an owner updates only its own cells; every worker sees every ray."""
+
+    tile: int
+    workers: int
+    worker: int
+
+    def validate(self, leaf: int) -> None:
+        if self.tile < leaf or self.tile % leaf:
+            raise ValueError(f"a tile must be a whole number of {leaf}-cell leaves, got {self.tile} cells")
+        if not 0 <= self.worker < self.workers:
+            raise ValueError(f"worker {self.worker} is not one of {self.workers} workers")
+
+    def owners(self, cells: np.ndarray) -> np.ndarray:
+        """The worker owning each of ``cells`` ([N, 3] integer cell indices)."""
+        return tile_owners(np.asarray(cells, np.int64) // self.tile, self.workers)
+
+    def owned(self, cells: np.ndarray) -> np.ndarray:
+        return self.owners(cells) == self.worker
+
+
+def tile_owners(tiles: np.ndarray, workers: int) -> np.ndarray:
+    """The worker of each of ``tiles`` ([N, 3] tile indices), as the kernels compute it."""
+    t = np.asarray(tiles, np.int64)
+    with np.errstate(over="ignore"):
+        h = (t[:, 0] * TILE_HASH[0]) ^ (t[:, 1] * TILE_HASH[1]) ^ (t[:, 2] * TILE_HASH[2])
+    return h % workers  # numpy's integer % is Python's: never negative
+
+
 @dataclass(frozen=True)
 class Layout:
-    """Shape of the sparse grid, in cells. The grid is centred on cell index 0."""
+    """Shape of the sparse grid, in cells. The grid is centred on cell index 0.
+    ``owner``: the cells this map updates when it is one tile set of a tiled map (None: all)."""
 
     l1: tuple[int, int, int] = (128, 128, 16)
     l2: int = 32
     leaf: int = 8
+    owner: TileOwner | None = None
 
     @property
     def region(self) -> int:
@@ -109,6 +148,8 @@ class Layout:
             raise ValueError(f"the leaf size must be a power of two (kernels shift by it), got {self.leaf}")
         if any(c >= 2**30 for c in self.cells):
             raise ValueError(f"grid of {self.cells} cells per axis overflows 32-bit cell indices")
+        if self.owner is not None:
+            self.owner.validate(self.leaf)
 
 
 def pool_bytes(layout: Layout, nodes) -> int:
@@ -126,7 +167,7 @@ class Storage:
 
     def __init__(self, layout: Layout, slots: int):
         layout.validate()
-        self.layout = layout
+        self.layout = replace(layout, owner=None)  # one storage for every owner (per slot)
         self.slots = slots
         off = (0, *layout.lo)
         moff = (0, *(o // layout.leaf for o in layout.lo))
@@ -151,6 +192,15 @@ class Storage:
             self.l2_nodes.append(l2)
             self._trees.append(fb.finalize())
 
+        # Per slot, the cells its map updates (kernels/ndt.py owned): tile size in cells,
+        # workers, this worker; workers 1: every cell.
+        self.tiles = ti.field(ti.i64)
+        fb = ti.FieldsBuilder()
+        fb.dense(ti.ij, (slots, 3)).place(self.tiles)
+        self._trees.append(fb.finalize())
+        for s in range(slots):
+            self.set_owner(s, None)
+
         # Exact node counts kept by the kernels, per slot: [occupancy leaves, index leaves],
         # and the top-level regions in use per slot and tree.
         self.leaf_count = np.zeros((slots, 2), np.int64)
@@ -167,6 +217,12 @@ class Storage:
         self.block_buf = np.zeros(0, np.int32)
         self.bflag_buf = np.zeros(0, np.int8)
         self.lock = threading.RLock()
+
+    def set_owner(self, slot: int, owner: TileOwner | None) -> None:
+        """Which cells the map in ``slot`` updates (None: all)."""
+        spec = (1, 1, 0) if owner is None else (owner.tile, owner.workers, owner.worker)
+        for a, v in enumerate(spec):
+            self.tiles[slot, a] = v
 
     def nodes(self, slot: int | None = None) -> np.ndarray:
         """Live node counts of the four node types, for one slot or all."""

@@ -35,7 +35,7 @@ from types import SimpleNamespace
 import taichi as ti
 from taichi.lang import impl
 
-from .layout import Storage
+from .layout import TILE_HASH, Storage
 
 # Counter slots of the per-call int64 counter array.
 C_HIT_CELLS = 0
@@ -256,6 +256,21 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     @ti.func
     def at(slot, c) -> ti.types.vector(4, ti.i32):
         return ti.Vector([slot, c[0], c[1], c[2]], dt=ti.i32)
+
+    tiles = f.tiles
+    h0, h1, h2 = TILE_HASH
+
+    @ti.func
+    def owned(slot, c) -> ti.i32:
+        # 1 when map ``slot`` updates cell c: always, unless it is one worker's part of a
+        # tiled map (layout.TileOwner, in f.tiles; the hash of TileOwner.owners, in int64).
+        ok = 1
+        workers = tiles[slot, 1]
+        if workers > 1:
+            t = c // tiles[slot, 0]  # floor division on integers, as numpy's
+            h = (ti.cast(t[0], ti.i64) * h0) ^ (ti.cast(t[1], ti.i64) * h1) ^ (ti.cast(t[2], ti.i64) * h2)
+            ok = ti.i32(h % workers == tiles[slot, 2])
+        return ok
 
     @ti.func
     def note_leaf(mark: ti.template(), slot, c, regions: ti.template(), leaves: ti.template(), which: ti.template()):
@@ -573,6 +588,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return out
 
     f.funcs = SimpleNamespace(
+        owned=owned,
         leaf=leaf,
         region=region,
         grid_lo=grid_lo,

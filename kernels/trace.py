@@ -96,7 +96,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     ne, olm = f.ne, f.olm
     row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
     ndt_visit, ndt_tree_visit, add_miss = F.ndt_visit, F.ndt_tree_visit, F.add_miss
-    Q, SHIFT, leaf = F.queue, F.SHIFT, F.leaf
+    Q, SHIFT, leaf, owned = F.queue, F.SHIFT, F.leaf, F.owned
     mode, ndt = cfg.mode, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
@@ -242,7 +242,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             if (lb != last_leaf).any():
                                 bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
                                 last_leaf = lb
-                        else:
+                        elif owned(slot, cur) != 0:  # (a tiled map's worker: its own cells only)
                             lf = cur // leaf
                             if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
                                 note_leaf(olm, slot, cur, occ_regions, leaves, 0)

@@ -687,7 +687,7 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
     One kernel for both, so a recording whose scans fill the block more or less densely
     compiles it once."""
     F = device_funcs(f)
-    block_cell, tally, SHIFT, Q, leaf = F.block_cell, F.tally, F.SHIFT, F.queue, F.leaf
+    block_cell, tally, SHIFT, Q, leaf, owned = F.block_cell, F.tally, F.SHIFT, F.queue, F.leaf, F.owned
     ndt = cfg.ndt
     bits = 16 if cfg.bt == "u16" else 32
     lanes = 64 // bits  # block entries per 64-bit word
@@ -757,11 +757,12 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                         w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
                                     for lane in ti.static(range(lanes)):
                                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                                        if v != 0:
-                                            k = kw * lanes + lane
+                                        k = kw * lanes + lane
+                                        c = b0 + ti.Vector([i, j, k])
+                                        if v != 0 and owned(slot, c) != 0:
                                             block_cell(
                                                 slot,
-                                                b0 + ti.Vector([i, j, k]),
+                                                c,
                                                 v,
                                                 k >> SHIFT != last,
                                                 l_free,
@@ -919,5 +920,36 @@ def ndt_refresh(f: Storage, _cfg=None) -> Bound:
             "nrec",
             ("records", Records, ("rec_n", "rec_mean", "rec_scat")),
             ("ndt", NdtRecords, ("rec_icov", "ndt_prm", "rec_nbr")),
+        ),
+    )
+
+
+def erased_near(f: Storage, _cfg=None) -> Bound:
+    """The NDT miss model's erased-neighbour rule for Gaussians erased in another worker's
+    cells of a tiled map (its last scan): each neighbour here that holds one counts them, as
+    erased_beside counts the erasures of this map's own cells during its free-space pass."""
+    F = device_funcs(f)
+    row, erased_beside = F.row, F.erased_beside
+
+    def erased_near(
+        slot: ti.i32,
+        cells: i32_2d,  # [N, 3] the cells whose Gaussians were erased
+        n: ti.i32,
+        rec_n: i32_1d,  # Records
+        ndt_minp: ti.i32,  # NdtRecords
+        rec_nbr: i32_1d,
+        rec_icov: f64_2d,
+    ):
+        for i in range(n):
+            erased_beside(slot, row(cells, i), rec_n, rec_nbr, rec_icov, ndt_minp)
+
+    return Bound(
+        erased_near,
+        (
+            "slot",
+            "cells",
+            "n",
+            ("records", Records, ("rec_n",)),
+            ("ndt", NdtRecords, ("ndt_minp", "rec_nbr", "rec_icov")),
         ),
     )

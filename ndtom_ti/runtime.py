@@ -9,7 +9,7 @@ import numbers
 import os
 import threading
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 ARCHS = ("auto", "cpu", "cuda")
 
@@ -319,7 +319,7 @@ def storage(layout):
     from ndtom_ti.kernels.layout import Layout, Storage
 
     ensure_init()
-    layout = layout if layout is not None else Layout()
+    layout = replace(layout, owner=None) if layout is not None else Layout()  # (owners: per slot)
     with _lock:
         st = _storages.get(layout)
         if st is not None and st.slots != _state.max_maps and layout not in _used:

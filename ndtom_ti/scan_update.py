@@ -7,7 +7,7 @@ cell for cell."""
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -60,9 +60,11 @@ class ScanReport:
     gaussians_erased: int = 0
     ray_batches: int = 0  # batches the rays were traced in under memory pressure (0: one pass)
     seconds: float = 0.0
+    # [gaussians_erased, 3] i32: the cells whose Gaussians rays erased (left out of as_dict)
+    erased_cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32), repr=False)
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        return {k: v for k, v in asdict(self).items() if k != "erased_cells"}
 
 
 @dataclass
@@ -311,6 +313,7 @@ class ScanUpdate:
         self.config, self.resolution, self.occupancy, self.arch = config, resolution, occupancy, arch
         self.ndt = bool(config.ndt_misses)
         self.layout = slot.layout
+        self.owner = self.layout.owner  # a tiled map's worker: the cells it updates
         self.glo = np.array(self.layout.lo, np.int64)
         self.ghi = np.array(self.layout.hi, np.int64)
         self.ctr = np.zeros(CTR_SIZE, np.int64)
@@ -324,6 +327,15 @@ class ScanUpdate:
 
     def _ndt_kw(self) -> dict:
         return {"ndt": self.records.ndt_group} if self.ndt else {}
+
+    def count_erased_near(self, cells: np.ndarray) -> None:
+        """The NDT miss model's erased-neighbour rule for Gaussians erased outside this
+        map's cells (a tiled map: another worker's last scan), before the next scan."""
+        if self.ndt and len(cells):
+            c = np.ascontiguousarray(cells, np.int32).reshape(-1, 3)
+            self.k.erased_near()(
+                slot=self.slot, cells=c, n=len(c), records=self.records.group, ndt=self.records.ndt_group
+            )
 
     # ------------------------------------------------------------------ preparation
 
@@ -512,6 +524,11 @@ class ScanUpdate:
             dense = self.tracer.trace("full", p)  # may refuse
         blk, flagged, whole = dense if dense is not None else (self.tracer.empty["i32"], True, False)
         bt = "u16" if blk.block.dtype == np.uint16 else "i32"
+        if self.owner is not None and n_hit:
+            # A tiled map's worker: every ray was traced; only its own cells take points
+            # (each cell's points keep their order in the scan: the same sums).
+            mine = self.owner.owned(cells[:n_hit])
+            world, cells, n_hit = world[:n_hit][mine], cells[:n_hit][mine], int(mine.sum())
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         # Points per hit cell counted in the block (no tree walks) when it holds them all; on
@@ -573,6 +590,7 @@ class ScanUpdate:
                     hits = {"grouped": replace(g, hcnt=g.hcnt[s], off=g.off[s])}
                 elif isinstance(t, TreeSums):
                     hits = {"sums": TreeSums(acc=t.acc[s])}
+        merged_free = int(ctr[C_FREE])  # records erased from here on go on the free stack
         if dense is not None:
             block, marked = blk.block, self.ndt and blk.block.size > 0
             shape = np.array(block.shape, np.int32)
@@ -622,5 +640,6 @@ class ScanUpdate:
         rep.gaussians_erased = int(ctr[C_ERASED])
         rep.ray_batches = self.tracer.batches
         recs.nfree = int(ctr[C_FREE])
+        rep.erased_cells = recs.cell[recs.free[merged_free : recs.nfree]]
         rep.seconds = time.perf_counter() - t0
         return rep

@@ -69,6 +69,7 @@ class MapSlot:
         with self.lock:
             self.kernels = kernel_set(self.storage)
             self._io = io_kernels(self.storage)  # queries, export, load
+            self.storage.set_owner(self.index, layout.owner)  # a tiled map's worker: its cells
         # Nothing to do at interpreter exit.
         self._release = weakref.finalize(self, _release_slot, self.storage, self.index)
         self._release.atexit = False

@@ -1,0 +1,75 @@
+"""How a tiled map divides its cells among workers, and joining their parts into one map.
+
+Tiles are cubes on the global integer cell indices (no offsets per tile), so a ray's
+cells are the same in every worker; ``kernels.layout.TileOwner`` hashes a tile's indices
+to its worker, in numpy here and in the kernels alike.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..kernels.layout import Layout, TileOwner
+from ..snapshot import MapSnapshot
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """``workers`` workers sharing the cells of a map of ``resolution`` in cubic tiles of
+    about ``tile_size`` metres (rounded up to whole leaves of ``layout``)."""
+
+    resolution: float
+    workers: int
+    tile_size: float = 16.0
+    layout: Layout = Layout()
+
+    def __post_init__(self) -> None:
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
+            raise ValueError(f"workers must be an integer >= 1, got {self.workers!r}")
+        if not (isinstance(self.tile_size, (int, float)) and math.isfinite(self.tile_size) and self.tile_size > 0):
+            raise ValueError(f"tile size must be a positive number of metres, got {self.tile_size!r}")
+        if self.layout.owner is not None:
+            object.__setattr__(self, "layout", replace(self.layout, owner=None))
+
+    @property
+    def tile_cells(self) -> int:
+        leaf = self.layout.leaf
+        return leaf * max(1, math.ceil(self.tile_size / self.resolution / leaf - 1e-9))
+
+    def owner(self, worker: int) -> TileOwner:
+        own = TileOwner(tile=self.tile_cells, workers=self.workers, worker=worker)
+        own.validate(self.layout.leaf)
+        return own
+
+    def layout_of(self, worker: int) -> Layout:
+        """The layout of worker ``worker``'s map: the global grid, its cells marked."""
+        return replace(self.layout, owner=self.owner(worker))
+
+    def owners(self, cells: np.ndarray) -> np.ndarray:
+        return self.owner(0).owners(cells)
+
+    def at_border(self, cells: np.ndarray) -> np.ndarray:
+        """Rows of ``cells`` with a neighbour (of 26) in another tile: the erasures other
+        workers may have to count."""
+        r = np.asarray(cells, np.int64).reshape(-1, 3) % self.tile_cells
+        return ((r == 0) | (r == self.tile_cells - 1)).any(axis=1)
+
+
+def join(parts: list[MapSnapshot]) -> MapSnapshot:
+    """One map of the parts of a tiled map (disjoint cells, the same settings and scans)."""
+    if not parts:
+        raise ValueError("no parts to join")
+    first = parts[0]
+    for p in parts[1:]:
+        if p.resolution != first.resolution or p.scans_inserted != first.scans_inserted:
+            raise ValueError(
+                f"the parts of a tiled map disagree: resolution {p.resolution} / {first.resolution} m, "
+                f"scans {p.scans_inserted} / {first.scans_inserted}"
+            )
+    arrays = {}
+    for name in first.state():
+        arrays[name] = np.concatenate([getattr(p, name) for p in parts])  # writable: sorted by the snapshot
+    return MapSnapshot(**{**first.settings(), "layout": replace(first.layout, owner=None)}, **arrays)
