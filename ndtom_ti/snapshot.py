@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import copy
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import mapfile
+from . import mapfile, tiledfile
 from .cellkeys import lookup_rows, pack
 from .cellstate import ARRAYS, ROWS
 from .config import MapConfig, check_gaussian_filter, check_resolution
@@ -204,11 +204,30 @@ class MapSnapshot:
     def load(cls, path: str | Path) -> MapSnapshot:
         """Read a map file (written by ``NdtOmMap.save`` or :meth:`save`), checked as
         ``NdtOmMap.load`` checks it: broken or foreign files raise MapFileError."""
+        if tiledfile.is_tiled(path):  # a tiled map's folder: its tiles joined
+            doc = tiledfile.read_manifest(path)
+            return cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
         settings, arrays = mapfile.read(path)
         try:
             return cls.adopt(settings, arrays)
         except (KeyError, TypeError, ValueError) as exc:
             raise mapfile.MapFileError(f"{path} has invalid settings: {exc}") from None
+
+    @classmethod
+    def join(cls, parts: list[MapSnapshot]) -> MapSnapshot:
+        """One map of the parts of a tiled map (each worker's cells: disjoint, the same
+        settings and scans)."""
+        if not parts:
+            raise ValueError("no parts to join")
+        first = parts[0]
+        for p in parts[1:]:
+            if p.resolution != first.resolution or p.scans_inserted != first.scans_inserted:
+                raise mapfile.MapFileError(
+                    f"the tiles of a map disagree: resolution {p.resolution} / {first.resolution} m, "
+                    f"scans {p.scans_inserted} / {first.scans_inserted}"
+                )
+        arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in ARRAYS}
+        return cls(**{**first.settings(), "layout": replace(first.layout, owner=None)}, **arrays)
 
     # ------------------------------------------------------------------ writing
 

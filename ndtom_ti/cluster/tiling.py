@@ -1,4 +1,4 @@
-"""How a tiled map divides its cells among workers, and joining their parts into one map.
+"""How a tiled map divides its cells among workers.
 
 Tiles are cubes on the global integer cell indices (no offsets per tile), so a ray's
 cells are the same in every worker; ``kernels.layout.TileOwner`` hashes a tile's indices
@@ -8,12 +8,11 @@ to its worker, in numpy here and in the kernels alike.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..kernels.layout import Layout, TileOwner
-from ..snapshot import MapSnapshot
 
 
 @dataclass(frozen=True)
@@ -24,7 +23,7 @@ class Tiling:
     resolution: float
     workers: int
     tile_size: float = 16.0
-    layout: Layout = Layout()
+    layout: Layout = field(default_factory=Layout)
 
     def __post_init__(self) -> None:
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
@@ -56,20 +55,3 @@ class Tiling:
         workers may have to count."""
         r = np.asarray(cells, np.int64).reshape(-1, 3) % self.tile_cells
         return ((r == 0) | (r == self.tile_cells - 1)).any(axis=1)
-
-
-def join(parts: list[MapSnapshot]) -> MapSnapshot:
-    """One map of the parts of a tiled map (disjoint cells, the same settings and scans)."""
-    if not parts:
-        raise ValueError("no parts to join")
-    first = parts[0]
-    for p in parts[1:]:
-        if p.resolution != first.resolution or p.scans_inserted != first.scans_inserted:
-            raise ValueError(
-                f"the parts of a tiled map disagree: resolution {p.resolution} / {first.resolution} m, "
-                f"scans {p.scans_inserted} / {first.scans_inserted}"
-            )
-    arrays = {}
-    for name in first.state():
-        arrays[name] = np.concatenate([getattr(p, name) for p in parts])  # writable: sorted by the snapshot
-    return MapSnapshot(**{**first.settings(), "layout": replace(first.layout, owner=None)}, **arrays)

@@ -38,14 +38,18 @@ class TileWorker:
         else:
             self.map = NdtOmMap(tiling.resolution, occupancy=occupancy, config=config, layout=layout, metadata=metadata)
 
+    def count(self, *events: np.ndarray) -> None:
+        """Count other workers' erasures of the last scan (``events``: [K, 3] cells each)."""
+        if events:
+            self.map.count_erased_near(np.concatenate([np.asarray(e, np.int32).reshape(-1, 3) for e in events]))
+
     def step(self, points: np.ndarray, pose: np.ndarray, *events: np.ndarray) -> np.ndarray:
         """Count the other workers' erasures of the last scan (``events``), then insert
-        this scan. Returns this scan's erasures that other workers may count (cells at
-        the border of their tiles), [K, 3] int32."""
-        if events:
-            near = np.concatenate([np.asarray(e, np.int32).reshape(-1, 3) for e in events])
-            self.map.count_erased_near(near)
+        this scan (its report: ``last_report``). Returns this scan's erasures that other
+        workers may count (cells at the border of their tiles), [K, 3] int32."""
+        self.count(*events)
         rep = self.map.insert_scan(points, pose)
+        self.last_report = rep.as_dict()
         cells = rep.erased_cells
         return np.ascontiguousarray(cells[self.tiling.at_border(cells)], np.int32)
 

@@ -1,0 +1,246 @@
+"""Where a tiled map's workers run: in this process (``LocalEngine``) or as Ray actors,
+one process and one Taichi runtime each (``RayEngine``).
+
+Both run every scan on every worker in global order. A worker's erasures beside other
+tiles (events) reach the others before their next scan: the local engine hands them over
+itself; Ray passes the object refs of a step's events as arguments of the others' next
+steps, which Ray resolves before the call, so no barrier waits on the driver.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import MapConfig
+from ..runtime import MapMemoryError
+from ..snapshot import MapSnapshot
+from ..tiledfile import tile_name
+from .tiling import Tiling
+from .worker import TileWorker
+
+NO_EVENTS = np.zeros((0, 3), np.int32)
+
+
+class WorkerLost(RuntimeError):
+    """A worker process died (its cells are lost until the job resumes from a checkpoint)."""
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """What every worker of a job is made with."""
+
+    tiling: Tiling
+    config: MapConfig
+    occupancy: bool = True
+    metadata: dict = field(default_factory=dict)
+    threads: int | None = None  # Taichi CPU threads per worker process (None: Taichi's default)
+    memory_limit_GB: float | None = None  # each worker's own budget
+
+
+def probe_hash() -> str:
+    """A hash of a small fixed map (the demo room, both miss models) made here: hosts that
+    round differently give other hashes, and their workers would build another map."""
+    from ..demo import make_scans
+    from ..map import NdtOmMap
+
+    h = hashlib.sha256()
+    for model in ("paper", "ndt"):
+        with NdtOmMap(0.1, miss_model=model) as m:
+            for scan in make_scans(3, rings=8, per_ring=180):
+                m.insert_scan(scan.points, scan.T_world_sensor)
+            for a in m.snapshot().state().values():
+                h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+class _Worker:
+    """One worker as an engine drives it (also the body of a Ray actor)."""
+
+    def __init__(self, spec: WorkerSpec, worker: int, start: str | None = None, init: bool = False):
+        if init:  # a process of its own: its Taichi runtime
+            from ..runtime import init as ti_init
+
+            ti_init(arch="cpu", cpu_max_num_threads=spec.threads, memory_limit_GB=spec.memory_limit_GB)
+        self.spec, self.index = spec, worker
+        snap = MapSnapshot.load(start) if start is not None else None
+        self.w = TileWorker(
+            spec.tiling,
+            worker,
+            config=spec.config,
+            occupancy=spec.occupancy,
+            metadata=spec.metadata,
+            start=snap,
+        )
+
+    def step(self, scan: tuple, *events: np.ndarray) -> tuple[np.ndarray, dict]:
+        """(this scan's border erasures, its report) after the others' last erasures."""
+        try:
+            out = self.w.step(scan[0], scan[1], *events)
+        except MapMemoryError as exc:
+            raise MapMemoryError(f"worker {self.index}: {exc}") from None
+        return out, self.w.last_report
+
+    def settle(self, *events: np.ndarray) -> None:
+        """Count the others' erasures of the last scan now (before a checkpoint or the end)."""
+        self.w.count(*events)
+
+    def save(self, folder: str, scans: int) -> str:
+        name = tile_name(self.index, scans)
+        self.w.save(Path(folder) / name)
+        return name
+
+    def snapshot(self) -> MapSnapshot:
+        return self.w.snapshot()
+
+    def memory(self) -> dict:
+        return self.w.map.memory_report()
+
+    def probe(self) -> str:
+        return probe_hash()
+
+    def close(self) -> None:
+        self.w.close()
+
+
+class LocalEngine:
+    """The workers in this process (one map slot each), one after another: the same map as
+    a cluster's, for tests and for tilings without an engine."""
+
+    def __init__(self, spec: WorkerSpec, starts: list[str | None]):
+        self.n = spec.tiling.workers
+        self.workers = [_Worker(spec, w, starts[w]) for w in range(self.n)]
+        self.pending = [NO_EVENTS] * self.n
+
+    def _others(self, w: int) -> list[np.ndarray]:
+        return [self.pending[v] for v in range(self.n) if v != w]
+
+    def step(self, scan: tuple) -> list[dict]:
+        outs = [wk.step(scan, *self._others(i)) for i, wk in enumerate(self.workers)]
+        self.pending = [o[0] for o in outs]
+        return [o[1] for o in outs]
+
+    def settle(self) -> None:
+        for i, wk in enumerate(self.workers):
+            wk.settle(*self._others(i))
+        self.pending = [NO_EVENTS] * self.n
+
+    def save(self, folder: Path, scans: int) -> list[str]:
+        self.settle()
+        return [wk.save(str(folder), scans) for wk in self.workers]
+
+    def snapshots(self) -> list[MapSnapshot]:
+        self.settle()
+        return [wk.snapshot() for wk in self.workers]
+
+    def memory(self) -> list[dict]:
+        return [wk.memory() for wk in self.workers]
+
+    def probe(self) -> list[str]:
+        return [probe_hash()]
+
+    def restart(self, starts: list[str | None]) -> None:
+        """New workers from ``starts`` (tile files; None: empty), no events pending."""
+        spec = self.workers[0].spec
+        self.close()
+        self.workers = [_Worker(spec, w, starts[w]) for w in range(self.n)]
+        self.pending = [NO_EVENTS] * self.n
+
+    def kill(self, worker: int) -> None:
+        raise NotImplementedError("the local engine's workers are this process")
+
+    def close(self) -> None:
+        for wk in self.workers:
+            wk.close()
+
+
+def ray_module():
+    """Ray, or an ImportError saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("mapping with several worker processes needs Ray: pip install 'ndtom_ti[cluster]'") from None
+    return ray
+
+
+class RayEngine:
+    """The workers as Ray actors (``address``: join that cluster; None: start a local one
+    with a CPU per worker thread)."""
+
+    def __init__(self, spec: WorkerSpec, starts: list[str | None], address: str | None = None):
+        ray = self.ray = ray_module()
+        self.n = spec.tiling.workers
+        threads = spec.threads or 1
+        if not ray.is_initialized():
+            if address is None:
+                ray.init(num_cpus=max(self.n * threads, 1), include_dashboard=False, log_to_driver=False)
+            else:
+                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            self._owns_ray = True
+        else:
+            self._owns_ray = False
+        self.spec = spec
+        self.actor = ray.remote(num_cpus=threads, max_restarts=0)(_Worker)
+        self.actors: list[Any] = []
+        self.restart(starts)
+
+    def restart(self, starts: list[str | None]) -> None:
+        """New worker processes from ``starts`` (tile files; None: empty), no events pending."""
+        for a in self.actors:
+            self.ray.kill(a, no_restart=True)
+        self.actors = [self.actor.remote(self.spec, w, starts[w], True) for w in range(self.n)]
+        self.pending = [NO_EVENTS] * self.n
+
+    def _get(self, refs):
+        ray = self.ray
+        try:
+            return ray.get(refs)
+        except ray.exceptions.RayActorError as exc:
+            raise WorkerLost(f"a worker process was lost: {exc}") from None
+        except ray.exceptions.RayTaskError as exc:
+            cause = exc.cause if isinstance(getattr(exc, "cause", None), BaseException) else None
+            if cause is not None:
+                raise cause from None
+            raise
+
+    def _others(self, w: int) -> list:
+        return [self.pending[v] for v in range(self.n) if v != w]
+
+    def step(self, scan: tuple) -> list[dict]:
+        ref = self.ray.put(scan)  # one copy in the object store, read by every worker
+        outs = [a.step.options(num_returns=2).remote(ref, *self._others(i)) for i, a in enumerate(self.actors)]
+        self.pending = [o[0] for o in outs]
+        return self._get([o[1] for o in outs])
+
+    def settle(self) -> None:
+        self._get([a.settle.remote(*self._others(i)) for i, a in enumerate(self.actors)])
+        self.pending = [NO_EVENTS] * self.n
+
+    def save(self, folder: Path, scans: int) -> list[str]:
+        self.settle()
+        return self._get([a.save.remote(str(folder), scans) for a in self.actors])
+
+    def snapshots(self) -> list[MapSnapshot]:
+        self.settle()
+        return self._get([a.snapshot.remote() for a in self.actors])
+
+    def memory(self) -> list[dict]:
+        return self._get([a.memory.remote() for a in self.actors])
+
+    def probe(self) -> list[str]:
+        return self._get([a.probe.remote() for a in self.actors])
+
+    def kill(self, worker: int) -> None:
+        """Kill worker ``worker``'s process (tests: a lost worker)."""
+        self.ray.kill(self.actors[worker], no_restart=True)
+
+    def close(self) -> None:
+        for a in self.actors:
+            self.ray.kill(a, no_restart=True)
+        self.actors = []
+        if self._owns_ray:
+            self.ray.shutdown()

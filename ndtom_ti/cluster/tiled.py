@@ -1,0 +1,219 @@
+"""TiledMap: one map built by several workers, equal cell for cell to the one-process map
+of the same scans in the same order."""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
+
+from ..config import MapConfig, check_resolution
+from ..runtime import MapMemoryError
+from ..scan_update import ScanReport
+from ..scaninput import as_points, as_pose
+from ..snapshot import MapSnapshot
+from ..tiledfile import read_manifest, write_manifest
+from .engines import LocalEngine, RayEngine, WorkerLost, WorkerSpec
+from .tiling import Tiling
+
+ENGINES = ("ray", "local")
+# Report fields each worker counts for its own cells (summed); the rest every worker
+# counts alike for the whole scan.
+_OWN_FIELDS = ("cells_hit", "cells_passed", "gaussians_erased")
+
+
+class TiledMap:
+    """An NDT-OM whose cells are shared among ``workers`` worker processes in cubic tiles
+    of ``tile_size`` metres (:class:`~ndtom_ti.cluster.tiling.Tiling`).
+
+    Every scan goes to every worker, which traces all its rays and updates its own cells;
+    the NDT miss model's erased-neighbour rule crosses tiles as events between scans. The
+    result is the map one process makes, bit for bit (``snapshot``, ``save``).
+
+    ``engine``: "ray" (a local Ray cluster, or the one at ``address``) or "local" (the
+    workers in this process, one after another). ``threads``: Taichi threads per worker;
+    ``memory_limit_GB``: each worker's budget. ``folder``: where checkpoints go (a tiled
+    map: a manifest and a map file per worker), every ``checkpoint_every`` scans; a lost
+    worker makes the job restart every worker from the last one and replay the scans
+    since. ``resume``: carry on from the checkpoint in ``folder``. Map options as for
+    :class:`~ndtom_ti.NdtOmMap` (``config``, ``occupancy`` or MapConfig fields).
+    """
+
+    def __init__(
+        self,
+        resolution: float,
+        *,
+        workers: int = 2,
+        tile_size: float = 16.0,
+        engine: str = "ray",
+        address: str | None = None,
+        occupancy: bool = True,
+        config: MapConfig | None = None,
+        metadata: dict | None = None,
+        threads: int | None = None,
+        memory_limit_GB: float | None = None,
+        folder: str | Path | None = None,
+        checkpoint_every: int = 0,
+        resume: bool = False,
+        probe: bool = True,
+        **options: Any,
+    ):
+        self.resolution = check_resolution(resolution)
+        if config is not None and options:
+            raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
+        unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
+        if unknown:
+            raise TypeError(f"unknown map options {unknown}; the options are MapConfig's")
+        self.config = config if config is not None else MapConfig(**options)
+        self.config.check_at(self.resolution)
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+        if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every must be an integer >= 0, got {checkpoint_every!r}")
+        if checkpoint_every and folder is None:
+            raise ValueError("checkpoints need a folder to go to")
+        self.tiling = Tiling(self.resolution, workers, tile_size)
+        self.occupancy_enabled = bool(occupancy)
+        self.metadata: dict = dict(metadata or {})
+        self.folder = Path(folder) if folder is not None else None
+        self.checkpoint_every = checkpoint_every
+        self.scans_inserted = 0
+        self.points_inserted = 0
+        self.restarts = 0  # times a lost worker made the job go back to a checkpoint
+        self._since: list[tuple] = []  # scans since the last checkpoint: replayed after a loss
+        self._starts: list[str | None] = [None] * workers
+        if resume:
+            self._resume()
+        self._spec = WorkerSpec(
+            tiling=self.tiling,
+            config=self.config,
+            occupancy=self.occupancy_enabled,
+            metadata=self.metadata,
+            threads=threads,
+            memory_limit_GB=memory_limit_GB,
+        )
+        self.engine = (
+            RayEngine(self._spec, self._starts, address) if engine == "ray" else LocalEngine(self._spec, self._starts)
+        )
+        try:
+            if probe:
+                self._probe()
+        except BaseException:
+            self.engine.close()
+            raise
+
+    # ------------------------------------------------------------------ the job
+
+    def _resume(self) -> None:
+        if self.folder is None:
+            raise ValueError("resume needs the folder of the stopped run's checkpoints")
+        doc = read_manifest(self.folder)
+        want = {"resolution": self.resolution, "workers": self.tiling.workers, "tile_cells": self.tiling.tile_cells}
+        got = {k: doc[k] for k in want}
+        if got != want:
+            raise ValueError(f"{self.folder} holds a run of {got}, not {want}: resume it with the same settings")
+        self._starts = [str(self.folder / name) for name in doc["tiles"]]
+        self.scans_inserted = int(doc["scans"])
+        self.points_inserted = int(doc.get("points", 0))
+
+    def _probe(self) -> None:
+        from .engines import probe_hash
+
+        mine = probe_hash()
+        theirs = self.engine.probe()
+        bad = [i for i, h in enumerate(theirs) if h != mine]
+        if bad:
+            raise RuntimeError(
+                f"workers {bad} map a fixed scene differently from this process (hosts that round "
+                "differently): their cells would differ from a one-process map; run the job on "
+                "hosts of one CPU type and the same ndtom_ti and Taichi versions"
+            )
+
+    def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
+        """Insert one scan on every worker (see :meth:`NdtOmMap.insert_scan`)."""
+        t0 = time.perf_counter()
+        scan = (as_points(points), as_pose(T_world_sensor))
+        try:
+            reps = self._step(scan)
+        except MapMemoryError:
+            self._recover()  # workers that took the scan go back: the map holds the scans before it
+            raise
+        self._since.append(scan)
+        self.scans_inserted += 1
+        rep = ScanReport(**{k: v for k, v in reps[0].items() if k not in _OWN_FIELDS})
+        for k in _OWN_FIELDS:
+            setattr(rep, k, sum(int(r[k]) for r in reps))
+        rep.seconds = time.perf_counter() - t0
+        self.points_inserted += rep.points_used
+        if self.checkpoint_every and self.scans_inserted % self.checkpoint_every == 0:
+            self.checkpoint()
+        return rep
+
+    def _step(self, scan: tuple) -> list[dict]:
+        try:
+            return self.engine.step(scan)
+        except WorkerLost:
+            self._recover()
+            return self.engine.step(scan)
+
+    def _recover(self) -> None:
+        """Every worker back to the last checkpoint, then the scans since replayed."""
+        self.restarts += 1
+        self.engine.restart(self._starts)
+        for scan in self._since:
+            self.engine.step(scan)
+
+    def checkpoint(self, complete: bool = False) -> Path:
+        """Write the workers' cells to ``folder`` (a tiled map that ``MapSnapshot.load``,
+        ``ndtom info/export/view`` read and ``resume`` carries on from)."""
+        if self.folder is None:
+            raise ValueError("this map has no checkpoint folder")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        names = self.engine.save(self.folder, self.scans_inserted)
+        info = {
+            "resolution": self.resolution,
+            "tile_size": self.tiling.tile_size,
+            "tile_cells": self.tiling.tile_cells,
+            "workers": self.tiling.workers,
+            "scans": self.scans_inserted,
+            "points": self.points_inserted,
+            "complete": bool(complete),
+        }
+        path = write_manifest(self.folder, info, names)
+        self._starts = [str(self.folder / n) for n in names]
+        self._since = []
+        return path
+
+    # ------------------------------------------------------------------ the map
+
+    def snapshot(self) -> MapSnapshot:
+        """The whole map (every worker's cells joined), as one process would have made it."""
+        s = MapSnapshot.join(self.engine.snapshots())
+        return replace(s, metadata=copy.deepcopy(self.metadata))
+
+    def save(self, path: str | Path) -> Path:
+        """Write the whole map to one map file (as ``NdtOmMap.save``)."""
+        return self.snapshot().save(path)
+
+    def memory_report(self) -> dict:
+        """The workers' memory reports, summed (``workers``: each one's)."""
+        each = self.engine.memory()
+        total = {k: sum(r[k] for r in each) for k in each[0] if isinstance(each[0][k], int)}
+        total["workers"] = each
+        return total
+
+    def kill_worker(self, worker: int) -> None:
+        """Kill one worker's process (to test recovery): the next scan restarts the job
+        from the last checkpoint."""
+        self.engine.kill(worker)
+
+    def close(self) -> None:
+        self.engine.close()
+
+    def __enter__(self) -> TiledMap:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
