@@ -226,8 +226,9 @@ class MapSnapshot:
                     f"the tiles of a map disagree: resolution {p.resolution} / {first.resolution} m, "
                     f"scans {p.scans_inserted} / {first.scans_inserted}"
                 )
-        arrays = {name: np.concatenate([getattr(p, name) for p in parts]) for name in ARRAYS}
-        return cls(**{**first.settings(), "layout": replace(first.layout, owner=None)}, **arrays)
+        kw: dict[str, Any] = {**first.settings(), "layout": replace(first.layout, owner=None)}
+        kw.update({name: np.concatenate([getattr(p, name) for p in parts]) for name in ARRAYS})  # sorted by cls
+        return cls(**kw)
 
     # ------------------------------------------------------------------ writing
 

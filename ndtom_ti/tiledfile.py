@@ -74,7 +74,7 @@ def read_manifest(folder: str | Path) -> dict:
     tiles = doc.get("tiles")
     if not isinstance(tiles, list) or len(tiles) != doc["workers"] or not all(isinstance(t, str) for t in tiles):
         bad(f"tiles must name one file per worker ({doc['workers']}), got {tiles!r}")
-    for t in tiles:
+    for t in tiles or ():
         if Path(t).name != t or not (folder / t).is_file():
             bad(f"tile file {t!r} is missing from {folder}")
     return doc

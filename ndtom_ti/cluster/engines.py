@@ -196,12 +196,13 @@ class RayEngine:
         self.pending = [NO_EVENTS] * self.n
 
     def _get(self, refs):
-        ray = self.ray
+        from ray.exceptions import RayActorError, RayTaskError
+
         try:
-            return ray.get(refs)
-        except ray.exceptions.RayActorError as exc:
+            return self.ray.get(refs)
+        except RayActorError as exc:
             raise WorkerLost(f"a worker process was lost: {exc}") from None
-        except ray.exceptions.RayTaskError as exc:
+        except RayTaskError as exc:
             cause = exc.cause if isinstance(getattr(exc, "cause", None), BaseException) else None
             if cause is not None:
                 raise cause from None

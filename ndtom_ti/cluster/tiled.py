@@ -200,7 +200,7 @@ class TiledMap:
     def memory_report(self) -> dict:
         """The workers' memory reports, summed (``workers``: each one's)."""
         each = self.engine.memory()
-        total = {k: sum(r[k] for r in each) for k in each[0] if isinstance(each[0][k], int)}
+        total: dict[str, Any] = {k: sum(r[k] for r in each) for k in each[0] if isinstance(each[0][k], int)}
         total["workers"] = each
         return total
 
