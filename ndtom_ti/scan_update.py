@@ -119,6 +119,13 @@ class PreparedRays:
     box: tuple[np.ndarray, np.ndarray] | None  # the cells' bounding box
     one_pass: bool  # the whole scan fits the memory budget at once
     hit_nodes: tuple[np.ndarray, np.ndarray] | None  # (nodes the hits add, hit cells) when batched
+    mine: np.ndarray | None = None  # a tiled map's worker: which hits lie in its cells (else all)
+
+    def own_hits(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """(world, cells, count) of the hits this map merges: the worker's own, in scan order."""
+        if self.mine is None:
+            return self.world, self.cells, self.n_hit
+        return self.world[: self.n_hit][self.mine], self.cells[: self.n_hit][self.mine], int(self.mine.sum())
 
 
 class RayTracer:
@@ -189,12 +196,13 @@ class RayTracer:
             scan_rays = Rays(pts=world, cells=cells, n_hit=n_hit, n=n)
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
+                _, own_cells, own_n = p.own_hits()  # hit marks are cleared by merge: its hits only
                 k.mark_gaussians(bt)(
                     nrec=self.records.count,
                     records=self.records.group,
                     ndt=self.records.ndt_group,
                     block=blk,
-                    rays=scan_rays,
+                    rays=Rays(pts=world, cells=own_cells, n_hit=own_n, n=own_n) if p.mine is not None else scan_rays,
                     flags=int(flagged),
                 )
             ctr[Q_RAYS] = 0
@@ -408,7 +416,9 @@ class ScanUpdate:
                 budget.reserve(new)
                 # What the hits write after the batched rays: each batch must leave room for it.
                 hit_nodes = (new, cells[:n_hit])
-        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes)
+        # A tiled map's worker traces every ray but merges only the hits in its cells.
+        mine = self.owner.owned(cells[:n_hit]) if self.owner is not None else None
+        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes, mine)
 
     # ------------------------------------------------------------------ rays
 
@@ -524,11 +534,7 @@ class ScanUpdate:
             dense = self.tracer.trace("full", p)  # may refuse
         blk, flagged, whole = dense if dense is not None else (self.tracer.empty["i32"], True, False)
         bt = "u16" if blk.block.dtype == np.uint16 else "i32"
-        if self.owner is not None and n_hit:
-            # A tiled map's worker: every ray was traced; only its own cells take points
-            # (each cell's points keep their order in the scan: the same sums).
-            mine = self.owner.owned(cells[:n_hit])
-            world, cells, n_hit = world[:n_hit][mine], cells[:n_hit][mine], int(mine.sum())
+        world, cells, n_hit = p.own_hits()  # (each cell's points keep their order: the same sums)
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         # Points per hit cell counted in the block (no tree walks) when it holds them all; on

@@ -128,7 +128,8 @@ class TiledMap:
             raise RuntimeError(
                 f"workers {bad} map a fixed scene differently from this process (hosts that round "
                 "differently): their cells would differ from a one-process map; run the job on "
-                "hosts of one CPU type and the same ndtom_ti and Taichi versions"
+                f"hosts of one CPU type and the same ndtom_ti and Taichi versions (hashes: this "
+                f"process {mine[:12]}, workers {[h[:12] for h in theirs]})"
             )
 
     def insert_scan(self, points: Any, T_world_sensor: Any) -> ScanReport:
