@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA, _import_simworld
+from ndtom_ti.kernels.layout import TileOwner
 
 from ndtom_ti import NdtOmMap
 from ndtom_ti.cellkeys import pack
@@ -15,7 +16,6 @@ from ndtom_ti.cellstate import ARRAYS
 from ndtom_ti.cluster import TiledMap, Tiling
 from ndtom_ti.cluster.engines import probe_hash
 from ndtom_ti.cluster.worker import TileWorker
-from ndtom_ti.kernels.layout import TileOwner
 from ndtom_ti.mapfile import MapFileError
 from ndtom_ti.snapshot import MapSnapshot
 from ndtom_ti.tiledfile import MANIFEST
