@@ -10,6 +10,7 @@ steps, which Ray resolves before the call, so no barrier waits on the driver.
 from __future__ import annotations
 
 import hashlib
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,6 +68,7 @@ class _Worker:
 
             ti_init(arch="cpu", cpu_max_num_threads=spec.threads, memory_limit_GB=spec.memory_limit_GB)
         self.spec, self.index = spec, worker
+        self.events = 0
         snap = MapSnapshot.load(start) if start is not None else None
         self.w = TileWorker(
             spec.tiling,
@@ -83,6 +85,7 @@ class _Worker:
             out = self.w.step(scan[0], scan[1], *events)
         except MapMemoryError as exc:
             raise MapMemoryError(f"worker {self.index}: {exc}") from None
+        self.events += len(out)
         return out, self.w.last_report
 
     def settle(self, *events: np.ndarray) -> None:
@@ -99,6 +102,10 @@ class _Worker:
 
     def memory(self) -> dict:
         return self.w.map.memory_report()
+
+    def stats(self) -> dict:
+        """This worker's process CPU seconds and the erasure events it sent (rows, bytes)."""
+        return {"cpu_seconds": time.process_time(), "events": self.events, "event_bytes": self.events * 12}
 
     def probe(self) -> str:
         return probe_hash()
@@ -139,6 +146,9 @@ class LocalEngine:
 
     def memory(self) -> list[dict]:
         return [wk.memory() for wk in self.workers]
+
+    def stats(self) -> list[dict]:
+        return [wk.stats() for wk in self.workers]
 
     def probe(self) -> list[str]:
         return [probe_hash()]
@@ -231,6 +241,9 @@ class RayEngine:
 
     def memory(self) -> list[dict]:
         return self._get([a.memory.remote() for a in self.actors])
+
+    def stats(self) -> list[dict]:
+        return self._get([a.stats.remote() for a in self.actors])
 
     def probe(self) -> list[str]:
         return self._get([a.probe.remote() for a in self.actors])

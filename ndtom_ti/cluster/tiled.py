@@ -82,6 +82,7 @@ class TiledMap:
         self.scans_inserted = 0
         self.points_inserted = 0
         self.restarts = 0  # times a lost worker made the job go back to a checkpoint
+        self.scan_bytes = 0  # the scans' points and poses sent (once to each worker's host)
         self._since: list[tuple] = []  # scans since the last checkpoint: replayed after a loss
         self._starts: list[str | None] = [None] * workers
         if resume:
@@ -143,6 +144,7 @@ class TiledMap:
             raise
         self._since.append(scan)
         self.scans_inserted += 1
+        self.scan_bytes += scan[0].nbytes + scan[1].nbytes
         rep = ScanReport(**{k: v for k, v in reps[0].items() if k not in _OWN_FIELDS})
         for k in _OWN_FIELDS:
             setattr(rep, k, sum(int(r[k]) for r in reps))
@@ -204,6 +206,10 @@ class TiledMap:
         total: dict[str, Any] = {k: sum(r[k] for r in each) for k in each[0] if isinstance(each[0][k], int)}
         total["workers"] = each
         return total
+
+    def stats(self) -> list[dict]:
+        """Per worker: its process's CPU seconds so far and the erasure events it sent."""
+        return self.engine.stats()
 
     def kill_worker(self, worker: int) -> None:
         """Kill one worker's process (to test recovery): the next scan restarts the job
