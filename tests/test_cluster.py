@@ -229,3 +229,51 @@ def test_tiled_maps_leave_the_shared_scratch_clean():
             tm.insert_scan(pts, T)
             assert not st.block_buf.any() and not st.bflag_buf.any()
     assert probe_hash() == before
+
+
+_ONE_PROCESS_AT_LIMIT = """
+import sys
+import ndtom_ti
+ndtom_ti.init("cpu", memory_limit_GB=float(sys.argv[2]))
+from ndtom_ti import NdtOmMap, MapMemoryError
+from ndtom_ti.io import open_recording
+with open_recording(sys.argv[1]) as rec, NdtOmMap(0.1) as m:
+    for i, s in enumerate(rec.scans()):
+        try:
+            m.insert_scan(s.points, s.T_world_sensor)
+        except MapMemoryError:
+            print("refused", i)
+            break
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not BALM.exists(), reason="shared data not present")
+def test_a_map_one_process_refuses_builds_on_two_workers_at_its_budget(ray_cluster):
+    """Each worker has its own memory budget: BALM at 0.1 m, refused by one process at
+    0.52 GB (it holds a few scans), builds whole on two workers at 0.52 GB each, and is the
+    map of an unlimited process."""
+    import subprocess
+    import sys
+
+    from ndtom_ti.io import open_recording
+
+    limit = 0.52
+    res = subprocess.run(
+        [sys.executable, "-c", _ONE_PROCESS_AT_LIMIT, str(BALM), str(limit)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=True,
+    )
+    assert "refused" in res.stdout, res.stdout
+    with open_recording(BALM) as rec:
+        scans = [(s.points, s.T_world_sensor) for s in rec.scans()]
+    with TiledMap(0.1, workers=2, tile_size=8.0, threads=1, memory_limit_GB=limit, probe=False) as tm:
+        for pts, T in scans:
+            tm.insert_scan(pts, T)
+        tiled_map = tm.snapshot()
+    with NdtOmMap(0.1) as m:
+        for pts, T in scans:
+            m.insert_scan(pts, T)
+        assert_same_map(m.snapshot(), tiled_map)
