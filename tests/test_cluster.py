@@ -92,6 +92,31 @@ def test_tiles_give_the_one_process_map(sim, reference, model, workers, tile_siz
     assert_same_map(reference[model], tiled(sim, model, workers=workers, tile_size=tile_size))
 
 
+def test_most_rays_cross_three_tiles_or_more(sim):
+    """The tilings above are a real test of the seams: at 8 m (two workers) most rays of
+    the simulated hall pass 3 or more tiles (sampled every 5 cm along 2,000 rays a scan)."""
+    til = Tiling(RES, 2, 8.0)
+    rng = np.random.default_rng(1)
+    crossing = []
+    for pts, T in sim[::6]:
+        world = pts[rng.choice(len(pts), 2000, replace=False)] @ T[:3, :3].T + T[:3, 3]
+        o = T[:3, 3]
+        for z in world:
+            n = int(np.linalg.norm(z - o) / 0.05) + 2
+            cells = np.floor((o + np.linspace(0, 1, n)[:, None] * (z - o)) / RES).astype(np.int64)
+            crossing.append(len(np.unique(cells // til.tile_cells, axis=0)))
+    assert np.mean(np.array(crossing) >= 3) > 0.5, np.bincount(crossing)
+
+
+def test_workers_that_round_differently_are_refused(monkeypatch):
+    """The start-up probe: a worker whose fixed scene hashes otherwise stops the job."""
+    from ndtom_ti.cluster.engines import LocalEngine
+
+    monkeypatch.setattr(LocalEngine, "probe", lambda self: ["0" * 64])
+    with pytest.raises(RuntimeError, match="round"):
+        TiledMap(RES, workers=2, engine="local")
+
+
 def test_erasures_cross_tiles_as_events(sim, reference):
     """Without the events, cells beside another worker's tile miss erased neighbours: some
     cell reaches 6 (its rows widen) only through another worker's erasures."""
