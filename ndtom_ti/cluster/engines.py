@@ -10,6 +10,7 @@ steps, which Ray resolves before the call, so no barrier waits on the driver.
 from __future__ import annotations
 
 import hashlib
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -176,10 +177,13 @@ class RayEngine:
         self.n = spec.tiling.workers
         threads = spec.threads or 1
         if not ray.is_initialized():
+            # Ray's own lines (its start, the token note, the workers' output) stay in its
+            # logs (/tmp/ray/session_latest/logs), off the user's terminal: errors only.
+            quiet = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
             if address is None:
-                ray.init(num_cpus=max(self.n * threads, 1), include_dashboard=False, log_to_driver=False)
+                ray.init(num_cpus=max(self.n * threads, 1), **quiet)
             else:
-                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                ray.init(address=address, **quiet)
             self._owns_ray = True
         else:
             self._owns_ray = False
