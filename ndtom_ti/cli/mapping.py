@@ -176,9 +176,7 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
         t.add_row("map frame", escape(str(summary.fixed_frame)))
     t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
     resumed = (
-        f" (after the {fmt_count(summary.scans_resumed)} of the checkpoint resumed from)"
-        if summary.scans_resumed
-        else ""
+        f" (and the first {fmt_count(summary.scans_resumed)}: the resumed checkpoint)" if summary.scans_resumed else ""
     )
     t.add_row("scans used", f"{fmt_count(summary.scans_used)} of {fmt_count(summary.clouds_seen)} clouds read{resumed}")
     skipped = ", ".join(f"{fmt_count(n)} {_skip_reason(reason)}" for reason, n in summary.skipped.items()) or "none"
