@@ -207,7 +207,7 @@ def default_merged(folder: Path) -> Path:
     return folder.expanduser().resolve().parent / (stem if stem.endswith(MAP_SUFFIX) else stem + MAP_SUFFIX)
 
 
-@app.command(short_help="Join a tiled map's folder (ndtom map --workers) into one map file.")
+@app.command(short_help="Join a tiled map's folder into one map file.")
 def merge(
     folder: Annotated[
         Path,
