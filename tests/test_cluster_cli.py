@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -134,6 +135,25 @@ def test_map_with_workers_on_ray_is_the_one_process_map(one_process: Path, tmp_p
     assert_same_cells(one_process, tmp_path / "merged.ndtom")
 
 
+@pytest.mark.slow  # two Ray starts: about 70 s on two cores
+def test_map_joins_a_running_cluster(one_process: Path, tmp_path: Path) -> None:
+    """--cluster ADDRESS: the workers run on a Ray cluster started beforehand (here by this
+    process), which the command leaves running; the same map."""
+    import logging
+
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    try:
+        address = ray.get_runtime_context().gcs_address
+        r = ndtom(tmp_path, "map", need_balm(), *SIX, *WORKERS, "--cluster", address, "-o", "six.ndtom")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert f"processes on the Ray cluster at {address}" in r.stderr
+        assert ray.is_initialized() and ray.cluster_resources().get("CPU") == 2  # still up
+    finally:
+        ray.shutdown()
+    assert_same_cells(one_process, tmp_path / "six.ndtom")
+
+
 # ---------------------------------------------------------------------------- in this process
 def test_resume_carries_on_to_the_same_map(one_process: Path, tmp_path: Path, local_engine) -> None:
     """A run of 3 scans kept in --tiled T, resumed to 6: the map of 6 at once."""
@@ -210,6 +230,11 @@ def no_mapping(monkeypatch):
         (["--workers", "2", "--tiled", "{tmp}/full"], ["full is not empty and holds no tiled map"]),
         (["--workers", "2", "--tiled", "{tmp}/m.ndtom"], ["is the map file -o"]),
         (["--workers", "2", "--view"], ["--view maps in this process: not with --workers"]),
+        (["--workers", "2", "--cluster", "nowhere"], ["--cluster must be a Ray cluster's address HOST:PORT"]),
+        (
+            ["--workers", "2", "--cluster", "127.0.0.1:{port}"],
+            ["cannot reach the Ray cluster at 127.0.0.1:", "ray start"],
+        ),
     ],
     ids=[
         "workers-0",
@@ -225,6 +250,8 @@ def no_mapping(monkeypatch):
         "tiled-not-empty",
         "tiled-is-the-output",
         "view",
+        "cluster-not-an-address",
+        "cluster-unreachable",
     ],
 )
 def test_bad_options_fail_before_mapping(tmp_path: Path, no_mapping, args: list[str], texts: list[str]) -> None:
@@ -232,7 +259,10 @@ def test_bad_options_fail_before_mapping(tmp_path: Path, no_mapping, args: list[
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("x")
     bag = pb.write_plane_bag(tmp_path)
-    r = run("map", bag, "-r", pb.RES, "-o", tmp_path / "m.ndtom", *(a.format(tmp=tmp_path) for a in args))
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = run("map", bag, "-r", pb.RES, "-o", tmp_path / "m.ndtom", *(a.format(tmp=tmp_path, port=port) for a in args))
     assert_user_error(r, *texts)
 
 

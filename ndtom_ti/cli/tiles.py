@@ -9,6 +9,7 @@ import functools
 import math
 import os
 import shutil
+import socket
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any
@@ -153,9 +154,9 @@ def plan(
         raise ValueError(f"--worker-threads must be at least 1, got {worker_threads}")
     if view:
         raise ValueError("--view maps in this process: not with --workers")
-    if cluster is not None and not cluster.strip():
-        raise ValueError("--cluster needs the address of a running Ray cluster, e.g. --cluster 10.0.0.5:6379")
     need_extra("ray", "mapping with several worker processes (--workers)")
+    if cluster is not None:
+        check_reachable(cluster)
     folder = (tiled if tiled is not None else default_folder(output)).expanduser()
     what = "--tiled" if tiled is not None else "the checkpoint folder"
     if folder.exists() and not folder.is_dir():
@@ -197,6 +198,25 @@ def plan(
         memory_limit=memory_limit,
         resumed_scans=resumed,
     )
+
+
+def check_reachable(address: str) -> None:
+    """Fail at once when nothing listens at a Ray cluster's ``HOST:PORT`` (``ray://`` too;
+    "auto" is Ray's to find): Ray itself would retry for minutes, printing as it goes."""
+    if address == "auto":
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(
+            f"--cluster must be a Ray cluster's address HOST:PORT (e.g. 10.0.0.5:6379) or auto, got {address!r}"
+        )
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as exc:
+        fail(
+            f"cannot reach the Ray cluster at {address}: {exc.strerror or exc}",
+            "start one with `ray start --head` (it prints its address), or give its address with --cluster",
+        )
 
 
 # ---------------------------------------------------------------------------- merge
