@@ -303,3 +303,20 @@ def test_a_tiled_folder_is_read_as_a_map(tmp_path: Path, local_engine) -> None:
 
     assert view_command(t, "127.0.0.1", 0, tmp_path / "t.html") == 0
     assert (tmp_path / "t.html").stat().st_size > 1000
+
+
+def test_ray_init_leaves_the_commands_sigterm_handler() -> None:
+    """ray.init sets a SIGTERM handler that exits at once; the engine puts the command's
+    back (SIGTERM: the scan in hand finishes and the map is saved, as for Ctrl-C)."""
+    from ndtom_ti.cluster.engines import _own_sigterm
+
+    def mine(signum, frame):
+        pass
+
+    before = signal.signal(signal.SIGTERM, mine)
+    try:
+        with _own_sigterm():
+            signal.signal(signal.SIGTERM, lambda s, f: None)  # what ray.init does
+        assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, before)
