@@ -23,10 +23,11 @@ from typer.testing import CliRunner
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_pipeline_bags as pb  # noqa: E402
 
-import ndtom_ti.cli.tiles as tiles  # noqa: E402
+from ndtom_ti.cli import tiles  # noqa: E402
 from ndtom_ti.cli import app  # noqa: E402
 from ndtom_ti.cluster import TiledMap  # noqa: E402
 from ndtom_ti.snapshot import MapSnapshot  # noqa: E402
+from ndtom_ti.tiledfile import write_manifest  # noqa: E402
 
 BALM = DATA / "balm_hall_every4"
 REPO = Path(__file__).resolve().parents[1]
@@ -226,6 +227,11 @@ def no_mapping(monkeypatch):
         (["--resume", "--tiled", "{tmp}/T"], ["--tiled, --resume need --workers N"]),
         (["--workers", "2", "--resume"], ["--resume: no checkpoint to carry on from", "m.ndtom.tiles"]),
         (["--workers", "2", "--resume", "--tiled", "{tmp}/none"], ["no checkpoint to carry on from", "--tiled DIR"]),
+        (
+            ["--workers", "3", "--resume", "--tiled", "{tmp}/old"],
+            ["holds a run at -r 0.25 with --workers 2", "-r, --workers"],
+        ),
+        (["--workers", "2", "--tile-size", "4", "--resume", "--tiled", "{tmp}/old"], ["(--tile-size 1)"]),
         (["--workers", "2", "--tiled", "{tmp}/afile"], ["--tiled", "afile is a file, not a folder"]),
         (["--workers", "2", "--tiled", "{tmp}/full"], ["full is not empty and holds no tiled map"]),
         (["--workers", "2", "--tiled", "{tmp}/m.ndtom"], ["is the map file -o"]),
@@ -246,6 +252,8 @@ def no_mapping(monkeypatch):
         "resume-alone",
         "resume-no-checkpoint",
         "resume-empty-folder",
+        "resume-other-workers",
+        "resume-other-tiles",
         "tiled-is-a-file",
         "tiled-not-empty",
         "tiled-is-the-output",
@@ -258,6 +266,12 @@ def test_bad_options_fail_before_mapping(tmp_path: Path, no_mapping, args: list[
     (tmp_path / "afile").write_text("x")
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("x")
+    old = tmp_path / "old"  # the checkpoint of a stopped run: -r 0.25, 2 workers, tiles of 1 m (4 cells)
+    old.mkdir()
+    for name in ("a.ndtom", "b.ndtom"):
+        (old / name).write_bytes(b"")
+    info = {"resolution": pb.RES, "tile_size": 1.0, "tile_cells": 4, "workers": 2, "scans": 2, "complete": False}
+    write_manifest(old, info, ["a.ndtom", "b.ndtom"])
     bag = pb.write_plane_bag(tmp_path)
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))

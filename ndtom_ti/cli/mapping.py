@@ -479,6 +479,7 @@ def map_(
         check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
         out_path = check_writable(out_path, "map file")
         tiles = plan(
+            resolution=resolution,
             workers=workers,
             tile_size=tile_size,
             cluster=cluster,

@@ -113,6 +113,7 @@ class TiledRun:
 
 def plan(
     *,
+    resolution: float,
     workers: int | None,
     tile_size: float | None,
     cluster: str | None,
@@ -172,6 +173,17 @@ def plan(
             fail(f"--resume: no checkpoint to carry on from at {folder} (it has no {MANIFEST})", RESUME_HINT)
         doc = read_manifest(folder)
         resumed = int(doc["scans"])
+        from ..cluster.tiling import Tiling
+
+        now = (resolution, workers, Tiling(resolution, workers, size).tile_cells)
+        then = (doc["resolution"], doc["workers"], doc["tile_cells"])
+        if now != then:
+            fail(
+                f"--resume: {folder} holds a run at -r {doc['resolution']:g} with --workers {doc['workers']} and "
+                f"tiles of {doc['tile_cells']} cells (--tile-size {float(doc.get('tile_size', 0.0)):g}), not "
+                f"-r {resolution:g} --workers {workers} --tile-size {size:g} ({now[2]} cells)",
+                "resume with the stopped run's -r, --workers and --tile-size",
+            )
     elif is_tiled(folder):
         doc = read_manifest(folder)
         state = "a complete run" if doc.get("complete") else "a stopped run"
