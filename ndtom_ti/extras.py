@@ -11,7 +11,7 @@ import importlib.util
 from pathlib import Path
 
 # extra -> the modules it brings
-EXTRAS = {"viewer": ("viser",), "bench": ("pyoctomap", "matplotlib")}
+EXTRAS = {"viewer": ("viser",), "bench": ("pyoctomap", "matplotlib"), "cluster": ("ray",)}
 
 
 class ExtraMissingError(ImportError):

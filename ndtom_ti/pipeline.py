@@ -33,6 +33,7 @@ Example::
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 import time
@@ -68,6 +69,10 @@ __all__ = [
     "version",
 ]
 
+#: Makes the map a run fills: ``make_map(resolution, occupancy=..., config=..., metadata=...)``
+#: (NdtOmMap by default; e.g. ``functools.partial(ndtom_ti.cluster.TiledMap, workers=4)``).
+MakeMap = Callable[..., Any]
+
 #: Called once before the map is made (report None; the recording's topic and pose source
 #: are known by then) and after every inserted scan.
 ProgressFn = Callable[["MappingSummary", "ScanReport | None"], None]
@@ -94,7 +99,8 @@ class MappingSummary:
     options: dict = field(default_factory=dict)  # selection options (every, start, ...)
     scans_expected: int | None = None  # estimate for a progress bar (None: unknown)
     clouds_seen: int = 0  # clouds of the topic considered (used + skipped)
-    scans_used: int = 0  # scans inserted into the map
+    scans_used: int = 0  # scans inserted into the map (by this run)
+    scans_resumed: int = 0  # scans the map held from a stopped run's checkpoint (skipped here)
     skipped: dict = field(default_factory=dict)  # reason -> clouds not used
     skip_notes: list = field(default_factory=list)  # first detail per skip reason
     points_in: int = 0
@@ -215,6 +221,7 @@ class MappingSummary:
             for k in (
                 "clouds_seen",
                 "scans_used",
+                "scans_resumed",
                 "skipped",
                 "points_in",
                 "points_used",
@@ -405,6 +412,15 @@ def run_scans(
     return ran_out
 
 
+def _after_resumed(m: Any, scans: Iterable[Any], summary: MappingSummary) -> Iterable[Any]:
+    """The scans a map made from a stopped run's checkpoint does not hold yet: it holds the
+    first ``m.scans_inserted`` of them (``summary.scans_resumed``), which are read and
+    skipped (the same selection, so the same scans)."""
+    done = int(getattr(m, "scans_inserted", 0))
+    summary.scans_resumed = done
+    return itertools.islice(scans, done, None) if done else scans
+
+
 def _stopped(summary: MappingSummary, why: str, text: str) -> None:
     summary.stopped = why
     summary.error = f"{text} The map holds the {summary.scans_used} scans before it."
@@ -424,9 +440,11 @@ def map_scans(
     scans_expected: int | None = None,
     metadata: dict | None = None,
     progress: ProgressFn | None = None,
-) -> tuple[NdtOmMap, MappingSummary]:
+    make_map: MakeMap | None = None,
+) -> tuple[Any, MappingSummary]:
     """Map any scan source: an iterable of objects with ``points`` (N, 3) sensor frame and
-    ``T_world_sensor`` (4, 4), or of ``(points, T_world_sensor)`` pairs."""
+    ``T_world_sensor`` (4, 4), or of ``(points, T_world_sensor)`` pairs. ``make_map``: as
+    for :func:`map_recording`."""
     cfg = config_with_ranges(config, min_range=min_range, max_range=max_range)
     summary = MappingSummary(
         source=source,
@@ -439,9 +457,9 @@ def map_scans(
     )
     if progress is not None:
         progress(summary, None)
-    m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
+    m = (make_map or NdtOmMap)(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(metadata))
     try:
-        run_scans(m, scans, summary, progress)
+        run_scans(m, _after_resumed(m, scans, summary), summary, progress)
         summary.count_map(m)
     except BaseException:
         m.close()  # the slot back now, not when the traceback goes
@@ -512,8 +530,9 @@ def map_recording(
     max_range: float | None = None,
     metadata: dict | None = None,
     progress: ProgressFn | None = None,
+    make_map: MakeMap | None = None,
     **options: Any,
-) -> tuple[NdtOmMap, MappingSummary]:
+) -> tuple[Any, MappingSummary]:
     """Map a ROS1 bag or ROS2 bag folder at ``resolution`` metres.
 
     ``selection``: a :class:`~ndtom_ti.io.ScanSelection` (cloud topic, pose source, scan
@@ -521,6 +540,13 @@ def map_recording(
     keyword ``options``. The map's options: ``occupancy``, ``config``;
     ``min_range``/``max_range`` override the config's. ``progress(summary, report)`` is
     called before the first scan (report None) and after each one.
+
+    ``make_map(resolution, occupancy=, config=, metadata=)`` makes the map (default
+    :class:`~ndtom_ti.NdtOmMap`); e.g. ``functools.partial(TiledMap, workers=4,
+    folder="site.tiles", checkpoint_every=100)`` maps with four worker processes
+    (:class:`ndtom_ti.cluster.TiledMap`, the same map). A map that already holds scans
+    (``TiledMap(..., resume=True)``: a stopped run's checkpoint) gets the selected scans
+    after them; the selection must be the stopped run's.
 
     Returns ``(map, summary)``; the map's ``metadata`` records the recording, topic,
     pose source, options, settings, the ndtom_ti version and the summary. Raises
@@ -538,9 +564,9 @@ def map_recording(
         summary = run.summary
         if progress is not None:
             progress(summary, None)  # before the map (and Taichi) is made: the recording is fine
-        m = NdtOmMap(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(run.extra))
+        m = (make_map or NdtOmMap)(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(run.extra))
         try:
-            run_scans(m, run.stream, summary, progress, after_loop=run.count_clouds)
+            run_scans(m, _after_resumed(m, run.stream, summary), summary, progress, after_loop=run.count_clouds)
             summary.count_map(m)
         except BaseException:
             m.close()  # the slot back now, not when the traceback goes

@@ -202,11 +202,14 @@ class MapSnapshot:
 
     @classmethod
     def load(cls, path: str | Path) -> MapSnapshot:
-        """Read a map file (written by ``NdtOmMap.save`` or :meth:`save`), checked as
-        ``NdtOmMap.load`` checks it: broken or foreign files raise MapFileError."""
+        """Read a map file (written by ``NdtOmMap.save`` or :meth:`save`), or a tiled map's
+        folder (its tiles joined), checked as ``NdtOmMap.load`` checks it: broken or foreign
+        files and folders raise MapFileError."""
         if tiledfile.is_tiled(path):  # a tiled map's folder: its tiles joined
             doc = tiledfile.read_manifest(path)
             return cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
+        if Path(path).is_dir():
+            raise mapfile.MapFileError(tiledfile.not_tiled(path))
         settings, arrays = mapfile.read(path)
         try:
             return cls.adopt(settings, arrays)

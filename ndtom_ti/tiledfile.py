@@ -28,6 +28,11 @@ def is_tiled(path: str | Path) -> bool:
     return p.is_dir() and (p / MANIFEST).is_file()
 
 
+def not_tiled(path: str | Path) -> str:
+    """Why the folder ``path`` is not read as a map."""
+    return f"{path} is a folder without a {MANIFEST}: neither a map file nor a tiled map's folder"
+
+
 def tile_name(worker: int, scans: int) -> str:
     return f"tile-{worker}-scan{scans}.ndtom"
 

@@ -164,7 +164,7 @@ def test_help_lists_the_commands_in_their_order() -> None:
     res = CliRunner().invoke(app, ["--help"], env={"COLUMNS": "120"})
     assert res.exit_code == 0
     names = re.findall(r"^\s{2}(\w+)\s{2,}", res.output.split("Commands:")[1], re.M)
-    assert names == ["info", "map", "demo", "sweep", "experiments", "view", "export"], res.output
+    assert names == ["info", "map", "merge", "demo", "sweep", "experiments", "view", "export"], res.output
 
 
 def test_nothing_installed_looks_for_the_shared_folder(tmp_path: Path, monkeypatch) -> None:

@@ -46,7 +46,7 @@ def test_command_list_shows_each_short_help_whole() -> None:
         assert line.startswith("  ") and not line.startswith("   "), line  # no wrapped line
         name, text = line.split(None, 1)
         listed[name] = text
-    assert set(listed) == {"info", "map", "demo", "sweep", "experiments", "view", "export"}
+    assert set(listed) == {"info", "map", "merge", "demo", "sweep", "experiments", "view", "export"}
     for name, text in listed.items():
         assert text.endswith(".") and not text.endswith("...") and "Fig.)" not in text, (name, text)
     assert "Figs. 1-5" in listed["experiments"] and "Fig. 5" in listed["sweep"]

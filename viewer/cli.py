@@ -51,8 +51,10 @@ def _load(path: Path, what: str = "map") -> Any:
     if not path.exists():
         _error(f"{what} file {path} does not exist", "give a map file written by `ndtom map` or `ndtom demo`")
         return None
-    if path.is_dir():
-        _error(f"{what} file {path} is a folder, not a map file", "give a map file written by `ndtom map`")
+    from ndtom_ti.tiledfile import is_tiled, not_tiled
+
+    if path.is_dir() and not is_tiled(path):  # a tiled map's folder (ndtom map --workers --tiled) is a map
+        _error(not_tiled(path), "give a map file written by `ndtom map`, or a folder of `ndtom map --tiled`")
         return None
     try:
         return MapSnapshot.load(path)

@@ -6,6 +6,8 @@ Commands, a module each group:
   -> PLY, PCD, npz, CSV, OctoMap .bt or a 2-D occupancy grid);
 - :mod:`.mapping`: ``map`` (recording -> map file), ``demo`` (a built-in synthetic scene
   -> map file);
+- :mod:`.tiles`: ``map --workers N``'s options (a map built by several worker processes on
+  Ray) and ``merge`` (a tiled map's folder -> map file);
 - :mod:`.evaluation`: ``sweep`` (time per scan against resolution), ``experiments`` (the
   paper's evaluation);
 - :mod:`.view`: ``view`` (a map in the browser).
@@ -18,12 +20,12 @@ progress and tables, and turn errors into one red line and a hint. Exit codes:
 :mod:`ndtom_ti.exitcodes`.
 """
 
-from . import evaluation, inspect, mapping, view
+from . import evaluation, inspect, mapping, tiles, view
 from .mapping import default_output
 from .root import app, main
 
 # `ndtom --help` lists the commands in this order.
-_ORDER = ("info", "map", "demo", "sweep", "experiments", "view", "export")
+_ORDER = ("info", "map", "merge", "demo", "sweep", "experiments", "view", "export")
 app.registered_commands.sort(key=lambda c: _ORDER.index(c.name or getattr(c.callback, "__name__", "")))
 
-__all__ = ["app", "default_output", "evaluation", "inspect", "main", "mapping", "view"]
+__all__ = ["app", "default_output", "evaluation", "inspect", "main", "mapping", "tiles", "view"]

@@ -55,9 +55,37 @@ class Format(str, Enum):
 def _info_map(path: Path) -> None:
     from ..mapfile import read_header
 
-    h = read_header(path)
+    _info_header(f"Map file {path}", read_header(path))
+
+
+def _info_tiled(folder: Path) -> None:
+    """A tiled map's folder: its manifest, and the header of the map its tiles join into
+    (the tiles' headers added up; no cells read)."""
+    from ..mapfile import read_header
+    from ..tiledfile import read_manifest
+
+    doc = read_manifest(folder)
+    heads = [read_header(folder / name) for name in doc["tiles"]]
+    h = dict(heads[0])
+    rows: dict[str, list] = {}
+    for head in heads:
+        for a in head.get("arrays", []):
+            rows.setdefault(a["name"], [0, *a["shape"][1:]])[0] += int(a["shape"][0])
+    h["arrays"] = [{"name": name, "shape": shape} for name, shape in rows.items()]
+    h["metadata"] = {**(h.get("metadata") or {}), "complete": bool(doc.get("complete"))}
+    state = "complete" if doc.get("complete") else "a checkpoint of a run not finished (ndtom map --resume)"
+    tiled = (
+        f"{doc['workers']} tiles of {float(doc.get('tile_size', 0.0)):g} m ({doc['tile_cells']} cells), {state}; "
+        "`ndtom merge` joins them into one map file"
+    )
+    _info_header(f"Tiled map {folder}", h, [("tiled map", tiled)])
+
+
+def _info_header(title: str, h: dict, first: list[tuple[str, str]] | None = None) -> None:
     out = console_out()
-    t = make_table(f"Map file {path}", "", "", header=False)
+    t = make_table(title, "", "", header=False)
+    for key, text in first or []:
+        t.add_row(key, escape(text))
     md = h.get("metadata") or {}
     t.add_row("format version", escape(str(h.get("version"))))
     t.add_row("resolution", escape(f"{h.get('resolution')} m"))
@@ -200,18 +228,27 @@ def info(
     path: Annotated[
         Path,
         typer.Argument(
-            metavar="PATH", help="A ROS1 .bag file, a ROS2 bag folder, or an .ndtom map file.", show_default=False
+            metavar="PATH",
+            help="A ROS1 .bag file, a ROS2 bag folder, an .ndtom map file, or a tiled map's folder.",
+            show_default=False,
         ),
     ],
 ) -> None:
     """Show what is in a recording: topics, types, counts, duration, the TF tree, which
-    topics can be mapped and which pose sources exist. Given a map file, show its header."""
+    topics can be mapped and which pose sources exist. Given a map file, show its header;
+    given a tiled map's folder (``ndtom map --workers N --tiled DIR``), the header of the
+    map its tiles join into."""
     # (this command's own hint must not suggest this command again)
     with user_errors(
-        recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml) "
-        "or an .ndtom map file",
+        recording="`ndtom info` takes a ROS1 .bag file, a ROS2 bag folder (with its metadata.yaml), "
+        "an .ndtom map file or a tiled map's folder (with its manifest.json)",
         map_file="give a map file written by `ndtom map` or `ndtom demo` (`ndtom info` also takes recordings)",
     ):
+        from ..tiledfile import is_tiled
+
+        if is_tiled(path):  # a tiled map's folder (ndtom map --workers N --tiled DIR)
+            _info_tiled(path)
+            return
         is_map = path.suffix.lower() == ".ndtom"  # named a map file: its faults are a map file's, not a bag's
         if path.is_file() and not is_map:
             with path.open("rb") as fh:
@@ -226,7 +263,12 @@ def info(
 @app.command(short_help="Write a map as PLY, PCD, npz, CSV, OctoMap .bt or 2-D grid.")
 def export(
     map_file: Annotated[
-        Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.", show_default=False)
+        Path,
+        typer.Argument(
+            metavar="MAP",
+            help="A map file written by `ndtom map`, or a tiled map's folder (`ndtom map --workers N --tiled DIR`).",
+            show_default=False,
+        ),
     ],
     fmt: Annotated[
         Format | None,
@@ -290,11 +332,22 @@ def export(
             raise ValueError("give --z-min and --z-max together (or neither: 0.3 to 2 m above the floor)")
         if z_min is not None and z_max is not None and not z_min < z_max:
             raise ValueError(f"--z-min ({z_min}) must be below --z-max ({z_max})")
+        from ..tiledfile import is_tiled, not_tiled
+
         if not map_file.exists():
             fail(f"no map file at {map_file}", "give a map file written by `ndtom map` or `ndtom demo`")
-        if map_file.is_dir():
-            fail(f"{map_file} is a folder, not a map file", "give a map file written by `ndtom map` or `ndtom demo`")
-        out_path = output if output is not None else map_file.with_suffix(DEFAULT_SUFFIX[fmt_name])
+        tiled = is_tiled(map_file)  # a tiled map's folder: its tiles joined
+        if map_file.is_dir() and not tiled:
+            fail(
+                not_tiled(map_file),
+                "give a map file written by `ndtom map` or `ndtom demo`, or a folder of `ndtom map --tiled`",
+            )
+        if output is not None:
+            out_path = output
+        elif tiled:  # beside the folder: site.tiles -> site.tiles.ply
+            out_path = map_file.parent / (map_file.name + DEFAULT_SUFFIX[fmt_name])
+        else:
+            out_path = map_file.with_suffix(DEFAULT_SUFFIX[fmt_name])
         for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
             check_not_input(t, {"map file": map_file})
         out_path = check_writable(out_path, f"{fmt_name} file")

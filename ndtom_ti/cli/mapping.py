@@ -43,6 +43,7 @@ from .common import (
     user_errors,
 )
 from .root import app
+from .tiles import plan
 
 
 # ---------------------------------------------------------------------------- map
@@ -138,9 +139,10 @@ class _Bar:
             # the first scan compiles the kernels: no rate until a second one is in
             rate = f"{summary.points_per_second / 1e6:.2f} M points/s" if summary.scans_used > 1 else "compiling"
             total = summary.scans_expected
-            if total is not None and summary.scans_used > total:
-                total = summary.scans_used
-            self.progress.update(self.task, completed=summary.scans_used, total=total, rate=rate, description="mapping")
+            done = summary.scans_used + summary.scans_resumed
+            if total is not None and done > total:
+                total = done
+            self.progress.update(self.task, completed=done, total=total, rate=rate, description="mapping")
 
     def stop(self, summary: Any | None = None) -> None:
         if self._unlisten is not None:
@@ -148,10 +150,9 @@ class _Bar:
             self._unlisten = None
         if self.progress is not None:
             if summary is not None:
+                done = summary.scans_used + summary.scans_resumed
                 self.progress.update(
-                    self.task,
-                    completed=summary.scans_used,
-                    total=summary.scans_used if summary.complete else self.progress.tasks[0].total,
+                    self.task, completed=done, total=done if summary.complete else self.progress.tasks[0].total
                 )
             self.progress.stop()
             self.progress = None
@@ -174,7 +175,10 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
         t.add_row("poses", escape(summary.pose_source))
         t.add_row("map frame", escape(str(summary.fixed_frame)))
     t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
-    t.add_row("scans used", f"{fmt_count(summary.scans_used)} of {fmt_count(summary.clouds_seen)} clouds read")
+    resumed = (
+        f" (and the first {fmt_count(summary.scans_resumed)}: the resumed checkpoint)" if summary.scans_resumed else ""
+    )
+    t.add_row("scans used", f"{fmt_count(summary.scans_used)} of {fmt_count(summary.clouds_seen)} clouds read{resumed}")
     skipped = ", ".join(f"{fmt_count(n)} {_skip_reason(reason)}" for reason, n in summary.skipped.items()) or "none"
     t.add_row("scans skipped", escape(skipped))
     t.add_row(
@@ -219,7 +223,7 @@ def _finish_mapping(
     bar.stop(summary)
     out, err = console_out(), console_err()
     wrote: Path | None = None
-    if summary.scans_used:
+    if summary.scans_used or summary.scans_resumed:
         m.metadata.setdefault("options", {})["arch"] = bar.arch_used
         try:
             wrote = m.save(output)
@@ -233,7 +237,7 @@ def _finish_mapping(
         err.print(Text(f"note: {note}", style="dim"))
     if summary.stopped == "interrupted":
         name = signals.name if signals is not None and signals.count else "Ctrl-C"
-        n = summary.scans_used
+        n = summary.scans_used + summary.scans_resumed
         msg = (
             f"Interrupted: saved the {n} scan{'s' if n != 1 else ''} mapped so far to {wrote} ({name}; the map is "
             "marked incomplete)"
@@ -244,7 +248,8 @@ def _finish_mapping(
         return signals.exit_code if signals is not None and signals.count else EXIT_INTERRUPTED
     if summary.stopped == "memory":
         saved = (
-            f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)."
+            f"Saved the {summary.scans_used + summary.scans_resumed} scans mapped before it to {wrote} "
+            "(marked incomplete)."
             if wrote
             else "Nothing was mapped; no map written."
         )
@@ -255,14 +260,15 @@ def _finish_mapping(
     if summary.stopped == "error":
         err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "a scan could not be mapped", "red")))
         saved = (
-            f"Saved the {summary.scans_used} scans mapped before it to {wrote} (marked incomplete)."
+            f"Saved the {summary.scans_used + summary.scans_resumed} scans mapped before it to {wrote} "
+            "(marked incomplete)."
             if wrote
             else "Nothing was mapped; no map written."
         )
         fix = "Check that scan's pose and cloud (`ndtom info BAG`), or end the run before it with --end or --max-scans."
         err.print(Text.assemble(("Hint: ", "bold"), f"{saved} {fix}"))
         return EXIT_FAILURE
-    if not summary.scans_used:
+    if not summary.scans_used and not summary.scans_resumed:
         why = ", ".join(f"{n} {_skip_reason(r)}" for r, n in summary.skipped.items()) or "the selection is empty"
         fail(
             f"no scans were mapped ({summary.clouds_seen} clouds: {why}); no map written",
@@ -371,6 +377,67 @@ def map_(
     no_wait: Annotated[
         bool, typer.Option("--no-wait", help="With --view: start mapping at once, not when the first browser connects.")
     ] = False,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            metavar="N",
+            help="Map with N worker processes on Ray (extra [cluster]), each updating the cells of its own tiles: "
+            "the same map file, cell for cell.",
+            show_default=False,
+        ),
+    ] = None,
+    tile_size: Annotated[
+        float | None,
+        typer.Option(
+            "--tile-size",
+            metavar="METRES",
+            help="With --workers: edge of the cubic tiles shared among the workers (default 16).",
+            show_default=False,
+        ),
+    ] = None,
+    cluster: Annotated[
+        str | None,
+        typer.Option(
+            metavar="ADDRESS",
+            help="With --workers: join the running Ray cluster at ADDRESS (host:port) instead of starting a local one.",
+            show_default=False,
+        ),
+    ] = None,
+    tiled: Annotated[
+        Path | None,
+        typer.Option(
+            metavar="DIR",
+            help="With --workers: write the checkpoints to DIR and keep it, a tiled map (`ndtom merge`, info, export "
+            "and view read it). Default: OUT.tiles beside the map file, removed after a complete run.",
+            show_default=False,
+        ),
+    ] = None,
+    checkpoint_every: Annotated[
+        int | None,
+        typer.Option(
+            metavar="K",
+            help="With --workers: checkpoint every K scans (default 100; 0: only at the end); a lost worker "
+            "restarts the job from the last one.",
+            show_default=False,
+        ),
+    ] = None,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume",
+            help="With --workers: carry on from the checkpoint of a stopped run (--tiled DIR, else OUT.tiles), "
+            "skipping the scans it holds; give the stopped run's options.",
+        ),
+    ] = False,
+    worker_threads: Annotated[
+        int | None,
+        typer.Option(
+            metavar="N",
+            help="With --workers: CPU threads of each worker. Default: this machine's CPUs shared among the workers "
+            "(with --cluster: Taichi's default).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Map a recording into an NDT Occupancy Map file.
 
@@ -411,6 +478,19 @@ def map_(
         out_path = output if output is not None else default_output(bag)
         check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
         out_path = check_writable(out_path, "map file")
+        tiles = plan(
+            resolution=resolution,
+            workers=workers,
+            tile_size=tile_size,
+            cluster=cluster,
+            tiled=tiled,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
+            worker_threads=worker_threads,
+            memory_limit=memory_limit,
+            output=out_path,
+            view=view,
+        )
         selection = ScanSelection(
             cloud_topic=cloud_topic,
             fixed_frame=fixed_frame,
@@ -450,6 +530,10 @@ def map_(
             raise typer.Exit(code)
 
         bar = _Bar(arch, progress, memory_limit)
+        metadata: dict[str, Any] = {"command": "ndtom map", "config_file": str(config.resolve()) if config else None}
+        if tiles is not None:
+            metadata["workers"] = {"workers": tiles.workers, "tile_size": tiles.tile_size, "engine": "ray"}
+            console_err().print(Text(tiles.describe(), style="cyan"))
         # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit
         with stop_signals(restore=not own_process()) as sig:
             try:
@@ -459,14 +543,23 @@ def map_(
                     selection,
                     occupancy=occupancy,
                     config=mapcfg,
-                    metadata={"command": "ndtom map", "config_file": str(config.resolve()) if config else None},
+                    metadata=metadata,
                     progress=bar,
+                    make_map=tiles.make_map() if tiles is not None else None,
                 )
             except BaseException:
                 bar.stop()
                 raise
-            code = _finish_mapping(m, summary, out_path, bar, signals=sig)
-            m.close()  # its slot back now: the map is on disk
+            try:
+                if tiles is not None:
+                    sig.phase = "saving"  # from here on a signal waits for the checkpoint and the map
+                    bar.stop(summary)
+                    tiles.finish(m, summary, "ndtom map")
+                code = _finish_mapping(m, summary, out_path, bar, signals=sig)
+            finally:
+                m.close()  # its slot (or its workers) back now: the map is on disk
+            if tiles is not None and code == EXIT_OK:
+                tiles.clean(summary)
     raise typer.Exit(code)
 
 

@@ -16,7 +16,12 @@ from .root import app
 @app.command(short_help="Look at a map in the browser, or write an HTML page.")
 def view(
     map_file: Annotated[
-        Path, typer.Argument(metavar="MAP", help="A map file written by `ndtom map`.", show_default=False)
+        Path,
+        typer.Argument(
+            metavar="MAP",
+            help="A map file written by `ndtom map`, or a tiled map's folder (`ndtom map --workers N --tiled DIR`).",
+            show_default=False,
+        ),
     ],
     host: Annotated[
         str,

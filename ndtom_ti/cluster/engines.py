@@ -9,8 +9,13 @@ steps, which Ray resolves before the call, so no barrier waits on the driver.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import logging
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -177,6 +182,19 @@ def ray_module():
     return ray
 
 
+@contextlib.contextmanager
+def _own_sigterm() -> Iterator[None]:
+    """Keep this process's SIGTERM handler through ``ray.init``, which sets one that exits
+    at once (``ndtom map`` finishes the scan in hand and saves, as for Ctrl-C)."""
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.getsignal(signal.SIGTERM) if main else None
+    try:
+        yield
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGTERM, before)
+
+
 class RayEngine:
     """The workers as Ray actors (``address``: join that cluster; None: start a local one
     with a CPU per worker thread)."""
@@ -186,10 +204,14 @@ class RayEngine:
         self.n = spec.tiling.workers
         threads = spec.threads or 1
         if not ray.is_initialized():
-            if address is None:
-                ray.init(num_cpus=max(self.n * threads, 1), include_dashboard=False, log_to_driver=False)
-            else:
-                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            # Ray's own lines (its start, the token note, the workers' output) stay in its
+            # logs (/tmp/ray/session_latest/logs), off the user's terminal: errors only.
+            quiet = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
+            with _own_sigterm():
+                if address is None:
+                    ray.init(num_cpus=max(self.n * threads, 1), **quiet)
+                else:
+                    ray.init(address=address, **quiet)
             self._owns_ray = True
         else:
             self._owns_ray = False
