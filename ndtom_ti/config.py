@@ -231,6 +231,25 @@ class MapConfig:
         return cls(**d)
 
 
+def config_of(config: object, options: dict) -> MapConfig:
+    """A new map's MapConfig: ``config``, or one made of keyword ``options`` (MapConfig's
+    fields; what was left out keeps its default). TypeError for both, an unknown option or a
+    ``config`` that is no MapConfig."""
+    if config is not None and options:
+        raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
+    if options:
+        unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
+        if unknown:
+            raise TypeError(
+                f"unknown map options {unknown}; the options are MapConfig's: "
+                f"{', '.join(f.name for f in fields(MapConfig))}"
+            )
+    out = config if config is not None else MapConfig(**options)
+    if not isinstance(out, MapConfig):
+        raise TypeError(f"config must be a MapConfig, got {type(out).__name__}")
+    return out
+
+
 def check_resolution(resolution: object, name: str = "resolution") -> float:
     """``resolution`` as a float of metres: a TypeError for anything but a real number
     (bools included), a ValueError for one that is not finite and positive. ``name`` is

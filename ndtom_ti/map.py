@@ -11,14 +11,15 @@ import numpy as np
 
 from . import runtime
 from .atomic import check_target
-from .config import N_LIMIT, MapConfig, check_resolution
+from .cellquery import cell_extent, check_cell_index, known_cells_of, occupancy_of, select_gaussians
+from .config import N_LIMIT, MapConfig, check_resolution, config_of
 from .kernels.layout import Layout
 from .mapfile import MapFileError
+from .memreport import memory_report
 from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
-from .scaninput import cell_box
 from .slot import MapSlot, release_dead
-from .snapshot import MapSnapshot, copy_metadata, probability, select_gaussians
+from .snapshot import SETTINGS, MapSnapshot, copy_metadata
 
 
 def _locked(method):
@@ -102,22 +103,8 @@ class NdtOmMap:
             "max_range_mode": max_range_mode,
             "n_max": n_max,
         }
-        options = {**{k: v for k, v in given.items() if v is not None}, **options}
         resolution = check_resolution(resolution)
-        if config is not None and options:
-            raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
-        if options:
-            from dataclasses import fields
-
-            unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
-            if unknown:
-                raise TypeError(
-                    f"unknown map options {unknown}; the options are MapConfig's: "
-                    f"{', '.join(f.name for f in fields(MapConfig))}"
-                )
-        self.config = config if config is not None else MapConfig(**options)
-        if not isinstance(self.config, MapConfig):
-            raise TypeError(f"config must be a MapConfig, got {type(self.config).__name__}")
+        self.config = config_of(config, {**{k: v for k, v in given.items() if v is not None}, **options})
         self.config.check_at(resolution)
         self.resolution = resolution
         self.occupancy_enabled = bool(occupancy)
@@ -175,11 +162,7 @@ class NdtOmMap:
     def data_extent(self) -> tuple[np.ndarray, np.ndarray] | None:
         """World-frame bounds (metres) of the known cells, occupied or free: (min corner,
         max corner) of the box of whole cells holding them; None for an empty map."""
-        idx = self.known_cells()["index"]
-        if len(idx) == 0:
-            return None
-        lo, hi = cell_box(idx)
-        return lo * self.resolution, (hi + 1) * self.resolution
+        return cell_extent(self.known_cells()["index"], self.resolution)
 
     def cell_index(self, points: Any) -> np.ndarray:
         """Cell indices ``floor(x / resolution)`` (int64) of world points (N, 3)."""
@@ -241,32 +224,9 @@ class NdtOmMap:
 
     @_locked
     def memory_report(self) -> dict:
-        """Memory held, by part, with bytes per known cell and per Gaussian."""
-        slot, recs = self._slot, self._slot.records
-        nodes = slot.node_counts()
-        known = len(self.known_cells()["index"])
-        gauss = len(self)
-        total = self.memory_bytes()
-        return {
-            "total_bytes": total,
-            "node_bytes": slot.node_bytes(),
-            "record_bytes": recs.nbytes(),
-            "records_held": recs.capacity,
-            "records_in_use": recs.in_use,
-            "records_free": recs.nfree,
-            "occupancy_regions": int(nodes[0]),
-            "occupancy_leaves": int(nodes[1]),
-            "index_regions": int(nodes[2]),
-            "index_leaves": int(nodes[3]),
-            "known_cells": known,
-            "gaussians": gauss,
-            "bytes_per_known_cell": total / known if known else float("nan"),
-            "bytes_per_gaussian": total / gauss if gauss else float("nan"),
-            # Scan scratch of all maps, outside the pool: the dense ray-count block.
-            "process_scratch_bytes": slot.storage.block_buf.nbytes + slot.storage.bflag_buf.nbytes,
-            "process_pool_bytes": slot.storage.pool_bytes(),
-            "process_pool_budget_bytes": runtime.pool_limit(),
-        }
+        """Memory held, by part, with bytes per known cell and per Gaussian (see
+        :func:`~ndtom_ti.memreport.memory_report`)."""
+        return memory_report(self._slot, len(self.known_cells()["index"]), len(self), self.memory_bytes())
 
     # ------------------------------------------------------------------ queries
 
@@ -300,9 +260,7 @@ class NdtOmMap:
     def known_cells(self) -> dict:
         """Every cell with a non-zero log-odds (occupied and free), sorted by index:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
-        idx, val = self._slot.known()
-        lo = val.astype(np.float64)
-        return {"index": idx.astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
+        return known_cells_of(*self._slot.known())
 
     @_locked
     def occupancy(self, points: Any, *, return_known: bool = False) -> Any:
@@ -312,29 +270,13 @@ class NdtOmMap:
         Unknown cells (never touched, or outside the grid) read 0.5, the prior; pass
         ``return_known=True`` to also get a boolean mask of the cells that are known.
         """
-        if np.ndim(points) == 1 and np.shape(points) == (3,):
-            p, k = self.occupancy(np.reshape(points, (1, 3)), return_known=True)
-            return (float(p[0]), bool(k[0])) if return_known else float(p[0])
-        pts = _as_points(points)
-        out = np.full(len(pts), 0.5)
-        known = np.zeros(len(pts), bool)
-        ok = np.isfinite(pts).all(axis=1)
-        cells = np.zeros((len(pts), 3))
-        cells[ok] = np.floor(pts[ok] / self.resolution)
-        ok &= self._slot.in_grid(cells)
-        if ok.any():
-            lo = self.logodds_at(cells[ok].astype(np.int64))
-            out[ok] = probability(lo)
-            known[ok] = lo != 0.0
-        return (out, known) if return_known else out
+        return occupancy_of(points, self.resolution, self._slot.in_grid, self.logodds_at, return_known)
 
     @_locked
     def logodds_at(self, index: Any) -> np.ndarray:
         """Log-odds (float64) of cells given by integer index (K, 3); unknown cells and
         cells outside the grid read 0."""
-        idx = np.asarray(index)
-        if idx.ndim != 2 or idx.shape[1] != 3 or not np.issubdtype(idx.dtype, np.integer):
-            raise ValueError(f"index must be an integer (K, 3) array of cell indices, got {idx.dtype} {idx.shape}")
+        idx = check_cell_index(index)
         out = np.zeros(len(idx))
         ok = self._slot.in_grid(idx)
         if ok.any():
@@ -380,15 +322,9 @@ class NdtOmMap:
     def snapshot(self) -> MapSnapshot:
         """The map's content now as plain numpy arrays (:class:`~ndtom_ti.snapshot.MapSnapshot`):
         save, export, coarsen and view it without a map slot."""
-        settings = {
-            "resolution": self.resolution,
-            "occupancy_enabled": self.occupancy_enabled,
-            "config": self.config,
-            "layout": self.layout,
-            "metadata": copy_metadata(self.metadata),
-            "scans_inserted": self.scans_inserted,
-            "points_inserted": self.points_inserted,
-        }
+        # a map has the snapshot's settings by name; its metadata is copied, not shared
+        settings = {name: getattr(self, name) for name in SETTINGS}
+        settings["metadata"] = copy_metadata(self.metadata)
         return MapSnapshot.adopt(settings, self._slot.state())
 
     @classmethod

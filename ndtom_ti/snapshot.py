@@ -26,8 +26,9 @@ import numpy as np
 
 from . import mapfile, tiledfile
 from .cellkeys import lookup_rows, pack
+from .cellquery import cell_extent, check_cell_index, known_cells_of, select_gaussians
 from .cellstate import ARRAYS, ROWS
-from .config import MapConfig, check_gaussian_filter, check_resolution
+from .config import MapConfig, check_resolution
 from .kernels.layout import Layout
 
 if TYPE_CHECKING:
@@ -36,38 +37,6 @@ if TYPE_CHECKING:
 __all__ = ["ARRAYS", "MapSnapshot"]
 
 SETTINGS = ("resolution", "occupancy_enabled", "config", "layout", "metadata", "scans_inserted", "points_inserted")
-_COV_IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def probability(logodds: np.ndarray) -> np.ndarray:
-    """Occupancy probability of float64 log-odds (a large one reads 1)."""
-    with np.errstate(over="ignore"):
-        return 1.0 - 1.0 / (1.0 + np.exp(logodds))
-
-
-def select_gaussians(
-    index, n, mean_rel, scatter, logodds, resolution: float, min_points, min_probability, default_min_points: int
-) -> dict:
-    """The dict of ``gaussians()`` (a map's and a snapshot's) from Gaussian records sorted by
-    cell: ``index`` (G, 3), ``n`` (G,), ``mean_rel`` (G, 3) mean minus the cell centre,
-    ``scatter`` (G, 6) xx xy xz yy yz zz, ``logodds`` (G,) of their cells."""
-    min_points, min_probability = check_gaussian_filter(min_points, min_probability, default_min_points)
-    keep = n >= max(min_points, 1)
-    lo = np.asarray(logodds).astype(np.float64)
-    p = probability(lo)
-    if min_probability > 0.0:
-        keep &= p > min_probability
-    idx = index[keep].astype(np.int64)
-    cnt = n[keep].astype(np.int64)
-    s = scatter[keep]
-    cov = np.empty((len(cnt), 3, 3))
-    for col, (a, b) in enumerate(_COV_IJ):
-        cov[:, a, b] = s[:, col]
-        cov[:, b, a] = s[:, col]
-    cov /= np.maximum(cnt - 1, 1).astype(np.float64)[:, None, None]
-    cov[cnt < 2] = 0.0
-    mean = (idx + 0.5) * resolution + mean_rel[keep]
-    return {"index": idx, "mean": mean, "cov": cov, "n": cnt, "p_occ": p[keep], "logodds": lo[keep]}
 
 
 def copy_metadata(metadata: dict) -> dict:
@@ -264,10 +233,7 @@ class MapSnapshot:
 
     def logodds_at(self, index: Any) -> np.ndarray:
         """Log-odds (float64) of cells given by integer index (K, 3); unknown cells read 0."""
-        idx = np.asarray(index)
-        if idx.ndim != 2 or idx.shape[1] != 3 or not np.issubdtype(idx.dtype, np.integer):
-            raise ValueError(f"index must be an integer (K, 3) array of cell indices, got {idx.dtype} {idx.shape}")
-        return self._lookup(idx).astype(np.float64)
+        return self._lookup(check_cell_index(index)).astype(np.float64)
 
     def _lookup(self, idx: np.ndarray) -> np.ndarray:
         """float32 log-odds of cells ``idx`` (K, 3): binary search in the sorted known cells."""
@@ -298,8 +264,7 @@ class MapSnapshot:
     def known_cells(self) -> dict:
         """Every known cell (occupied and free), as ``NdtOmMap.known_cells`` gives them:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
-        lo = self.occ_logodds.astype(np.float64)
-        return {"index": self.occ_index.astype(np.int64), "logodds": lo, "p_occ": probability(lo)}
+        return known_cells_of(self.occ_index, self.occ_logodds)
 
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
@@ -307,12 +272,7 @@ class MapSnapshot:
 
     def data_extent(self) -> tuple[np.ndarray, np.ndarray] | None:
         """World-frame (min corner, max corner) of the box of known cells; None when empty."""
-        idx = self.occ_index
-        if len(idx) == 0:
-            return None
-        lo = np.array([idx[:, a].min() for a in range(3)], np.float64)
-        hi = np.array([idx[:, a].max() for a in range(3)], np.float64) + 1.0
-        return lo * self.resolution, hi * self.resolution
+        return cell_extent(self.occ_index, self.resolution)
 
     def memory_bytes(self) -> int:
         """Bytes of the snapshot's arrays."""

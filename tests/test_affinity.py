@@ -66,7 +66,7 @@ def test_no_pinning_unless_one_thread_per_cpu():
 
 @linux_cpu
 def test_workers_not_found_pins_nothing(monkeypatch):
-    monkeypatch.setattr(affinity, "_run_times", lambda: {})
+    monkeypatch.setattr(affinity, "_run_times", lambda: {})  # private: the threads' run times, none found
     assert affinity.pool_threads(cpu_threads()) == []
 
 
@@ -89,6 +89,7 @@ def test_environment_switch(env, expect):
 def test_the_command_pins_unless_told_not_to(option, expect):
     if len(_cpus()) < 2:
         pytest.skip("one CPU: nothing to pin")
+    # private: the command's root callback (it takes the option) alone, without a command to run
     code = (
         "import sys; from ndtom_ti import runtime; from ndtom_ti.cli import common, root; "
         "root._main(pin_threads=sys.argv[1] == '--pin-threads'); "

@@ -85,6 +85,7 @@ def test_source_read_once_per_function():
     def files(fn):
         return "f.py"
 
+    # private: the memo alone, on stand-in readers (fast_frontend installs it over Taichi's own)
     sourcefile, sourcelines = compiling._cached_source(files, lines)
 
     def f():

@@ -40,6 +40,7 @@ def _expect(a, b, out, k, u, x, pts):
 
 def test_launcher_computes_what_taichi_computes(rng):
     fast = launch.Launcher(_mix)
+    # private: which path a call took (its plans, or Taichi's call) is not observable otherwise
     assert fast._kinds is not None, "the launcher fell back to Taichi's call for plain arguments"
     for call in range(3):  # the first call of a signature goes through Taichi, then the plan
         args = _args(rng, 50)
@@ -73,7 +74,7 @@ def test_launcher_hands_what_it_cannot_pass_to_taichi(rng):
 
 def test_launcher_without_the_taichi_internals_it_uses_keeps_taichis_call(rng):
     fast = launch.Launcher(_mix)
-    real = fast._k
+    real = fast._k  # private: the Taichi kernel inside, replaced by one without the internals the plans use
 
     class OtherTaichi:  # compiled kernels without make_launch_context
         arguments = real.arguments

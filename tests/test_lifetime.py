@@ -22,7 +22,8 @@ def scan(rng):
 def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
     m = NdtOmMap(0.5)
     m.insert_scan(*scan(rng))
-    st, slot = m._slot.storage, m._slot.index
+    st = runtime.storage(m.layout)
+    slot = m._slot.index  # private: the slot's number (slots are the process's internals, no public API)
     assert slot not in st.free_slots and st.nodes(slot).sum() > 0
     m.close()
     assert m.closed and slot in st.free_slots and st.nodes(slot).sum() == 0
@@ -46,9 +47,9 @@ def test_close_gives_the_slot_back_at_once_and_the_map_refuses_use(rng):
 def test_with_closes_the_map_even_on_an_error(rng):
     with NdtOmMap(0.5) as m:
         m.insert_scan(*scan(rng))
-        slot = m._slot.index
+        slot = m._slot.index  # private: the slot's number (slots are the process's internals, no public API)
         assert len(m) > 0
-    assert m.closed and slot in m._slot.storage.free_slots
+    assert m.closed and slot in runtime.storage(m.layout).free_slots
     with pytest.raises(RuntimeError, match="boom"), NdtOmMap(0.5) as m2:
         raise RuntimeError("boom")
     assert m2.closed

@@ -351,7 +351,7 @@ def test_n_max_caps_the_count_and_scales_the_scatter(rng):
 def test_leaf_counters_are_exact_and_slots_are_emptied(rng):
     st = runtime.storage(ndtom_ti.Layout())
     m, _ = scene_map(rng, scans=3)
-    slot = m._slot.index
+    slot = m._slot.index  # private: the slot's number (slots are the process's internals, no public API)
     cells = np.zeros((st.slots, 2), np.int64)
     st.kernels.count_leaf_cells(cells)
     assert (cells // st.layout.leaf_cells == st.leaf_count).all()
@@ -378,13 +378,13 @@ def test_cached_node_counts_follow_the_regions_of_reused_slots(rng):
         ]
 
     m, _ = scene_map(rng, scans=2)
-    slot = m._slot.index
+    slot = m._slot.index  # private: the slot's number (slots are the process's internals, no public API)
     assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
     del m
     gc.collect()
     assert st.nodes(slot).tolist() == [0, 0, 0, 0]
     m = NdtOmMap(0.5)  # the emptied slot again, far from the last scene
-    assert m._slot.index == slot
+    assert m._slot.index == slot  # private: as above
     m.insert_scan(rng.normal(size=(500, 3)) * 3.0 + [300.0, -200.0, 5.0], np.eye(4))
     assert st.nodes(slot).tolist() == fresh(slot) and st.nodes(slot)[0] > 0
 
@@ -411,7 +411,7 @@ def test_map_refuses_updates_past_the_pool_budget_and_stays_unchanged(rng):
     finally:
         del m
         gc.collect()
-        runtime._state.pool_limit = old
+        ndtom_ti.init(memory_limit_GB=old / 2**30)  # the budget before, to the byte
 
 
 def test_init_rejects_unsafe_budget_and_arch_switch(arch):
@@ -503,10 +503,10 @@ def test_batched_tracing_under_memory_pressure_gives_the_same_map(rng):
     try:
         rep = a.memory_report()
         nodes = [rep[k] for k in ("occupancy_regions", "occupancy_leaves", "index_regions", "index_leaves")]
-        runtime._state.pool_limit = st.pool_bytes(np.array(nodes))
+        ndtom_ti.init(memory_limit_GB=st.pool_bytes(np.array(nodes)) / 2**30)  # to the byte: bytes / 2**30 is exact
         batches = [b.insert_scan(pts, T).ray_batches for pts, T in scans]
     finally:
-        runtime._state.pool_limit = old
+        ndtom_ti.init(memory_limit_GB=old / 2**30)
     assert min(batches) >= 1, batches  # batched every time
     ka, kb = a.known_cells(), b.known_cells()
     assert np.array_equal(ka["index"], kb["index"]) and np.array_equal(ka["logodds"], kb["logodds"])

@@ -423,6 +423,7 @@ def test_symbol_guard_refuses_other_files(tmp_path):
 
     from ndtom_ti import hostpool
 
+    # private: the ELF reader alone, on files the public path never gives it (it reads Taichi's library)
     text = tmp_path / "not_elf.so"
     text.write_bytes(b"just text, not a library" * 10)
     with pytest.raises(hostpool.GuardFailed, match="ELF"):

@@ -593,7 +593,7 @@ def test_synthetic_scans_where_objects_left_match_the_reference(sim_hall_dynamic
         o = sim.origin(i)
         insert_world(m, o, world)
         scans.append((o, world))
-    rec = m._slot.records
+    rec = m._slot.records  # private: the records' neighbour state and inverse covariances are not in state()
     state, alive = rec.nbr[: rec.count], rec.n[: rec.count] > 0
     wide = ((state & NBR_COUNT) >= NDT_ERASED_NEIGHBOURS) & alive
     assert wide.any() and (rec.icov[: rec.count][wide][:, [0, 3, 5]] == NDT_WIDE).all()

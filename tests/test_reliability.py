@@ -198,7 +198,8 @@ def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
 
     m = NdtOmMap(0.5)
     m.insert_scan(np.random.default_rng(0).normal(size=(300, 3)) + [3, 0, 0], np.eye(4))
-    st, slot = m._slot.storage, m._slot.index
+    st = ndtom_ti.runtime.storage(m.layout)
+    slot = m._slot.index  # private: the slot's number (slots are the process's internals, no public API)
     holding, release = threading.Event(), threading.Event()
 
     def hold():
@@ -210,12 +211,12 @@ def test_a_map_collected_while_another_thread_holds_the_lock_does_not_wait():
     t.start()
     assert holding.wait(10)
     del m  # the finalizer runs here, while the other thread holds the lock
-    pending = [s for _, s in slot_module._dead_slots]
+    pending = [s for _, s in slot_module._dead_slots]  # private: the slots waiting to be emptied, no public API
     release.set()
     t.join(10)
     assert pending == [slot] and slot not in st.free_slots
     fresh = NdtOmMap(0.5)  # frees the pending slot first
-    assert not slot_module._dead_slots and (fresh._slot.index == slot or slot in st.free_slots)
+    assert not slot_module._dead_slots and (fresh._slot.index == slot or slot in st.free_slots)  # private: as above
     assert len(fresh.known_cells()["index"]) == 0  # the slot was emptied
 
 

@@ -566,6 +566,7 @@ def test_map_view_names_the_signal_and_exits_with_its_code(tmp_path, monkeypatch
     from ndtom_ti.viewer import cli as vcli
 
     bag = pb.write_plane_bag(tmp_path)
+    # private: the command's wait for Ctrl-C after mapping has no public hook
     monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: None)
     insert = NdtOmMap.insert_scan
     done = []
@@ -596,6 +597,7 @@ def test_live_default_finish_exits_143_on_sigterm(tmp_path, monkeypatch):
     from ndtom_ti.demo import make_scans
     from ndtom_ti.viewer import cli as vcli
 
+    # private: the command's wait for Ctrl-C after mapping has no public hook
     monkeypatch.setattr(vcli, "_serve_until_stopped", lambda viewer, stop: None)
 
     def scans():

@@ -355,7 +355,7 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
 
 
 def test_time_per_scan_chart_leaves_out_the_first_scans_compile():
-    from ndtom_ti.viewer.live import chart_series
+    from ndtom_ti.viewer.livepanel import chart_series
 
     (x, ys, y2), note = chart_series([5300.0, 40.0, 55.0, 48.0], [900.0, 20.0, 30.0])
     assert x.tolist() == [2, 3] and ys.tolist() == [40.0, 55.0] and y2.tolist() == [20.0, 30.0]  # no NaN

@@ -3,8 +3,9 @@
 A viewer composes viser's server with three parts, each its own module: ``levels``
 (:class:`~.levels.LevelCache`: the maps shown, the lock on them, their coarser levels),
 ``scene`` (:class:`~.scene.MapScene`: the layers drawn under ``/ndtom`` and the camera)
-and ``controls`` (:class:`~.controls.Controls`: the panel). Live mapping
-(:class:`~.live.LiveMapper`) drives a viewer through its public methods.
+and ``controls`` (:class:`~.controls.Controls`: the panel); :func:`~.redraw.redraw` joins
+them in one redraw. Live mapping (:class:`~.live.LiveMapper`) drives a viewer through its
+public methods.
 
 A map may be an :class:`~ndtom_ti.NdtOmMap` (live mapping) or a
 :class:`~ndtom_ti.snapshot.MapSnapshot` (a map file: ``ndtom view``). Coarser levels are
@@ -31,12 +32,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import geometry as geo
 from ._deps import require_viser
 from .controls import Controls
-from .levels import AUTO, Caps, LevelCache, fmt
+from .levels import Caps, LevelCache, fmt
 from .live import LiveMapper
-from .panel import html_panel, stats_markdown, with_panel
+from .panel import html_panel, with_panel
+from .redraw import redraw
 from .scene import FirstView, MapScene
 from .security import AccessGuard
 from .server import announcement, check_listen, start_server, url_for
@@ -249,7 +250,7 @@ class MapViewer:
         """Show other maps (the coarsened levels are dropped)."""
         self.levels.set(m, compare)
         self.scene.reframe()
-        self.controls.new_maps(compare is not None, m.resolution if m is not None else None, self._auto_drawn())
+        self.controls.new_maps(compare is not None, m.resolution if m is not None else None, self.scene.auto_drawn())
         self.refresh()
 
     def set_trajectory(self, positions: Any) -> None:
@@ -399,60 +400,8 @@ class MapViewer:
             )
             with self._live_lock:
                 traj, scan = self._trajectory, self._scan_world
-            self._draw(snap, want, traj, scan)
+            redraw(self.levels, self.scene, c, self.caps, snap, want, traj, scan)
         self.last_refresh_s = time.perf_counter() - t0
-
-    def _draw(self, snap: dict, want: dict[str, bool], traj: np.ndarray, scan: np.ndarray) -> None:
-        c = self.controls
-        color_mode = str(c.color_mode.value)
-        g = snap.get("g")
-        # nothing non-finite reaches the page (three.js fails on a NaN position; a scan may carry NaN points)
-        if g is not None and not (keep := geo.finite_rows(g["mean"], g["cov"])).all():
-            g = {k: v[keep] for k, v in g.items()}
-        traj = traj[geo.finite_rows(traj)] if len(traj) else traj
-        scan = scan[geo.finite_rows(scan)] if len(scan) else scan
-        zsrc = g["mean"][:, 2] if g is not None and len(g["n"]) else traj[:, 2] if len(traj) else np.zeros(0)
-        c.fit_zclip(zsrc, snap.get("resolution") or 0.1, snap.get("ceiling"))
-        clip = c.clip_range()
-
-        def panel(drawn: dict, at_top: float | None) -> None:
-            legend = geo.legend_html(
-                color_mode,
-                threshold=snap["threshold"],
-                zrange=drawn["zrange"],
-                conflicts=self.compare is not None,
-                live=c.live_layers,
-                free=want["free"],
-                clip=clip,
-                prange=drawn["prange"],
-                at_top=at_top,
-            )
-            c.show(
-                legend=legend,
-                stats=stats_markdown(snap, drawn, self.caps),
-                notes=drawn["notes"],
-                conflicts=self.compare is not None,
-            )
-
-        part = self.scene.draw(
-            snap,
-            g,
-            traj,
-            scan,
-            want,
-            color_mode=color_mode,
-            geometry=c.geometry_choice(),
-            clip=clip,
-            point_size=float(c.point_size.value),
-            panel=panel,
-        )
-        c.redraw.visible = part
-        c.relabel_levels(self.map.resolution if self.map is not None else None, self._auto_drawn())
-        c.relabel_geometry(self.drawn["geometry"])
-
-    def _auto_drawn(self) -> float | None:
-        """The resolution drawn when auto chose it (the selector's "auto" entry names it)."""
-        return self.drawn.get("resolution") if self.drawn.get("selected") == AUTO else None
 
     def _on_layer(self, key: str) -> None:
         on = bool(self.controls.layers[key].value)

@@ -31,6 +31,7 @@ import numpy as np
 from ndtom_ti.pipeline import MappingSummary, Observer, ProgressFn, run_scans
 
 from .geometry import cap_rows
+from .livepanel import LivePanel
 
 if TYPE_CHECKING:
     from ndtom_ti import NdtOmMap, ScanReport
@@ -46,7 +47,7 @@ class LiveView(Protocol):
     folder of controls to the viewer's panel)."""
 
     server: Any  # viser's: the mapper's controls go into server.gui
-    controls: Controls  # the panel: the mapper keeps its handles there (play, pause, ... live_status)
+    controls: Controls  # the panel: the mapper's LivePanel keeps its handles there (play, pause, ... live_status)
     last_refresh_s: float
 
     @property
@@ -62,28 +63,6 @@ class LiveView(Protocol):
     def set_scan(self, points_world: Any) -> None: ...
 
     def refresh(self) -> None: ...
-
-
-def chart_series(times_ms: list[float], compare_ms: list[float] | None = None) -> tuple[tuple, str]:
-    """The time-per-scan chart's columns (scan number, NDT-OM ms[, R-NDT ms]) and a note on
-    what is left out of them.
-
-    The first scan compiles the kernels (seconds, where later scans take milliseconds): on
-    the chart's automatic scale its spike would flatten the rest, so when it is more than
-    twice the slowest later scan it is left out, and the note gives its time. No NaN goes to
-    the chart (uPlot takes a NaN for a number: the axis range becomes NaN and nothing is
-    drawn), so with a comparison the rows are those both series have."""
-    n = len(times_ms) if compare_ms is None else min(len(times_ms), len(compare_ms))
-    rows = [np.asarray(times_ms[:n], np.float64)] + (
-        [] if compare_ms is None else [np.asarray(compare_ms[:n], np.float64)]
-    )
-    x = np.arange(1, n + 1, dtype=np.float64)
-    later = np.concatenate([r[1:] for r in rows]) if n > 1 else np.zeros(0)
-    first = max((float(r[0]) for r in rows if n), default=0.0)
-    start, note = 0, ""
-    if len(later) and first > 2.0 * float(later.max()):
-        start, note = 1, f"Scan 1 took {first:,.0f} ms (compiling the kernels): not charted."
-    return (x[start:], *(r[start:] for r in rows)), note
 
 
 class LiveMapper(Observer):
@@ -204,7 +183,7 @@ class LiveMapper(Observer):
         viewer.set_maps(m, compare)
         viewer.set_trajectory(np.zeros((0, 3)))
         viewer.set_scan(np.zeros((0, 3)))
-        self._build_gui()
+        self._panel = LivePanel(viewer.server.gui, viewer.controls, self)
         self._worker = threading.Thread(target=self._run, name="ndtom-live-mapping", daemon=True)
         self._drawer = threading.Thread(target=self._draw_loop, name="ndtom-live-draw", daemon=True)
         self._worker.start()
@@ -220,12 +199,12 @@ class LiveMapper(Observer):
         if not self.finished:
             self._playing.set()
             self._wake.set()
-            self._update_status()
+            self._panel.update_status()
 
     def pause(self) -> None:
         self._playing.clear()
         self._anchor = None  # the pace restarts at the next scan
-        self._update_status()
+        self._panel.update_status()
 
     def set_speed(self, speed: float | None) -> None:
         """Playback speed (x the recording's rate; None: as fast as mapping goes)."""
@@ -261,90 +240,6 @@ class LiveMapper(Observer):
         while self.scans_done < n and not self._done.is_set() and time.monotonic() < t_end:
             time.sleep(0.01)
         return self.scans_done >= n
-
-    # ------------------------------------------------------------------ GUI
-
-    def _build_gui(self) -> None:
-        v = self.viewer
-        gui, c = v.server.gui, v.controls
-        if c.live_folder is not None:  # a previous live run's controls
-            c.live_folder.remove()
-        c.live_folder = gui.add_folder("Live mapping", order=-1)
-        with c.live_folder:
-            c.play = gui.add_button("Play")
-            c.pause = gui.add_button("Pause")
-            c.step = gui.add_button("Step")
-            c.scan = gui.add_markdown(self._counter_text())
-            if self.paced_by_stamps:
-                c.rate = gui.add_slider(
-                    "Speed (x recording)",
-                    min=0.0,
-                    max=10.0,
-                    step=0.25,
-                    initial_value=min(self.speed or 0.0, 10.0),
-                    hint="1: the recording's own rate; 0: as fast as mapping goes",
-                )
-            else:
-                c.rate = gui.add_slider(
-                    "Max scans per second",
-                    min=0.0,
-                    max=50.0,
-                    step=0.5,
-                    initial_value=min(self.rate_hz, 50.0),
-                    hint="0: as fast as mapping goes",
-                )
-            c.live_status = gui.add_markdown("Paused: press Play or Step.")
-            series = [{"label": "scan"}, {"label": "NDT-OM ms", "stroke": "#c81e1e", "width": 2}]
-            if self.compare is not None:
-                series.append({"label": "R-NDT ms", "stroke": "#1e64c8", "width": 1})
-            # one (NaN) point to start with: a chart made empty never finds its x range
-            c.chart = gui.add_uplot(
-                data=tuple(np.array([0.0 if i == 0 else np.nan]) for i in range(len(series))),
-                series=tuple(series),
-                scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
-                title="Time per scan (ms)",
-                aspect=2.0,
-            )
-        c.play.on_click(lambda _: self.play())
-        c.pause.on_click(lambda _: self.pause())
-        c.step.on_click(lambda _: self.step())
-        if self.paced_by_stamps:
-            c.rate.on_update(lambda _: self.set_speed(float(c.rate.value)))
-        else:
-            c.rate.on_update(lambda _: setattr(self, "rate_hz", float(c.rate.value)))
-
-    def _counter_text(self) -> str:
-        of = f" / {self.total}" if self.total is not None else ""
-        return f"**Scans inserted**: {self.scans_done}{of}"
-
-    def _update_status(self) -> None:
-        c = self.viewer.controls
-        if c.live_status is None:
-            return
-        if self.error:
-            text = f"**Stopped**: {self.error}"
-        elif self.finished:
-            text = f"**Done**: {self.scans_done} scans inserted."
-        elif self.playing:
-            text = "Mapping..."
-        else:
-            text = "Paused: press Play or Step."
-        note = getattr(self, "_chart_note", "")
-        c.live_status.content = f"{text}  \n{note}" if note else text
-        # nothing left to play: the buttons say so
-        c.play.disabled = c.pause.disabled = c.step.disabled = self.finished
-
-    def _update_gui(self) -> None:
-        c = self.viewer.controls
-        c.scan.content = self._counter_text()
-        n = len(self.times_ms)
-        if n:
-            cols, self._chart_note = chart_series(
-                self.times_ms[:n], None if self.compare is None else self.compare_times_ms[:n]
-            )
-            if len(cols[0]):
-                c.chart.data = cols
-        self._update_status()
 
     # ------------------------------------------------------------------ threads
 
@@ -461,7 +356,7 @@ class LiveMapper(Observer):
             if self._dirty.is_set():
                 self._dirty.clear()
                 try:
-                    self._update_gui()
+                    self._panel.update()
                     v.refresh()
                 except Exception as exc:  # noqa: BLE001 - keep mapping; say what went wrong
                     if v.closed:
@@ -473,5 +368,5 @@ class LiveMapper(Observer):
                     return
                 continue
             if stopping:
-                self._update_gui()
+                self._panel.update()
                 return

@@ -20,6 +20,18 @@ import numpy as np
 
 from . import geometry as geo
 from .levels import AUTO, FACTORS, Caps, fmt
+from .nodes import (
+    CONFLICT_MIN_SIGMA,
+    FREE_OPACITY,
+    SPLAT_MIN_SIGMA,
+    SPLAT_VIEW_SIGMA,
+    cells_node,
+    conflicts_node,
+    free_node,
+    gaussian_node,
+    scan_node,
+    trajectory_node,
+)
 
 __all__ = [
     "CONFLICT_MIN_SIGMA",
@@ -31,10 +43,6 @@ __all__ = [
     "MapScene",
 ]
 
-FREE_OPACITY = 0.15  # free cells: translucent, so the scene shows through them
-CONFLICT_MIN_SIGMA = 0.5  # of a cell: the least size of a conflicting cell's marker
-SPLAT_MIN_SIGMA = 0.15  # of a cell: the least width of a splat (see _gaussian_node)
-SPLAT_VIEW_SIGMA = 0.0015  # of the first view's radius: ~1/3 of a pixel there (see _gaussian_node)
 LAYERS = {  # key -> the panel's label
     "gaussians": "Gaussians",
     "occupied": "Occupied cells",
@@ -95,6 +103,10 @@ class MapScene:
     def first_view(self) -> FirstView | None:
         """The view that frames the map (None until the map has content)."""
         return self._view
+
+    def auto_drawn(self) -> float | None:
+        """The resolution drawn when auto chose it (the selector's "auto" entry names it)."""
+        return self._drawn.get("resolution") if self._drawn.get("selected") == AUTO else None
 
     def visible(self, key: str) -> bool:
         h = self._nodes.get(key)
@@ -263,42 +275,9 @@ class MapScene:
         cols = geo.colors_for(color_mode, g["p_occ"], g["mean"][:, 2], zrange, prange)
         if self._nodes.get("gaussians") is not None and use != self._drawn.get("geometry"):
             self._nodes.pop("gaussians").remove()  # splats <-> ellipsoids: other node type
-        self._set("gaussians", lambda: self._gaussian_node(g, cols, res, use, visible))
+        radius = self._view.radius if self._view is not None else None
+        self._set("gaussians", lambda: gaussian_node(self.server.scene, g, cols, res, use, visible, radius))
         return len(g["n"])
-
-    def _gaussian_node(self, g: dict, colors: np.ndarray, res: float, use: str, visible: bool) -> Any:
-        scene = self.server.scene
-        name = "/ndtom/gaussians"
-        if use == "splats":
-            # splats at least SPLAT_MIN_SIGMA of a cell thick, and about a third of a pixel of the
-            # first view: a lidar's ring seen from afar gives line-thin Gaussians, and a splat
-            # thinner than a pixel fades out (a big map's native level would be a blank page)
-            radius = self._view.radius if self._view is not None else geo.bulk_sphere(g["mean"])[1]
-            eps = max(SPLAT_MIN_SIGMA * res, SPLAT_VIEW_SIGMA * radius) ** 2
-            cov = g["cov"] + eps * np.eye(3)[None]
-            return scene.add_gaussian_splats(
-                name,
-                centers=g["mean"].astype(np.float32),
-                covariances=cov.astype(np.float32),
-                rgbs=colors.astype(np.float32) / 255.0,
-                opacities=np.full((len(cov), 1), 0.9, np.float32),
-                visible=visible,
-            )
-        V, F = geo.icosphere(1)
-        wxyz, scales = geo.ellipsoid_instances(g["cov"], min_sigma=0.02 * res)
-        return scene.add_batched_meshes_simple(
-            name,
-            V,
-            F,
-            batched_wxyzs=wxyz,
-            batched_positions=g["mean"].astype(np.float32),
-            batched_scales=scales,
-            batched_colors=colors,
-            lod="off",
-            cast_shadow=False,
-            receive_shadow=False,
-            visible=visible,
-        )
 
     def _draw_cells(
         self,
@@ -330,20 +309,9 @@ class MapScene:
             else:
                 cols = geo.colors_for(color_mode, p, centers[:, 2], zrange, prange)
             if len(p) and key == "free":
-                self._set(key, lambda centers=centers, cols=cols: self._free_node(centers, cols, res, want["free"]))
+                self._set(key, lambda centers=centers, cols=cols: free_node(scene, centers, cols, res, want["free"]))
             elif len(p):
-                self._set(
-                    key,
-                    lambda centers=centers, cols=cols, key=key: scene.add_point_cloud(
-                        f"/ndtom/{key}",
-                        centers.astype(np.float32),
-                        cols,
-                        point_size=0.9 * res,
-                        point_shape="square",
-                        precision="float32",
-                        visible=want[key],
-                    ),
-                )
+                self._set(key, lambda c=centers, cols=cols, key=key: cells_node(scene, key, c, cols, res, want[key]))
             else:
                 self._set(key, None)
             drawn[key] = len(p)
@@ -355,25 +323,6 @@ class MapScene:
                 drawn[f"{key}_total"] = total
                 if total > cap:
                     drawn["notes"].append(f"{LAYERS[key]}: {fmt(drawn[key])} of {fmt(total)} drawn (cap {fmt(cap)})")
-
-    def _free_node(self, centers: np.ndarray, colors: np.ndarray, res: float, visible: bool) -> Any:
-        """Free cells as translucent boxes one cell wide: the scene stays visible through them."""
-        V, F = geo.unit_box()
-        n = len(centers)
-        return self.server.scene.add_batched_meshes_simple(
-            "/ndtom/free",
-            V,
-            F,
-            batched_wxyzs=np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
-            batched_positions=centers.astype(np.float32),
-            batched_scales=np.full((n, 3), 0.9 * res, np.float32),
-            batched_colors=colors,
-            opacity=FREE_OPACITY,
-            lod="off",
-            cast_shadow=False,
-            receive_shadow=False,
-            visible=visible,
-        )
 
     def _draw_conflicts(self, snap: dict, drawn: dict, res: float, inside: Callable | None, visible: bool) -> None:
         """The comparison map's Gaussians where NDT-OM has none."""
@@ -392,26 +341,7 @@ class MapScene:
             conf = {k: v[keep] for k, v in conf.items()}
         n_c = len(conf["mean"])
         if n_c:
-            V, F = geo.icosphere(1)
-            # at least half a cell in every axis: a few conflicting cells among thousands of
-            # Gaussians stay findable (a flat 1-sigma shell vanishes edge-on)
-            wxyz, scales = geo.ellipsoid_instances(conf["cov"], min_sigma=CONFLICT_MIN_SIGMA * res)
-            self._set(
-                "conflicts",
-                lambda: self.server.scene.add_batched_meshes_simple(
-                    "/ndtom/conflicts",
-                    V,
-                    F,
-                    batched_wxyzs=wxyz,
-                    batched_positions=conf["mean"].astype(np.float32),
-                    batched_scales=scales * np.float32(1.2),
-                    batched_colors=geo.CONFLICT_RGB,
-                    lod="off",
-                    cast_shadow=False,
-                    receive_shadow=False,
-                    visible=visible,
-                ),
-            )
+            self._set("conflicts", lambda: conflicts_node(self.server.scene, conf, res, visible))
         else:
             self._set("conflicts", None)
         drawn["conflicts"] = n_c
@@ -422,34 +352,12 @@ class MapScene:
         """The trajectory (a polyline) and the latest scan (points)."""
         scene = self.server.scene
         if len(traj) >= 2:
-            seg = np.stack([traj[:-1], traj[1:]], axis=1).astype(np.float32)
-            self._set(
-                "trajectory",
-                lambda: scene.add_line_segments(
-                    "/ndtom/trajectory",
-                    seg,
-                    geo.TRAJECTORY_RGB,
-                    thickness=3.0,
-                    thickness_units="screen",
-                    visible=want["trajectory"],
-                ),
-            )
+            self._set("trajectory", lambda: trajectory_node(scene, traj, want["trajectory"]))
         else:
             self._set("trajectory", None)
         drawn["trajectory"] = len(traj)
         if len(scan):
-            self._set(
-                "scan",
-                lambda: scene.add_point_cloud(
-                    "/ndtom/scan",
-                    scan,
-                    geo.SCAN_RGB,
-                    point_size=point_size,
-                    point_shape="circle",
-                    precision="float32",
-                    visible=want["scan"],
-                ),
-            )
+            self._set("scan", lambda: scan_node(scene, scan, point_size, want["scan"]))
         else:
             self._set("scan", None)
         drawn["scan"] = len(scan)
