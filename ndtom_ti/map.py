@@ -378,9 +378,6 @@ class NdtOmMap:
 
     @_locked
     def count_erased_near(self, cells: Any) -> None:
-        """A tiled map's worker (:mod:`ndtom_ti.cluster`), before its next scan: ``cells``
-        ([N, 3] cell indices) are cells of other workers whose Gaussians rays erased in the
-        last scan; the NDT miss model's erased-neighbour rule counts them in this map's
-        cells beside them (as ``insert_scan`` does for its own erasures). No-op without the
-        NDT miss model."""
+        """A tiled map's worker (:mod:`ndtom_ti.cluster`): count other workers' erasures of
+        the last scan (``cells``, [N, 3]) in the NDT miss model's erased-neighbour rule."""
         self._update.count_erased_near(np.asarray(cells, np.int32))
