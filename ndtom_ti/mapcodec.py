@@ -118,24 +118,65 @@ def _nonzero(a: np.ndarray) -> list[np.ndarray]:
     return [np.packbits(keep, bitorder="little"), _planes(words[keep])]  # (rows of words: a faster gather)
 
 
-def _keys(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(keys, lo, span) as cellkeys.pack gives them, for rows the caller then checks to be
-    sorted and distinct (keys strictly increasing: only then are the first and last rows'
-    i the least and greatest, and the keys pack's). ~25% faster than pack."""
-    if len(idx) == 0:
-        return np.zeros(0, np.int64), np.zeros(3, np.int64), np.ones(3, np.int64)
-    i, j, k = idx[:, 0], idx[:, 1], idx[:, 2]
+# Rows of cell indices coded at a time: the int64 keys and differences of a chunk stay in the
+# cache (~1.4x faster than whole-array passes on 4 million cells).
+_CHUNK_ROWS = 65536
+
+
+def _deltas(name: str, idx: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The ``delta`` coding's two streams (``delta8``, ``delta64``) and the key bounds
+    (``lo``, ``span``, as cellkeys.pack gives them) of index rows that must be sorted and
+    distinct (keys strictly increasing: only then are the first and last rows' i the least
+    and greatest, and the keys pack's)."""
+    n = len(idx)
+    if n == 0:
+        return [np.zeros(0, np.uint8), np.zeros(0, np.int64)], np.zeros(3, np.int64), np.ones(3, np.int64)
+    j, k = idx[:, 1], idx[:, 2]
     lo = np.array([idx[0, 0], j.min(), k.min()], np.int64)
     span = np.maximum(np.array([idx[-1, 0], j.max(), k.max()], np.int64) - lo + 1, 1)
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise ValueError(f"cell indices span {span.tolist()} cells: too wide for one int64 key")
-    keys = i.astype(np.int64)
-    keys *= span[1]
-    keys += j
-    keys *= span[2]
-    keys += k
-    keys -= (lo[0] * span[1] + lo[1]) * span[2] + lo[2]
-    return keys, lo, span
+    s1, s2 = int(span[1]), int(span[2])
+    # keys (i * s1 + j) * s2 + k of the indices as they are, in int64 arithmetic that wraps:
+    # their differences are those of the keys counted from lo, which fit. The first key is
+    # counted from -1, so every difference is >= 1.
+    first = (int(lo[0]) * s1 + int(lo[1])) * s2 + int(lo[2]) - 1
+    rows = min(n, _CHUNK_ROWS)
+    key = np.empty(rows + 1, np.int64)
+    key[0] = (first + 2**63) % 2**64 - 2**63
+    d = np.empty(rows, np.int64)
+    d8, far, least = np.empty(n, np.uint8), [], []
+    for a in range(0, n, rows):
+        c = idx[a : a + rows]
+        m = len(c)
+        kk, dd = key[1 : m + 1], d[:m]
+        kk[...] = c[:, 0]
+        kk *= s1
+        kk += c[:, 1]
+        kk *= s2
+        kk += c[:, 2]
+        np.subtract(kk, key[:m], out=dd)
+        key[0] = kk[-1]
+        least.append(dd.min())
+        out = d8[a : a + m]
+        np.minimum(dd, 256, out=out, casting="unsafe")  # one byte each; 256 (and more) becomes the escape 0
+        far.append(dd[out == 0])
+    if min(least) < 1:
+        raise ValueError(f"{name}: cells must be sorted and distinct to be written")
+    return [d8, np.concatenate(far)], lo, span
+
+
+def _code(name: str, a: np.ndarray, coding: str) -> tuple[dict, list[np.ndarray], list[bytes]]:
+    """One array's table entry (less its streams), its streams and their frames."""
+    entry: dict = {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "coding": coding}
+    if coding == "delta":
+        raws, lo, span = _deltas(name, a)
+        entry.update(lo=lo.tolist(), span=span.tolist())
+    elif coding == "nonzero":
+        raws = _nonzero(a)
+    else:
+        raws = [_planes(a) if coding == "planes" else np.ascontiguousarray(a)]
+    return entry, raws, [_compress(r.reshape(-1).view(np.uint8).data) for r in raws]
 
 
 def encode(arrays: dict[str, np.ndarray], version: int = VERSION) -> tuple[list[dict], list[bytes]]:
@@ -143,41 +184,16 @@ def encode(arrays: dict[str, np.ndarray], version: int = VERSION) -> tuple[list[
     ``arrays`` (name -> array of its dtype; index arrays with rows in (i, j, k) order), as
     a payload of ``version`` (4 or 5)."""
     coding = CODINGS[version]
-    entries, raws = {}, {}
-    # The values first: their frames compress in a second thread (zstd lets the GIL go)
-    # while this one codes the cell indices; saving takes about what the slower of the two does.
+    codings = {name: "delta" if name in _INDEX else coding.get(name, "raw") for name in arrays}
+    # Each array coded and compressed in a worker, the largest first: numpy's passes and zstd
+    # let the GIL go, so two cores share the work; saving takes about half its CPU time.
+    order = sorted(arrays, key=lambda n: -arrays[n].nbytes)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        for name in sorted(arrays, key=lambda n: n in _INDEX):
-            a = arrays[name]
-            entry: dict = {"name": name, "dtype": a.dtype.str, "shape": list(a.shape)}
-            if name in _INDEX:
-                keys, lo, span = _keys(a)
-                d = np.empty_like(keys)
-                if len(d):
-                    d[0] = keys[0] + 1  # the first key's counted from -1
-                    np.subtract(keys[1:], keys[:-1], out=d[1:])
-                if len(d) and d.min() < 1:
-                    raise ValueError(f"{name}: cells must be sorted and distinct to be written")
-                far = d > 255
-                d8 = d.astype(np.uint8)
-                d8[far] = 0
-                raws[name] = [d8, d[far]]
-                entry.update(coding="delta", lo=lo.tolist(), span=span.tolist())
-            else:
-                entry["coding"] = coding.get(name, "raw")
-                if entry["coding"] == "nonzero":
-                    raws[name] = _nonzero(a)
-                else:
-                    raws[name] = [_planes(a) if entry["coding"] == "planes" else np.ascontiguousarray(a)]
-            entry["futures"] = [pool.submit(_compress, r.reshape(-1).view(np.uint8).data) for r in raws[name]]
-            entries[name] = entry
+        futures = {name: pool.submit(_code, name, arrays[name], codings[name]) for name in order}
         table, blobs = [], []
         for name in arrays:  # the table and the frames in the caller's order
-            entry = entries[name]
-            frames = [f.result() for f in entry.pop("futures")]
-            entry["streams"] = [
-                {"nbytes": len(f), "raw_nbytes": r.nbytes} for f, r in zip(frames, raws[name], strict=True)
-            ]
+            entry, raws, frames = futures[name].result()
+            entry["streams"] = [{"nbytes": len(f), "raw_nbytes": r.nbytes} for f, r in zip(frames, raws, strict=True)]
             table.append(entry)
             blobs.extend(frames)
     return table, blobs
