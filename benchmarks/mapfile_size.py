@@ -1,4 +1,4 @@
-"""Map file size and save/load time: formats 5 and 4 (compressed) against format 3 (raw
+"""Map file size and save/load time: formats 6, 5 and 4 (compressed) against format 3 (raw
 arrays), paired in one process on the same maps.
 
     ndtom map ../shared/data/norlab_outdoor_stationary_14.bag -r 0.2 -o norlab.ndtom
@@ -44,7 +44,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.maps:
             s = MapSnapshot.load(path)
-            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, VERSION})}
+            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, 5, VERSION})}
             times: dict[str, list[tuple[float, float]]] = {}
             m = None
             if args.map:
