@@ -1,4 +1,4 @@
-"""Map file size and save/load time: formats 5 and 4 (compressed) against format 3 (raw
+"""Map file size and save/load time: formats 6, 5 and 4 (compressed) against format 3 (raw
 arrays), paired in one process on the same maps.
 
     ndtom map ../shared/data/norlab_outdoor_stationary_14.bag -r 0.2 -o norlab.ndtom
@@ -6,7 +6,9 @@ arrays), paired in one process on the same maps.
 
 For each map: known cells, Gaussians, bytes of each format and bytes per known cell, then
 the median seconds of writing and of reading it (MapSnapshot.save / MapSnapshot.load:
-the file alone, no Taichi) in each format, alternated, and their ratio. --map also times
+the file alone, no Taichi) in each format, alternated, and their ratio to format 3's; in
+brackets the median CPU seconds (threads included) and their ratio: what the time becomes
+when other work holds the other core. --map also times
 NdtOmMap.save and NdtOmMap.load (what `ndtom map` and a script pay: the map's arrays
 taken out of Taichi, or put in).
 """
@@ -24,11 +26,12 @@ from ndtom_ti.mapfile import RAW_VERSION, VERSION
 from ndtom_ti.snapshot import MapSnapshot
 
 
-def timed(fn) -> float:
+def timed(fn) -> tuple[float, float]:
+    """Wall and CPU seconds (the process's, its threads included) of ``fn()``."""
     gc.collect()
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     fn()
-    return time.perf_counter() - t
+    return time.perf_counter() - t, time.process_time() - c
 
 
 def main() -> None:
@@ -41,8 +44,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.maps:
             s = MapSnapshot.load(path)
-            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, VERSION})}
-            times: dict[str, list[float]] = {}
+            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, 5, VERSION})}
+            times: dict[str, list[tuple[float, float]]] = {}
             m = None
             if args.map:
                 import ndtom_ti
@@ -63,7 +66,8 @@ def main() -> None:
             if m is not None:
                 m.close()
             size = {v: f.stat().st_size for v, f in files.items()}
-            med = {k: statistics.median(t) for k, t in times.items()}
+            med = {k: statistics.median(w for w, _ in t) for k, t in times.items()}
+            cpu = {k: statistics.median(c for _, c in t) for k, t in times.items()}
             known = len(s.occ_index)
             rows.append((path.name, known, len(s.g_index), size, med))
             print(f"{path.name}: {known:,} known cells, {len(s.g_index):,} Gaussian records")
@@ -71,11 +75,12 @@ def main() -> None:
                 print(f"  format {v}: {size[v] / 2**20:.1f} MiB, {size[v] / max(known, 1):.2f} bytes a known cell")
             for what in ("save", "load", "map save", "map load"):
                 if f"{what} {VERSION}" in med:
-                    a = med[f"{what} {RAW_VERSION}"]
+                    a, ac = med[f"{what} {RAW_VERSION}"], cpu[f"{what} {RAW_VERSION}"]
                     print(
-                        f"  {what}: format {RAW_VERSION} {a:.3f} s, "
+                        f"  {what}: format {RAW_VERSION} {a:.3f} s [cpu {ac:.3f}], "
                         + ", ".join(
                             f"format {v} {med[f'{what} {v}']:.3f} s (ratio {med[f'{what} {v}'] / a:.2f})"
+                            f" [cpu {cpu[f'{what} {v}']:.3f}, ratio {cpu[f'{what} {v}'] / ac:.2f}]"
                             for v in files
                             if v != RAW_VERSION
                         )

@@ -9,7 +9,7 @@ Layout (little endian):
     4 bytes   format version (uint32)
     8 bytes   header length H (uint64)
     H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256
-    payload   versions 4-5: each array's zstd frames, back to back (``mapcodec``; the table
+    payload   versions 4-6: each array's zstd frames, back to back (``mapcodec``; the table
               gives name, dtype, shape, coding and the frames' sizes); versions 1-3: the
               arrays' raw bytes (the table gives name, dtype, shape, offset, nbytes)
 """
@@ -39,11 +39,12 @@ MAGIC = b"NDTOMTI\n"
 # 3: g_ndt_state (earlier files lack it: read as zeros).
 # 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
 # 5: scatter matrices without their rows of zeros (mapcodec's "nonzero" coding).
+# 6: log-odds as a byte a cell into a table of their frequent values (mapcodec's "values").
 VERSION = mapcodec.VERSION
 # The last version of raw arrays; write(..., version=RAW_VERSION) still writes it.
 RAW_VERSION = 3
-# The versions write() writes (4 and 3 for older readers).
-_WRITES = (VERSION, 4, RAW_VERSION)
+# The versions write() writes (5, 4 and 3 for older readers).
+_WRITES = (VERSION, 5, 4, RAW_VERSION)
 # The file's arrays are a map's cell state (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
@@ -61,8 +62,8 @@ class MapFileError(ValueError):
 def write(path: str | Path, settings: dict, arrays: dict, *, version: int = VERSION) -> Path:
     """Write a map's ``settings`` (as ``MapSnapshot.settings()`` gives them) and cell
     ``arrays`` (``cellstate.ARRAYS``) to ``path``, atomically; ``version=RAW_VERSION``
-    writes the uncompressed format that ndtom_ti before format 4 reads, ``version=4``
-    format 4."""
+    writes the uncompressed format that ndtom_ti before format 4 reads, ``version=4`` or
+    ``5`` those formats."""
     path = check_target(path)
     if version not in _WRITES:
         raise ValueError(f"map files are written as version {', '.join(map(str, _WRITES))}, not {version}")
@@ -330,7 +331,7 @@ def _check_header(path: Path, header: dict, version: int) -> None:
     if missing:
         bad(f"arrays {sorted(missing)} missing")
     if version >= 4:
-        mapcodec.check_table(table, pb, bad)
+        mapcodec.check_table(table, pb, bad, version)
     spans.sort()
     for (_, end, a), (start, _, b) in itertools.pairwise(spans):
         if start < end:

@@ -45,7 +45,8 @@ def _build_bases() -> dict[str, bytes]:
                 T[:3, 3] = [0.3 * k, -0.2 * k, 0.1]
                 m.insert_scan(rng.normal(size=(400, 3)) * [2.0, 1.5, 0.3] + [3.0, 0.0, 0.0], T)
             out[name] = m.save(Path(tmp) / f"{name}.ndtom").read_bytes()
-            # the same map in format 4 and in the raw format of version 3 (older files must keep loading)
+            # the same map in formats 5 and 4 and in the raw format of version 3 (older files must keep loading)
+            out[f"{name} v5"] = m.snapshot().save(Path(tmp) / "v5.ndtom", version=5).read_bytes()
             out[f"{name} v4"] = m.snapshot().save(Path(tmp) / "v4.ndtom", version=4).read_bytes()
             out[f"{name} v3"] = m.snapshot().save(Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
             del m
@@ -370,7 +371,7 @@ def teardown_module(module):
         print(f"\nmap file fuzz ({EXAMPLES} examples asked): {dict(OUTCOMES)}")
 
 
-@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v4", "ndtom v3", "rndt v3"])
+@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v5", "ndtom v4", "ndtom v3", "rndt v3"])
 def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
     """Deterministic companion: each array one row short (checksum valid) is refused."""
     head, header, payload = split(bases()[name])
@@ -439,19 +440,55 @@ def codec_arrays(draw) -> dict[str, np.ndarray]:
     derandomize=EXAMPLES <= 500,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-@given(arrays=codec_arrays(), version=st.sampled_from([4, mapcodec.VERSION]))
+@given(arrays=codec_arrays(), version=st.sampled_from([4, 5, mapcodec.VERSION]))
 def test_codec_round_trip_is_bit_for_bit(arrays, version):
     """Whatever bits the arrays hold, encode then decode gives them back exactly (dtype,
-    shape and every byte, NaN payloads and -0.0 included), in either compressed version."""
+    shape and every byte, NaN payloads and -0.0 included), in every compressed version."""
     table, frames = mapcodec.encode(arrays, version)
     assert [e["name"] for e in table] == list(arrays)
     assert {e["name"]: e["coding"] for e in table if e["name"] in mapcodec.CODING} == mapcodec.CODINGS[version]
     payload = b"".join(frames)
-    mapcodec.check_table(table, len(payload), _raise)
+    mapcodec.check_table(table, len(payload), _raise, version)
     back = mapcodec.decode(table, payload, _raise)
     for name, a in arrays.items():
         b = back[name]
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+
+
+def _logodds(kind: str, n: int = 300_000) -> np.ndarray:
+    """float32 rows as the ``values`` coding meets them: a few hundred repeated values (more
+    than its table holds), rare others (0.0, -0.0, NaN payloads among them), or all distinct."""
+    rng = np.random.default_rng(5)
+    if kind == "distinct":
+        return rng.standard_normal(n).astype("<f4")
+    common = (np.arange(400, dtype=np.float32) * np.float32(-0.04)).astype("<f4")
+    a = common[np.minimum(rng.geometric(0.02, n) - 1, 399)]
+    bits = a.view(np.uint32)
+    rare = rng.choice(n, n // 50, replace=False)
+    bits[rare] = rng.integers(0, 2**32, len(rare), dtype=np.uint64).astype(np.uint32)
+    bits[rare[:8]] = [0, 0x80000000, 0x7FC00001, 0xFFC00002, 0x7F800000, 0, 0x80000000, 1]
+    return a
+
+
+@pytest.mark.parametrize("kind", ["repeated", "distinct"])
+def test_codec_values_coding_is_bit_for_bit_or_left_raw(kind):
+    """Log-odds of a few hundred repeated values take a byte a row through the table (those
+    it cannot hold, 0.0 and -0.0 and NaN payloads among them, escape bit for bit); values
+    that do not repeat are left raw, never larger than format 5."""
+    a = _logodds(kind)
+    arrays = {"occ_logodds": a}
+    table, frames = mapcodec.encode(arrays)
+    payload = b"".join(frames)
+    mapcodec.check_table(table, len(payload), _raise)
+    assert mapcodec.decode(table, payload, _raise)["occ_logodds"].tobytes() == a.tobytes()
+    v5 = sum(s["nbytes"] for s in mapcodec.encode(arrays, 5)[0][0]["streams"])
+    if kind == "distinct":
+        assert table[0]["coding"] == "raw" and len(payload) == v5
+    else:
+        codes, values, escaped = table[0]["streams"]
+        assert table[0]["coding"] == "values" and values["raw_nbytes"] == 4 * 255
+        assert len(a) // 50 < escaped["raw_nbytes"] // 4 < len(a) // 8  # the rare ones, and values past the table
+        assert len(payload) < 0.8 * v5, (len(payload), v5)
 
 
 def test_codec_leaves_out_rows_of_zero_scatter():

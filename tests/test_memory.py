@@ -376,6 +376,18 @@ def test_packed_keys_group_as_numpy_unique_rows(rng):
     assert (np.diff(keys[order]) >= 0).all() and len(starts) == len(uniq)
 
 
+@pytest.mark.parametrize("n", [0, 1, 65535, 65536, 65537, 200_001])
+def test_unpack_gives_the_packed_rows_back(rng, n):
+    """Keys unpacked a chunk at a time (65,536): every row back, at the chunks' edges too,
+    in int64 and int32, with cell indices at int32's ends and spans up to 2**20 a column."""
+    for base, width in (((0, 0, 0), 3000), ((-(2**31), 2**31 - 2**20, -5), 2**20), ((7, -(2**20), 2**30), 1)):
+        idx = rng.integers(0, width, (n, 3)) + np.array(base)
+        keys, lo, span = pack(idx)
+        for dtype in (np.int64, np.int32):
+            back = unpack(keys, lo, span, dtype)
+            assert back.dtype == dtype and back.shape == (n, 3) and np.array_equal(back, idx), (base, dtype)
+
+
 def test_coarsen_state_equals_the_unique_rows_reference(rng):
     st = big_state(rng, 50_000, 5_000)
     out = coarsen_state(st, 0.2, 3)
