@@ -261,15 +261,20 @@ def device_funcs(f: Storage) -> SimpleNamespace:
     h0, h1, h2 = TILE_HASH
 
     @ti.func
-    def owned(slot, c) -> ti.i32:
-        # 1 when map ``slot`` updates cell c: always, unless it is one worker's part of a
-        # tiled map (layout.TileOwner, in f.tiles; the hash of TileOwner.owners, in int64).
+    def owner_spec(slot) -> ti.types.vector(3, ti.i64):
+        # Map ``slot``'s owner (layout.TileOwner: tile size in cells, workers, this worker),
+        # read once a kernel: owned() tests it per cell.
+        return ti.Vector([tiles[slot, 0], tiles[slot, 1], tiles[slot, 2]], dt=ti.i64)
+
+    @ti.func
+    def owned(spec, c) -> ti.i32:
+        # 1 when the map of owner_spec ``spec`` updates cell c: always, unless it is one
+        # worker's part of a tiled map (the hash of TileOwner.owners, in int64).
         ok = 1
-        workers = tiles[slot, 1]
-        if workers > 1:
-            t = c // tiles[slot, 0]  # floor division on integers, as numpy's
+        if spec[1] > 1:
+            t = c // ti.cast(spec[0], ti.i32)  # floor division on integers, as numpy's
             h = (ti.cast(t[0], ti.i64) * h0) ^ (ti.cast(t[1], ti.i64) * h1) ^ (ti.cast(t[2], ti.i64) * h2)
-            ok = ti.i32(h % workers == tiles[slot, 2])
+            ok = ti.i32(h % spec[1] == spec[2])
         return ok
 
     @ti.func
@@ -589,6 +594,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
 
     f.funcs = SimpleNamespace(
         owned=owned,
+        owner_spec=owner_spec,
         leaf=leaf,
         region=region,
         grid_lo=grid_lo,

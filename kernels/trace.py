@@ -96,7 +96,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     ne, olm = f.ne, f.olm
     row, at, note_leaf, tally, visit, next_t = F.row, F.at, F.note_leaf, F.tally, F.visit, F.next_t
     ndt_visit, ndt_tree_visit, add_miss = F.ndt_visit, F.ndt_tree_visit, F.add_miss
-    Q, SHIFT, leaf, owned = F.queue, F.SHIFT, F.leaf, F.owned
+    Q, SHIFT, leaf, owned, owner_spec = F.queue, F.SHIFT, F.leaf, F.owned, F.owner_spec
     mode, ndt = cfg.mode, cfg.ndt
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
@@ -167,6 +167,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
         co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
+        own = owner_spec(slot)
         near_cells = 0
         if ti.static(ndt):
             near_cells = ti.cast(ndt_prm[8], ti.i32)
@@ -242,7 +243,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             if (lb != last_leaf).any():
                                 bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
                                 last_leaf = lb
-                        elif owned(slot, cur) != 0:  # (a tiled map's worker: its own cells only)
+                        elif owned(own, cur) != 0:  # (a tiled map's worker: its own cells only)
                             lf = cur // leaf
                             if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
                                 note_leaf(olm, slot, cur, occ_regions, leaves, 0)

@@ -687,7 +687,8 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
     One kernel for both, so a recording whose scans fill the block more or less densely
     compiles it once."""
     F = device_funcs(f)
-    block_cell, tally, SHIFT, Q, leaf, owned = F.block_cell, F.tally, F.SHIFT, F.queue, F.leaf, F.owned
+    block_cell, tally, SHIFT, Q, leaf = F.block_cell, F.tally, F.SHIFT, F.queue, F.leaf
+    owned, owner_spec = F.owned, F.owner_spec
     ndt = cfg.ndt
     bits = 16 if cfg.bt == "u16" else 32
     lanes = 64 // bits  # block entries per 64-bit word
@@ -717,6 +718,7 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
         # empty cells (most of them) cost one test per word. Little-endian: lane 0 is the word's
         # first cell.
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
+        own = owner_spec(slot)
         wz = shape[2] // lanes  # a multiple of the leaf size: whole rows
         ncol = shape[0] * shape[1]
         for wq in range(Q.span(ncol, COLUMN_CHUNK)):
@@ -759,7 +761,7 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
                                         k = kw * lanes + lane
                                         c = b0 + ti.Vector([i, j, k])
-                                        if v != 0 and owned(slot, c) != 0:
+                                        if v != 0 and owned(own, c) != 0:
                                             block_cell(
                                                 slot,
                                                 c,
