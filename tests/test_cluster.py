@@ -118,9 +118,9 @@ def test_workers_that_round_differently_are_refused(monkeypatch):
 
 
 def test_erasures_cross_tiles_as_events(sim, reference):
-    """Without the events, cells beside another worker's tile miss erased neighbours: some
-    cell reaches 6 (its rows widen) only through another worker's erasures."""
-    til = Tiling(RES, 2, 1.6)
+    """Without the events, cells beside another worker's tile miss erased neighbours: with
+    tiles of 8 m some cell reaches 6 (its rows widen) only through another worker's erasures."""
+    til = Tiling(RES, 2, 8.0)
     cfg = NdtOmMap(RES, miss_model="ndt").config
     workers = [TileWorker(til, w, config=cfg) for w in range(2)]
     for pts, T in sim:
@@ -134,7 +134,7 @@ def test_erasures_cross_tiles_as_events(sim, reference):
     _, ia, ib = np.intersect1d(ka, kb, return_indices=True)
     short = (ref.g_erased_near[ia] >= 6) & (alone.g_erased_near[ib] < 6)
     assert short.any(), "no cell reached 6 erased neighbours through another worker"
-    assert_same_map(ref, tiled(sim, "ndt", workers=2, tile_size=1.6))
+    assert_same_map(ref, tiled(sim, "ndt", workers=2, tile_size=8.0))
 
 
 @pytest.mark.skipif(not BALM.exists(), reason="shared data not present")
@@ -208,7 +208,7 @@ def ray_cluster():
 def test_ray_workers_give_the_one_process_map_and_survive_a_lost_worker(ray_cluster, sim, reference, tmp_path):
     """Two Ray worker processes of one thread each, the NDT miss model: the one-process map;
     a worker killed mid-run makes the job go back to its last checkpoint and replay, with
-    the same result."""
+    the same result. Then the paper's model on the same cluster."""
     scans = sim[:12]
     with TiledMap(
         RES, workers=2, tile_size=8.0, threads=1, folder=tmp_path / "t", checkpoint_every=4, miss_model="ndt"
@@ -221,6 +221,11 @@ def test_ray_workers_give_the_one_process_map_and_survive_a_lost_worker(ray_clus
         assert_same_map(one_process(scans, "ndt"), tm.snapshot())
         with NdtOmMap.from_snapshot(one_process(scans, "ndt")) as m:
             assert tm.memory_report()["gaussians"] == m.memory_report()["gaussians"]
+    # the paper's miss model on the same cluster, tiles of 16 m
+    with TiledMap(RES, workers=2, tile_size=16.0, threads=1, miss_model="paper", probe=False) as tm:
+        for pts, T in scans[:6]:
+            tm.insert_scan(pts, T)
+        assert_same_map(one_process(scans[:6], "paper"), tm.snapshot())
 
 
 def test_saved_tiled_map_is_one_map_file(sim, tmp_path):
