@@ -168,6 +168,19 @@ def test_checkpoints_make_a_tiled_map_and_resume(sim, reference, tmp_path):
         TiledMap(RES, workers=3, tile_size=8.0, engine="local", probe=False, folder=folder, resume=True)
 
 
+def test_a_resumed_run_must_name_the_same_job(sim, tmp_path):
+    """``job`` (what the scans are) goes into the checkpoint; resuming with another is refused."""
+    folder = tmp_path / "tiles"
+    kw = {"workers": 2, "tile_size": 8.0, "engine": "local", "probe": False, "folder": folder}
+    with TiledMap(RES, job={"source": "a.bag", "every": (1, 2)}, **kw) as tm:
+        tm.insert_scan(*sim[0])
+        tm.checkpoint()
+    with pytest.raises(ValueError, match="other scans or settings"):
+        TiledMap(RES, job={"source": "b.bag", "every": (1, 2)}, resume=True, **kw)
+    with TiledMap(RES, job={"source": "a.bag", "every": (1, 2)}, resume=True, **kw) as tm:
+        assert tm.scans_inserted == 1
+
+
 def test_broken_tiled_folders_are_refused(sim, tmp_path):
     folder = tmp_path / "tiles"
     with TiledMap(RES, workers=2, tile_size=8.0, engine="local", probe=False, folder=folder) as tm:

@@ -97,7 +97,8 @@ def local_engine(monkeypatch):
     def make_map(self):
         def make(*args, **kwargs):
             mine = {"workers": self.workers, "tile_size": self.tile_size, "folder": self.folder}
-            mine.update(checkpoint_every=self.checkpoint_every, resume=self.resume, engine="local", probe=False)
+            mine.update(checkpoint_every=self.checkpoint_every, resume=self.resume, job=self.job)
+            mine.update(engine="local", probe=False)
             m = TiledMap(*args, **kwargs, **mine)
             made.append(m)
             return m
@@ -172,6 +173,21 @@ def test_resume_carries_on_to_the_same_map(one_process: Path, tmp_path: Path, lo
     assert "3 of 6 clouds read" in r.output
     assert_same_cells(one_process, tmp_path / "6.ndtom")
     assert_same_cells(one_process, t)
+
+
+def test_resume_refuses_other_scans_or_settings(tmp_path: Path, local_engine) -> None:
+    """--resume after a run of other scans (--every) or another miss model: refused before
+    any scan, naming what differs; where the run stops (--max-scans) may change."""
+    t = tmp_path / "T"
+    r = run("map", need_balm(), "-r", "0.3", "--max-scans", "2", "--no-progress", *WORKERS, "--tiled", t)
+    assert r.exit_code == 0, r.output
+    other = run("map", BALM, *SIX, "--every", "2", *WORKERS, "--tiled", t, "--resume", "-o", tmp_path / "x.ndtom")
+    assert_user_error(other, "other scans or settings", "selection")
+    model = run(
+        "map", BALM, *SIX, "--miss-model", "paper", *WORKERS, "--tiled", t, "--resume", "-o", tmp_path / "y.ndtom"
+    )
+    assert_user_error(model, "other scans or settings", "config")
+    assert MapSnapshot.load(t).scans_inserted == 2  # untouched
 
 
 def test_ctrl_c_checkpoints_and_resume_finishes(tmp_path: Path, local_engine, monkeypatch) -> None:

@@ -532,6 +532,15 @@ def map_(
         bar = _Bar(arch, progress, memory_limit)
         metadata: dict[str, Any] = {"command": "ndtom map", "config_file": str(config.resolve()) if config else None}
         if tiles is not None:
+            tiles.set_job(
+                {
+                    "recording": str(Path(bag).resolve()),
+                    # where a run stops (--max-scans, --end) may change when it is resumed
+                    "selection": {k: v for k, v in selection.options().items() if k not in ("max_scans", "end")},
+                    "occupancy": occupancy,
+                    "config": mapcfg.to_dict(),
+                }
+            )
             metadata["workers"] = {"workers": tiles.workers, "tile_size": tiles.tile_size, "engine": "ray"}
             console_err().print(Text(tiles.describe(), style="cyan"))
         # Ctrl-C and SIGTERM: finish the scan in hand, save, then exit

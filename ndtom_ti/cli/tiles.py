@@ -6,6 +6,7 @@ file). The mapping loop stays :mod:`ndtom_ti.pipeline`'s."""
 from __future__ import annotations
 
 import functools
+import json
 import math
 import os
 import shutil
@@ -56,6 +57,18 @@ class TiledRun:
     threads: int | None
     memory_limit: float | None
     resumed_scans: int = 0
+    job: dict | None = None  # the recording, selection and map settings (checked on --resume)
+
+    def set_job(self, job: dict) -> None:
+        """What this run maps; with --resume, the stopped run must have mapped the same."""
+        from ..cluster.tiled import check_job
+
+        self.job = json.loads(json.dumps(job))
+        if self.resume:
+            try:
+                check_job(self.folder, read_manifest(self.folder), self.job)
+            except ValueError as exc:
+                fail(f"--resume: {exc}", "resume with the stopped run's recording, options and map settings")
 
     def make_map(self) -> Any:
         """``pipeline.map_recording``'s ``make_map``: a TiledMap on Ray."""
@@ -72,6 +85,7 @@ class TiledRun:
             folder=self.folder,
             checkpoint_every=self.checkpoint_every,
             resume=self.resume,
+            job=self.job,
         )
 
     def describe(self) -> str:

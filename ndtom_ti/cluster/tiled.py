@@ -4,6 +4,7 @@ of the same scans in the same order."""
 from __future__ import annotations
 
 import copy
+import json
 import time
 from dataclasses import fields, replace
 from pathlib import Path
@@ -22,6 +23,20 @@ ENGINES = ("ray", "local")
 # Report fields each worker counts for its own cells (summed); the rest every worker
 # counts alike for the whole scan.
 _OWN_FIELDS = ("cells_hit", "cells_passed", "gaussians_erased")
+
+
+def check_job(folder: Path, doc: dict, job: dict | None) -> None:
+    """A resumed run must map the scans of the stopped one (``job``: their source, selection
+    and map settings, as the stopped run gave them; None: not checked)."""
+    then = doc.get("job")
+    if job is None or then is None or then == job:
+        return
+    keys = sorted(k for k in set(then) | set(job) if then.get(k) != job.get(k))
+    raise ValueError(
+        f"{folder} holds a run of other scans or settings ({', '.join(keys)} differ: "
+        f"{ {k: then.get(k) for k in keys} } then, { {k: job.get(k) for k in keys} } now); "
+        "resume with the stopped run's recording, selection and map options"
+    )
 
 
 class TiledMap:
@@ -58,6 +73,7 @@ class TiledMap:
         checkpoint_every: int = 0,
         resume: bool = False,
         probe: bool = True,
+        job: dict | None = None,
         **options: Any,
     ):
         self.resolution = check_resolution(resolution)
@@ -77,6 +93,9 @@ class TiledMap:
         self.tiling = Tiling(self.resolution, workers, tile_size)
         self.occupancy_enabled = bool(occupancy)
         self.metadata: dict = dict(metadata or {})
+        # What the scans are (their source and selection): saved with checkpoints, and a
+        # resumed run must name the same (JSON's form: tuples become lists).
+        self.job = json.loads(json.dumps(job)) if job is not None else None
         self.folder = Path(folder) if folder is not None else None
         self.checkpoint_every = checkpoint_every
         self.scans_inserted = 0
@@ -115,6 +134,7 @@ class TiledMap:
         got = {k: doc[k] for k in want}
         if got != want:
             raise ValueError(f"{self.folder} holds a run of {got}, not {want}: resume it with the same settings")
+        check_job(self.folder, doc, self.job)
         self._starts = [str(self.folder / name) for name in doc["tiles"]]
         self.scans_inserted = int(doc["scans"])
         self.points_inserted = int(doc.get("points", 0))
@@ -183,6 +203,7 @@ class TiledMap:
             "scans": self.scans_inserted,
             "points": self.points_inserted,
             "complete": bool(complete),
+            "job": self.job,
         }
         path = write_manifest(self.folder, info, names)
         self._starts = [str(self.folder / n) for n in names]
