@@ -320,3 +320,31 @@ def test_a_map_one_process_refuses_builds_on_two_workers_at_its_budget(ray_clust
         for pts, T in scans:
             m.insert_scan(pts, T)
         assert_same_map(m.snapshot(), tiled_map)
+
+
+def test_a_scan_one_worker_refuses_is_undone_in_all(sim, monkeypatch):
+    """A worker refusing a scan for memory (after another took it): every worker goes back to
+    the scans before it, the refusal reaches the caller, and the map goes on from there."""
+    from ndtom_ti import MapMemoryError
+
+    scans = sim[:6]
+    real = TileWorker.step
+    refuse = {"at": 4}
+
+    def step(self, points, pose, *events):
+        if self.worker == 1 and self.map.scans_inserted == refuse["at"]:
+            refuse["at"] = -1  # once
+            raise MapMemoryError("refused (test)")
+        return real(self, points, pose, *events)
+
+    monkeypatch.setattr(TileWorker, "step", step)
+    with TiledMap(RES, workers=2, tile_size=8.0, engine="local", probe=False) as tm:
+        for pts, T in scans[:4]:
+            tm.insert_scan(pts, T)
+        with pytest.raises(MapMemoryError, match="refused"):
+            tm.insert_scan(*scans[4])
+        assert tm.restarts == 1 and tm.scans_inserted == 4
+        assert_same_map(one_process(scans[:4], "ndt"), tm.snapshot())
+        tm.insert_scan(*scans[4])
+        tm.insert_scan(*scans[5])
+        assert_same_map(one_process(scans, "ndt"), tm.snapshot())
