@@ -107,8 +107,8 @@ class TiledRun:
         err = console_err()
         if summary.complete and not self.keep:
             return
-        if not summary.complete and not m.scans_inserted:
-            return  # nothing to resume from
+        if not m.scans_inserted:
+            return  # nothing mapped: nothing to keep or resume from
         m.checkpoint(complete=summary.complete)
         if not summary.complete:
             err.print(
