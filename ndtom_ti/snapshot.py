@@ -176,6 +176,8 @@ class MapSnapshot:
         files and folders raise MapFileError."""
         if tiledfile.is_tiled(path):  # a tiled map's folder: its tiles joined
             doc = tiledfile.read_manifest(path)
+            if not doc["tiles"]:
+                raise mapfile.MapFileError(f"{path} is a tiled map of {doc['scans']} scans without a known cell yet")
             return cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
         if Path(path).is_dir():
             raise mapfile.MapFileError(tiledfile.not_tiled(path))

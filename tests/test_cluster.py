@@ -3,6 +3,7 @@ same scans, bit for bit: cells, log-odds, Gaussian counts, means, scatters, eras
 counts and states, for both miss models, real and simulated scans, any tiling, a lost
 worker, checkpoints and resumed runs."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -156,9 +157,13 @@ def test_checkpoints_make_a_tiled_map_and_resume(sim, reference, tmp_path):
         for pts, T in sim[:half]:
             tm.insert_scan(pts, T)
     assert_same_map(one_process(sim[:half], "ndt"), MapSnapshot.load(folder))
-    assert sorted(p.name for p in folder.iterdir()) == sorted(
-        [MANIFEST, *(f"tile-{w}-scan{half}.ndtom" for w in (0, 1))]
-    )
+    names = sorted(p.name for p in folder.iterdir())
+    doc = json.loads((folder / MANIFEST).read_text())
+    assert names == sorted([MANIFEST, *doc["tiles"]]) and len(doc["tiles"]) > 2  # a file per tile
+    assert all(n.startswith("tile_") and n.endswith(f"-scan{half}.ndtom") for n in doc["tiles"])
+    for name, tile in zip(doc["tiles"], doc["tile_ids"]):  # each file holds its tile's cells
+        part = MapSnapshot.load(folder / name)
+        assert (np.concatenate([part.occ_index, part.g_index]) // Tiling(RES, 2, 8.0).tile_cells == tile).all()
     with TiledMap(RES, workers=2, tile_size=8.0, engine="local", probe=False, folder=folder, resume=True) as tm:
         assert tm.scans_inserted == half
         for pts, T in sim[half:]:
@@ -187,7 +192,7 @@ def test_broken_tiled_folders_are_refused(sim, tmp_path):
         tm.insert_scan(*sim[0])
         tm.checkpoint()
     manifest = (folder / MANIFEST).read_text()
-    (folder / "tile-1-scan1.ndtom").unlink()
+    (folder / json.loads(manifest)["tiles"][1]).unlink()
     with pytest.raises(MapFileError, match="missing"):
         MapSnapshot.load(folder)
     (folder / MANIFEST).write_text(manifest.replace('"version": 1', '"version": 99'))

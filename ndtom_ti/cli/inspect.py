@@ -65,6 +65,8 @@ def _info_tiled(folder: Path) -> None:
     from ..tiledfile import read_manifest
 
     doc = read_manifest(folder)
+    if not doc["tiles"]:
+        fail(f"{folder} is a tiled map of {doc['scans']} scans without a known cell yet", "map more scans into it")
     heads = [read_header(folder / name) for name in doc["tiles"]]
     h = dict(heads[0])
     rows: dict[str, list] = {}
@@ -75,7 +77,8 @@ def _info_tiled(folder: Path) -> None:
     h["metadata"] = {**(h.get("metadata") or {}), "complete": bool(doc.get("complete"))}
     state = "complete" if doc.get("complete") else "a checkpoint of a run not finished (ndtom map --resume)"
     tiled = (
-        f"{doc['workers']} tiles of {float(doc.get('tile_size', 0.0)):g} m ({doc['tile_cells']} cells), {state}; "
+        f"{len(doc['tiles'])} tiles of {float(doc.get('tile_size', 0.0)):g} m ({doc['tile_cells']} cells) "
+        f"from {doc['workers']} workers, {state}; "
         "`ndtom merge` joins them into one map file"
     )
     _info_header(f"Tiled map {folder}", h, [("tiled map", tiled)])

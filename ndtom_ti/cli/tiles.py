@@ -259,7 +259,7 @@ def merge(
         Path,
         typer.Argument(
             metavar="DIR",
-            help="A tiled map's folder (manifest.json and a map file per worker), as `ndtom map --workers N "
+            help="A tiled map's folder (manifest.json and a map file per tile), as `ndtom map --workers N "
             "--tiled DIR` writes it.",
             show_default=False,
         ),
@@ -305,7 +305,7 @@ def merge(
             )
         console_out().print(
             Text(
-                f"Merged {doc['workers']} tiles ({fmt_count(snap.scans_inserted)} scans, {fmt_count(len(snap))} "
+                f"Merged {len(doc['tiles'])} tiles ({fmt_count(snap.scans_inserted)} scans, {fmt_count(len(snap))} "
                 f"Gaussians) into {wrote} ({fmt_mib(wrote.stat().st_size)})",
                 style="green",
             ),

@@ -25,11 +25,20 @@ import numpy as np
 from ..config import MapConfig
 from ..runtime import MapMemoryError
 from ..snapshot import MapSnapshot
-from ..tiledfile import tile_name
 from .tiling import Tiling
 from .worker import TileWorker
 
 NO_EVENTS = np.zeros((0, 3), np.int32)
+
+
+@dataclass(frozen=True)
+class Start:
+    """Where a worker starts from: the tile files of its cells at a checkpoint of ``scans``
+    scans and ``points`` points (none: its tiles held nothing yet)."""
+
+    files: tuple[str, ...]
+    scans: int
+    points: int
 
 
 class WorkerLost(RuntimeError):
@@ -67,14 +76,14 @@ def probe_hash() -> str:
 class _Worker:
     """One worker as an engine drives it (also the body of a Ray actor)."""
 
-    def __init__(self, spec: WorkerSpec, worker: int, start: str | None = None, init: bool = False):
+    def __init__(self, spec: WorkerSpec, worker: int, start: Start | None = None, init: bool = False):
         if init:  # a process of its own: its Taichi runtime
             from ..runtime import init as ti_init
 
             ti_init(arch="cpu", cpu_max_num_threads=spec.threads, memory_limit_GB=spec.memory_limit_GB)
         self.spec, self.index = spec, worker
         self.events = 0
-        snap = MapSnapshot.load(start) if start is not None else None
+        snap = MapSnapshot.join([MapSnapshot.load(f) for f in start.files]) if start and start.files else None
         self.w = TileWorker(
             spec.tiling,
             worker,
@@ -83,6 +92,8 @@ class _Worker:
             metadata=spec.metadata,
             start=snap,
         )
+        if start is not None and snap is None:  # its tiles held nothing at the checkpoint
+            self.w.map.scans_inserted, self.w.map.points_inserted = start.scans, start.points
 
     def step(self, scan: tuple, *events: np.ndarray) -> tuple[np.ndarray, dict]:
         """(this scan's border erasures, its report) after the others' last erasures."""
@@ -97,10 +108,8 @@ class _Worker:
         """Count the others' erasures of the last scan now (before a checkpoint or the end)."""
         self.w.count(*events)
 
-    def save(self, folder: str, scans: int) -> str:
-        name = tile_name(self.index, scans)
-        self.w.save(Path(folder) / name)
-        return name
+    def save(self, folder: str, scans: int) -> list[tuple[str, tuple[int, int, int]]]:
+        return self.w.save_tiles(folder, scans)
 
     def snapshot(self) -> MapSnapshot:
         return self.w.snapshot()
@@ -123,7 +132,7 @@ class LocalEngine:
     """The workers in this process (one map slot each), one after another: the same map as
     a cluster's, for tests and for tilings without an engine."""
 
-    def __init__(self, spec: WorkerSpec, starts: list[str | None]):
+    def __init__(self, spec: WorkerSpec, starts: list[Start | None]):
         self.n = spec.tiling.workers
         self.workers = [_Worker(spec, w, starts[w]) for w in range(self.n)]
         self.pending = [NO_EVENTS] * self.n
@@ -141,9 +150,9 @@ class LocalEngine:
             wk.settle(*self._others(i))
         self.pending = [NO_EVENTS] * self.n
 
-    def save(self, folder: Path, scans: int) -> list[str]:
+    def save(self, folder: Path, scans: int) -> list[tuple[str, tuple[int, int, int]]]:
         self.settle()
-        return [wk.save(str(folder), scans) for wk in self.workers]
+        return [t for wk in self.workers for t in wk.save(str(folder), scans)]
 
     def snapshots(self) -> list[MapSnapshot]:
         self.settle()
@@ -158,7 +167,7 @@ class LocalEngine:
     def probe(self) -> list[str]:
         return [probe_hash()]
 
-    def restart(self, starts: list[str | None]) -> None:
+    def restart(self, starts: list[Start | None]) -> None:
         """New workers from ``starts`` (tile files; None: empty), no events pending."""
         spec = self.workers[0].spec
         self.close()
@@ -199,7 +208,7 @@ class RayEngine:
     """The workers as Ray actors (``address``: join that cluster; None: start a local one
     with a CPU per worker thread)."""
 
-    def __init__(self, spec: WorkerSpec, starts: list[str | None], address: str | None = None):
+    def __init__(self, spec: WorkerSpec, starts: list[Start | None], address: str | None = None):
         ray = self.ray = ray_module()
         self.n = spec.tiling.workers
         threads = spec.threads or 1
@@ -220,7 +229,7 @@ class RayEngine:
         self.actors: list[Any] = []
         self.restart(starts)
 
-    def restart(self, starts: list[str | None]) -> None:
+    def restart(self, starts: list[Start | None]) -> None:
         """New worker processes from ``starts`` (tile files; None: empty), no events pending."""
         for a in self.actors:
             self.ray.kill(a, no_restart=True)
@@ -253,9 +262,9 @@ class RayEngine:
         self._get([a.settle.remote(*self._others(i)) for i, a in enumerate(self.actors)])
         self.pending = [NO_EVENTS] * self.n
 
-    def save(self, folder: Path, scans: int) -> list[str]:
+    def save(self, folder: Path, scans: int) -> list[tuple[str, tuple[int, int, int]]]:
         self.settle()
-        return self._get([a.save.remote(str(folder), scans) for a in self.actors])
+        return [t for names in self._get([a.save.remote(str(folder), scans) for a in self.actors]) for t in names]
 
     def snapshots(self) -> list[MapSnapshot]:
         self.settle()

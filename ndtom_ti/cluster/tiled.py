@@ -10,13 +10,16 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..config import MapConfig, check_resolution
+from ..kernels.layout import tile_owners
 from ..runtime import MapMemoryError
 from ..scan_update import ScanReport
 from ..scaninput import as_points, as_pose
 from ..snapshot import MapSnapshot
 from ..tiledfile import read_manifest, write_manifest
-from .engines import LocalEngine, RayEngine, WorkerLost, WorkerSpec
+from .engines import LocalEngine, RayEngine, Start, WorkerLost, WorkerSpec
 from .tiling import Tiling
 
 ENGINES = ("ray", "local")
@@ -50,7 +53,7 @@ class TiledMap:
     ``engine``: "ray" (a local Ray cluster, or the one at ``address``) or "local" (the
     workers in this process, one after another). ``threads``: Taichi threads per worker;
     ``memory_limit_GB``: each worker's budget. ``folder``: where checkpoints go (a tiled
-    map: a manifest and a map file per worker), every ``checkpoint_every`` scans; a lost
+    map: a manifest and a map file per tile), every ``checkpoint_every`` scans; a lost
     worker makes the job restart every worker from the last one and replay the scans
     since. ``resume``: carry on from the checkpoint in ``folder``. Map options as for
     :class:`~ndtom_ti.NdtOmMap` (``config``, ``occupancy`` or MapConfig fields).
@@ -103,7 +106,7 @@ class TiledMap:
         self.restarts = 0  # times a lost worker made the job go back to a checkpoint
         self.scan_bytes = 0  # the scans' points and poses sent (once to each worker's host)
         self._since: list[tuple] = []  # scans since the last checkpoint: replayed after a loss
-        self._starts: list[str | None] = [None] * workers
+        self._starts: list[Start | None] = [None] * workers
         if resume:
             self._resume()
         self._spec = WorkerSpec(
@@ -135,9 +138,9 @@ class TiledMap:
         if got != want:
             raise ValueError(f"{self.folder} holds a run of {got}, not {want}: resume it with the same settings")
         check_job(self.folder, doc, self.job)
-        self._starts = [str(self.folder / name) for name in doc["tiles"]]
         self.scans_inserted = int(doc["scans"])
         self.points_inserted = int(doc.get("points", 0))
+        self._starts = self._starts_of(doc["tiles"], doc["tile_ids"])
 
     def _probe(self) -> None:
         from .engines import probe_hash
@@ -206,9 +209,22 @@ class TiledMap:
             "job": self.job,
         }
         path = write_manifest(self.folder, info, names)
-        self._starts = [str(self.folder / n) for n in names]
+        self._starts = self._starts_of([n for n, _ in names], [t for _, t in names])
         self._since = []
         return path
+
+    def _starts_of(self, names: list[str], tiles: list) -> list[Start | None]:
+        """Each worker's tile files of a checkpoint (in ``folder``), by the tiles' owners."""
+        assert self.folder is not None
+        owners = tile_owners(np.array(tiles, np.int64).reshape(-1, 3), self.tiling.workers)
+        return [
+            Start(
+                tuple(str(self.folder / n) for n, o in zip(names, owners) if o == w),
+                self.scans_inserted,
+                self.points_inserted,
+            )
+            for w in range(self.tiling.workers)
+        ]
 
     # ------------------------------------------------------------------ the map
 

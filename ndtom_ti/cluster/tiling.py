@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..cellstate import ROWS
 from ..kernels.layout import Layout, TileOwner
 
 
@@ -55,3 +56,27 @@ class Tiling:
         workers may have to count."""
         r = np.asarray(cells, np.int64).reshape(-1, 3) % self.tile_cells
         return ((r == 0) | (r == self.tile_cells - 1)).any(axis=1)
+
+
+def split_tiles(state: dict, tile_cells: int) -> dict[tuple[int, int, int], dict]:
+    """A map's cell arrays (``state``, rows sorted by cell) cut by tile: tile indices ->
+    that tile's arrays, rows still sorted."""
+    parts: dict[tuple[int, int, int], dict] = {}
+    for first, names in ROWS.items():
+        idx = state[first]
+        if not len(idx):
+            continue
+        t = idx.astype(np.int64) // tile_cells
+        order = np.lexsort((t[:, 2], t[:, 1], t[:, 0]))  # stable: a tile's rows keep their order
+        ts = t[order]
+        cut = np.flatnonzero((np.diff(ts, axis=0) != 0).any(axis=1)) + 1
+        for rows in np.split(order, cut):
+            i, j, k = (int(x) for x in t[rows[0]])
+            key = (i, j, k)
+            part = parts.setdefault(key, {})
+            for name in names:
+                part[name] = state[name][rows]
+    for part in parts.values():  # a tile of Gaussians only, or of known cells only
+        for name, a in state.items():
+            part.setdefault(name, a[:0])
+    return parts

@@ -10,7 +10,8 @@ import numpy as np
 from ..config import MapConfig
 from ..map import NdtOmMap
 from ..snapshot import MapSnapshot
-from .tiling import Tiling
+from ..tiledfile import tile_name
+from .tiling import Tiling, split_tiles
 
 
 class TileWorker:
@@ -56,8 +57,17 @@ class TileWorker:
     def snapshot(self) -> MapSnapshot:
         return self.map.snapshot()
 
-    def save(self, path: str | Path) -> Path:
-        return self.map.save(path)
+    def save_tiles(self, folder: str | Path, scans: int) -> list[tuple[str, tuple[int, int, int]]]:
+        """Write this worker's cells to ``folder``, a map file per tile (``tiledfile``);
+        returns (file name, tile indices) of each."""
+        snap = self.map.snapshot()
+        settings = {**snap.settings(), "layout": replace(snap.layout, owner=None)}
+        out = []
+        for tile, arrays in split_tiles(snap.state(), self.tiling.tile_cells).items():
+            name = tile_name(tile, scans)
+            MapSnapshot.adopt(settings, arrays).save(Path(folder) / name)
+            out.append((name, tile))
+        return out
 
     def close(self) -> None:
         self.map.close()
