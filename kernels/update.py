@@ -736,6 +736,9 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                             if read:
                                 bflag[i, j, kb] = ti.i8(0)
                         if read:
+                            # A row lies in one tile (tiles are whole leaves): a tiled map's worker
+                            # clears the rows of other workers' cells without applying them.
+                            mine = owned(own, b0 + ti.Vector([i, j, kb * leaf]))
                             # The words a loop, the lanes unrolled: two inlined block_cells, not
                             # eight (their compile took 0.9 s of a first scan; lanes as a loop
                             # too cost ~15% of this kernel's time).
@@ -759,12 +762,11 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                         w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
                                     for lane in ti.static(range(lanes)):
                                         v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                                        k = kw * lanes + lane
-                                        c = b0 + ti.Vector([i, j, k])
-                                        if v != 0 and owned(own, c) != 0:
+                                        if v != 0 and mine != 0:
+                                            k = kw * lanes + lane
                                             block_cell(
                                                 slot,
-                                                c,
+                                                b0 + ti.Vector([i, j, k]),
                                                 v,
                                                 k >> SHIFT != last,
                                                 l_free,

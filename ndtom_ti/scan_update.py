@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -121,6 +122,7 @@ class PreparedRays:
     hit_nodes: tuple[np.ndarray, np.ndarray] | None  # (nodes the hits add, hit cells) when batched
     mine: np.ndarray | None = None  # a tiled map's worker: which hits lie in its cells (else all)
 
+    @cached_property
     def own_hits(self) -> tuple[np.ndarray, np.ndarray, int]:
         """(world, cells, count) of the hits this map merges: the worker's own, in scan order."""
         if self.mine is None:
@@ -196,13 +198,13 @@ class RayTracer:
             scan_rays = Rays(pts=world, cells=cells, n_hit=n_hit, n=n)
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
-                _, own_cells, own_n = p.own_hits()  # hit marks are cleared by merge: its hits only
+                _, own_cells, own_n = p.own_hits  # hit marks are cleared by merge: its hits only
                 k.mark_gaussians(bt)(
                     nrec=self.records.count,
                     records=self.records.group,
                     ndt=self.records.ndt_group,
                     block=blk,
-                    rays=Rays(pts=world, cells=own_cells, n_hit=own_n, n=own_n) if p.mine is not None else scan_rays,
+                    rays=Rays(pts=world, cells=own_cells, n_hit=own_n, n=own_n),
                     flags=int(flagged),
                 )
             ctr[Q_RAYS] = 0
@@ -534,7 +536,7 @@ class ScanUpdate:
             dense = self.tracer.trace("full", p)  # may refuse
         blk, flagged, whole = dense if dense is not None else (self.tracer.empty["i32"], True, False)
         bt = "u16" if blk.block.dtype == np.uint16 else "i32"
-        world, cells, n_hit = p.own_hits()  # (each cell's points keep their order: the same sums)
+        world, cells, n_hit = p.own_hits  # (each cell's points keep their order: the same sums)
         hitlist = np.empty((max(n_hit, 1), 3), np.int32)
         nh = 0
         # Points per hit cell counted in the block (no tree walks) when it holds them all; on

@@ -6,13 +6,13 @@ from __future__ import annotations
 import copy
 import json
 import time
-from dataclasses import fields, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..config import MapConfig, check_resolution
+from ..config import MapConfig, check_resolution, config_of
 from ..kernels.layout import tile_owners
 from ..runtime import MapMemoryError
 from ..scan_update import ScanReport
@@ -80,12 +80,7 @@ class TiledMap:
         **options: Any,
     ):
         self.resolution = check_resolution(resolution)
-        if config is not None and options:
-            raise TypeError("pass either config=MapConfig(...) or keyword options, not both")
-        unknown = sorted(set(options) - {f.name for f in fields(MapConfig)})
-        if unknown:
-            raise TypeError(f"unknown map options {unknown}; the options are MapConfig's")
-        self.config = config if config is not None else MapConfig(**options)
+        self.config = config_of(config, options)  # NdtOmMap's own checks of its options
         self.config.check_at(self.resolution)
         if engine not in ENGINES:
             raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
