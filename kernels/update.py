@@ -736,9 +736,6 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                             if read:
                                 bflag[i, j, kb] = ti.i8(0)
                         if read:
-                            # A row lies in one tile (tiles are whole leaves): a tiled map's worker
-                            # clears the rows of other workers' cells without applying them.
-                            mine = owned(own, b0 + ti.Vector([i, j, kb * leaf]))
                             # The words a loop, the lanes unrolled: two inlined block_cells, not
                             # eight (their compile took 0.9 s of a first scan; lanes as a loop
                             # too cost ~15% of this kernel's time).
@@ -747,6 +744,9 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                 w = words[col + kw]
                                 if w != 0:
                                     words[col + kw] = ti.u64(0)
+                                    # A word lies in one tile (tiles are whole leaves): a tiled map's
+                                    # worker clears other workers' cells without applying them.
+                                    mine = owned(own, b0 + ti.Vector([i, j, kw * lanes]))
                                     if ti.static(ndt and bits == 32):
                                         # The marks (negative; hit marks were cleared by merge)
                                         # dropped from the whole word at once: their lanes' sign bits.
