@@ -148,3 +148,23 @@ def address_space_for(size: int) -> bool:
         return False
     m.close()
     return True
+
+
+def advise_huge_pages(before: dict[int, int], least: int = DEFAULT_CHUNK) -> int:
+    """Ask Linux for transparent huge pages on the pool chunk(s) Taichi mapped since
+    ``before`` (anonymous mappings of at least ``least`` bytes). Nodes are handed out
+    from the chunk in order and touched on first use: on 4 KiB pages every page costs a
+    fault (the zero page, then a copy on the first write with a TLB shootdown to the other
+    threads), and the tree walks of a scan's updates miss the TLB. Advisory: where THP is
+    off, or the call is refused, nothing changes. Returns the bytes advised."""
+    advice = getattr(mmap, "MADV_HUGEPAGE", None)
+    if advice is None or not sys.platform.startswith("linux"):
+        return 0
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    libc.madvise.restype = ctypes.c_int
+    done = 0
+    for start, length in anonymous_mappings().items():
+        if start not in before and length >= least and libc.madvise(start, length, advice) == 0:
+            done += length
+    return done

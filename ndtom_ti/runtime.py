@@ -49,6 +49,7 @@ class _State:
     pool_note: str | None = None  # why the CPU budget is below the one asked for
     max_maps: int = DEFAULT_MAX_MAPS
     pinned: tuple = ()  # (thread id, cpu) of each pinned Taichi worker
+    huge_pages: int = 0  # bytes of the CPU pool advised MADV_HUGEPAGE
 
 
 _state = _State()
@@ -198,7 +199,9 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
             )
     legacy = min(want, CPU_POOL_LIMIT_BYTES if memory_limit_GB is None else CPU_POOL_HARD_MAX_BYTES)
     if want <= CPU_POOL_HARD_MAX_BYTES:  # fits Taichi's own first chunk
+        before = hostpool.anonymous_mappings()
         _quiet(ti.init, arch=ti.cpu, **kwargs)
+        _huge_pages(before)
         _state.pool_limit, _state.pool_max, _state.pool_chunk = want, CPU_POOL_HARD_MAX_BYTES, 1 << 30
         return
     why = None
@@ -221,18 +224,36 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
         else:
             new = [n for a, n in hostpool.anonymous_mappings().items() if a not in before and n >= chunk]
             if new:
+                _huge_pages(before)
                 _state.pool_limit = _state.pool_max = want
                 _state.pool_chunk = chunk
                 return
             why = f"no {chunk / 2**30:.1f} GiB pool chunk appeared after Taichi started"
     else:
+        before = hostpool.anonymous_mappings()
         _quiet(ti.init, arch=ti.cpu, **kwargs)
+    _huge_pages(before)
     _state.pool_limit, _state.pool_max, _state.pool_chunk = legacy, CPU_POOL_HARD_MAX_BYTES, 1 << 30
     _state.pool_note = (
         f"the CPU map budget is {legacy / 2**30:.3f} GiB instead of {want / 2**30:.1f} GiB: {why}; Taichi 1.7.4 "
         "corrupts memory past its first 1 GiB pool chunk, so maps stay within it (README \"Memory\")"
     )
     warnings.warn(_state.pool_note, RuntimeWarning, stacklevel=3)
+
+
+def _huge_pages(before: dict) -> None:
+    """Transparent huge pages for the CPU pool Taichi mapped since ``before`` (unless
+    NDTOM_HUGE_PAGES=0): a scan's first touches of new nodes then fault once per 2 MiB,
+    and the tree walks of merge and eq. (12) miss the TLB less (docs/performance.md)."""
+    from . import hostpool
+
+    if os.environ.get("NDTOM_HUGE_PAGES", "1") not in ("0", ""):
+        _state.huge_pages = hostpool.advise_huge_pages(before)
+
+
+def huge_pages() -> int:
+    """Bytes of the CPU pool advised for transparent huge pages (0: none)."""
+    return _state.huge_pages
 
 
 def pool_note() -> str | None:

@@ -444,3 +444,49 @@ def test_symbol_guard_refuses_other_files(tmp_path):
     if numpy_lib is not None:  # an ELF library without Taichi's allocator
         with pytest.raises(hostpool.GuardFailed):
             hostpool._symbol_offset(numpy_lib.resolve())
+
+
+HUGE = """
+    import numpy as np, ndtom_ti
+    from ndtom_ti import runtime, hostpool
+
+    ndtom_ti.init("cpu")
+    m = ndtom_ti.NdtOmMap(0.2)
+    m.insert_scan(np.random.default_rng(0).normal(size=(20000, 3)) * 10.0, np.eye(4))
+    chunk = max(hostpool.anonymous_mappings().items(), key=lambda kv: kv[1])
+    huge = 0
+    lines = open("/proc/self/smaps").read().splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith(f"{chunk[0]:x}-"):
+            huge = next(int(l.split()[1]) for l in lines[i + 1:] if l.startswith("AnonHugePages:"))
+            break
+    print("HUGE", runtime.huge_pages(), chunk[1], huge)
+"""
+
+
+def _thp_mode() -> str:
+    try:
+        text = open("/sys/kernel/mm/transparent_hugepage/enabled").read()
+    except OSError:
+        return "absent"
+    return text[text.index("[") + 1 : text.index("]")]
+
+
+def test_the_cpu_pool_asks_for_huge_pages_and_a_scan_gets_them():
+    # A scan's new nodes are touched on use: on 4 KiB pages each page costs a fault, and
+    # the tree walks of merge and eq. (12) miss the TLB (docs/performance.md).
+    if not sys.platform.startswith("linux") or _thp_mode() not in ("always", "madvise"):
+        pytest.skip("no transparent huge pages here")
+    advised, chunk, huge_kib = map(int, values(run_py(HUGE), "HUGE"))
+    assert advised >= chunk >= 1 << 30
+    assert huge_kib >= 2048  # the scan's nodes lie on at least one huge page
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(HUGE)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "NDTOM_ARCH": "cpu", "NDTOM_HUGE_PAGES": "0"},
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    advised, _, huge_kib = map(int, values(out.stdout, "HUGE"))
+    assert advised == 0 and (huge_kib == 0 or _thp_mode() == "always")
