@@ -98,3 +98,68 @@ def test_source_read_once_per_function():
     assert len(calls) == 1
     assert sourcefile(f) == "f.py"
     assert kernel_impl.getsourcelines.__module__ == "ndtom_ti.compiling"
+
+
+CLASS_TEST = textwrap.dedent(
+    """
+    import ndtom_ti
+    import taichi as ti
+    from taichi.lang import kernel_impl
+
+    ndtom_ti.init("cpu")
+    from ndtom_ti import compiling
+
+    taichis = compiling._taichi_inside_class
+    assert kernel_impl._inside_class is compiling._inside_class
+    seen = []
+
+    def both(level):  # one frame more than Taichi's own call: level + 1
+        seen.append((taichis(level + 1), compiling._inside_class(level + 1)))
+        return seen[-1][1]
+
+    kernel_impl._inside_class = both
+
+    @ti.kernel
+    def plain():
+        pass
+
+    def make():
+        @ti.kernel
+        def nested():
+            pass
+
+    make()
+
+    @ti.data_oriented
+    class A:
+        @ti.kernel
+        def m(self):
+            pass
+
+        @ti.kernel
+        def m2(self,
+               x: ti.i32):
+            pass
+
+    class B:
+        x = (1,
+             2)
+
+        @ti.kernel
+        def m(self):
+            pass
+
+    A().m()
+    print("SEEN", seen)
+    assert all(a == b for a, b in seen) and sum(a for a, _ in seen) == 3, seen
+    """
+)
+
+
+def test_method_kernels_are_told_from_functions_as_taichi_does(tmp_path):
+    # The cheaper test of whether ti.kernel decorates a method gives Taichi's answer. (From a
+    # file: both read the decorated line from the source.)
+    script = tmp_path / "kernels_in_classes.py"
+    script.write_text(CLASS_TEST)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
