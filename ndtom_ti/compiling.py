@@ -105,7 +105,9 @@ def fast_frontend() -> bool:
         ctx.get_pos_info = _pos_info
         from taichi.lang import kernel_impl
 
-        if callable(getattr(kernel_impl, "_inside_class", None)) and hasattr(kernel_impl, "_KERNEL_CLASS_STACKFRAME_STMT_RES"):
+        if callable(getattr(kernel_impl, "_inside_class", None)) and hasattr(
+            kernel_impl, "_KERNEL_CLASS_STACKFRAME_STMT_RES"
+        ):
             global _taichi_inside_class
             _taichi_inside_class = kernel_impl._inside_class
             kernel_impl._inside_class = _inside_class
