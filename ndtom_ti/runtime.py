@@ -83,6 +83,8 @@ def init(
         0.9375) and ``pool_note()`` says why. Later calls may lower it, or raise it back
         up to the budget the pool was sized for. On CUDA it defaults to 90% of the device
         pool.
+        On Linux the CPU pool is advised transparent huge pages (``huge_pages()``;
+        the environment variable NDTOM_HUGE_PAGES=0 turns that off).
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
     pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
