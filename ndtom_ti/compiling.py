@@ -71,7 +71,7 @@ def _inside_class(level_of_class_stackframe: int) -> bool:
     try:
         frame = sys._getframe(level_of_class_stackframe)
         lineno = frame.f_lineno
-        if hasattr(frame.f_code, "co_positions"):  # 3.11+: the instruction's first line, as inspect's
+        if hasattr(frame.f_code, "co_positions") and frame.f_lasti >= 0:  # 3.11+: as inspect's
             first = next(itertools.islice(frame.f_code.co_positions(), frame.f_lasti // 2, None), (None,))[0]
             lineno = lineno if first is None else first
         line = linecache.getline(frame.f_code.co_filename, lineno, frame.f_globals).strip()
