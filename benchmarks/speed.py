@@ -5,6 +5,7 @@
     python benchmarks/speed.py --res 0.1 0.2 0.4 --pin both      # unpinned and pinned, each resolution
     python benchmarks/speed.py --bag ../shared/data/balm_hall_every4 --res 0.2
     python benchmarks/speed.py --profile                          # wall and CPU ms per kernel, per scan
+    python benchmarks/speed.py --runs 5                           # 5 fresh processes: each, and the medians
 
 ``NdtOmMap(res)`` as a user makes it (NDT miss model, no thread pinning asked), and OctoMap
 (pyoctomap ``insertPointCloud``) on the same world points in the same process. Pinning is a
@@ -122,6 +123,19 @@ def run_one(a) -> dict:
     return out
 
 
+def _child_args(argv: list[str]) -> list[str]:
+    """The command line without --pin and --runs (a child runs one setting once)."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--pin", "--runs"):
+            skip = True
+        elif not arg.startswith(("--pin=", "--runs=")):
+            out.append(arg)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bag", help="a recording instead of the synthetic hall")
@@ -132,15 +146,25 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="ms per kernel (wall, and CPU of all threads)")
     ap.add_argument("--no-octomap", action="store_true")
     ap.add_argument("--octomap-scans", type=int, default=10)
+    ap.add_argument(
+        "--runs",
+        type=int,
+        default=1,
+        help="fresh processes per setting, alternated; prints each and their medians (a VM's "
+        "figures move by up to 25%% between processes)",
+    )
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # a child's output
     a = ap.parse_args()
-    if a.pin == "both":
+    if a.runs < 1:
+        ap.error("--runs must be at least 1")
+    if a.pin == "both" or a.runs > 1:
         runs = []
-        for pin in ("off", "on"):
-            cmd = [sys.executable, __file__, *sys.argv[1:], "--json"]
-            cmd[cmd.index("--pin") + 1] = pin
-            p = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+        pins = ("off", "on") if a.pin == "both" else (a.pin,)
+        for _ in range(a.runs):
+            for pin in pins:
+                cmd = [sys.executable, __file__, *_child_args(sys.argv[1:]), "--pin", pin, "--json"]
+                p = subprocess.run(cmd, capture_output=True, text=True, check=True)
+                runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
     else:
         runs = [run_one(a)]
         if a.json:
@@ -157,6 +181,17 @@ def main() -> None:
             )
             for k, (w, c) in sorted(row.get("kernels", {}).items(), key=lambda kv: -kv[1][0]):
                 print(f"{'':13}{k:16} {w:7.2f} ms wall {c:7.2f} ms cpu")
+    if a.runs > 1:
+        print(f"medians of {a.runs} processes each:")
+        by = collections.defaultdict(list)
+        for r in runs:
+            for row in r["rows"]:
+                by[(r["pin"], row["res"])].append(row)
+        for (pin, res), rows in by.items():
+            ms = [row["ms"] for row in rows]
+            ratios = [row["octomap_ms"] / row["ms"] for row in rows if row.get("octomap_ms")]
+            ratio = f"{np.median(ratios):6.1f} ({min(ratios):.1f}-{max(ratios):.1f})" if ratios else "     -"
+            print(f"{pin:>6} {res:5.2f} {np.median(ms):9.1f} ms ({min(ms):.1f}-{max(ms):.1f})  ratio {ratio}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,38 @@
+"""benchmarks/speed.py: several fresh processes per setting, each printed, and their medians."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _speed():
+    spec = importlib.util.spec_from_file_location("speed_bench", ROOT / "benchmarks" / "speed.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_child_runs_one_setting_once():
+    child = _speed()._child_args
+    assert child(["--runs", "3", "--pin", "both", "--res", "0.2", "0.4"]) == ["--res", "0.2", "0.4"]
+    assert child(["--runs=3", "--pin=on", "--scans", "5"]) == ["--scans", "5"]
+
+
+def test_runs_prints_each_process_and_the_medians():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "speed.py"), "--runs", "2", "--scans", "1", "--no-octomap"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = out.stdout.splitlines()
+    assert sum(line.split()[:2] == ["off", "0.20"] for line in lines) == 3  # two runs, one median
+    assert "medians of 2 processes each:" in out.stdout
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "speed.py"), "--runs", "0"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--runs must be at least 1" in bad.stderr
