@@ -200,8 +200,8 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
                 "give a smaller budget"
             )
     legacy = min(want, CPU_POOL_LIMIT_BYTES if memory_limit_GB is None else CPU_POOL_HARD_MAX_BYTES)
+    before = hostpool.anonymous_mappings()  # the pool chunk is the mapping ti.init adds
     if want <= CPU_POOL_HARD_MAX_BYTES:  # fits Taichi's own first chunk
-        before = hostpool.anonymous_mappings()
         _quiet(ti.init, arch=ti.cpu, **kwargs)
         _huge_pages(before)
         _state.pool_limit, _state.pool_max, _state.pool_chunk = want, CPU_POOL_HARD_MAX_BYTES, 1 << 30
@@ -215,7 +215,6 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
     if cell is not None and not hostpool.address_space_for(chunk):
         cell, why = None, f"Taichi could not map a {chunk / 2**30:.1f} GiB pool (Linux refuses that address space)"
     if cell is not None:
-        before = hostpool.anonymous_mappings()
         cell.value = chunk
         try:
             _quiet(ti.init, arch=ti.cpu, **kwargs)
@@ -232,7 +231,6 @@ def _init_cpu(ti, memory_limit_GB: float | None, kwargs: dict) -> None:
                 return
             why = f"no {chunk / 2**30:.1f} GiB pool chunk appeared after Taichi started"
     else:
-        before = hostpool.anonymous_mappings()
         _quiet(ti.init, arch=ti.cpu, **kwargs)
     _huge_pages(before)
     _state.pool_limit, _state.pool_max, _state.pool_chunk = legacy, CPU_POOL_HARD_MAX_BYTES, 1 << 30

@@ -6,7 +6,6 @@ file). The mapping loop stays :mod:`ndtom_ti.pipeline`'s."""
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
 import shutil
@@ -63,7 +62,7 @@ class TiledRun:
         """What this run maps; with --resume, the stopped run must have mapped the same."""
         from ..cluster.tiled import check_job
 
-        self.job = json.loads(json.dumps(job))
+        self.job = job
         if self.resume:
             try:
                 check_job(self.folder, read_manifest(self.folder), self.job)

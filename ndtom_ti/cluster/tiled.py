@@ -32,12 +32,15 @@ def check_job(folder: Path, doc: dict, job: dict | None) -> None:
     """A resumed run must map the scans of the stopped one (``job``: their source, selection
     and map settings, as the stopped run gave them; None: not checked)."""
     then = doc.get("job")
-    if job is None or then is None or then == job:
+    if job is None or then is None:
         return
-    keys = sorted(k for k in set(then) | set(job) if then.get(k) != job.get(k))
+    now: dict = json.loads(json.dumps(job))  # as the manifest holds it: tuples become lists
+    if then == now:
+        return
+    keys = sorted(k for k in set(then) | set(now) if then.get(k) != now.get(k))
     raise ValueError(
         f"{folder} holds a run of other scans or settings ({', '.join(keys)} differ: "
-        f"{ {k: then.get(k) for k in keys} } then, { {k: job.get(k) for k in keys} } now); "
+        f"{ {k: then.get(k) for k in keys} } then, { {k: now.get(k) for k in keys} } now); "
         "resume with the stopped run's recording, selection and map options"
     )
 
