@@ -226,7 +226,7 @@ class NdtOmMap:
     def memory_report(self) -> dict:
         """Memory held, by part, with bytes per known cell and per Gaussian (see
         :func:`~ndtom_ti.memreport.memory_report`)."""
-        return memory_report(self._slot, len(self.known_cells()["index"]), len(self), self.memory_bytes())
+        return memory_report(self._slot, self.known_cell_count(), len(self), self.memory_bytes())
 
     # ------------------------------------------------------------------ queries
 
@@ -261,6 +261,11 @@ class NdtOmMap:
         """Every cell with a non-zero log-odds (occupied and free), sorted by index:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
         return known_cells_of(*self._slot.known())
+
+    @_locked
+    def known_cell_count(self) -> int:
+        """How many cells ``known_cells()`` would return, counted without exporting them."""
+        return self._slot.known_count()
 
     @_locked
     def occupancy(self, points: Any, *, return_known: bool = False) -> Any:

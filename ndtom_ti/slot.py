@@ -117,12 +117,17 @@ class MapSlot:
             self._io.query(self.index, np.ascontiguousarray(idx, np.int32), len(idx), out)
         return out
 
-    def known(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every cell with a non-zero log-odds, sorted by index: (K, 3) i32 and (K,) f32."""
+    def known_count(self) -> int:
+        """Cells with a non-zero log-odds, counted in the tree (nothing exported or sorted)."""
         ctr = self._ctr
         ctr[:] = 0
         self._io.count_known(self.index, ctr)
-        K = int(ctr[C_EXPORT])
+        return int(ctr[C_EXPORT])
+
+    def known(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every cell with a non-zero log-odds, sorted by index: (K, 3) i32 and (K,) f32."""
+        K = self.known_count()
+        ctr = self._ctr
         idx = np.empty((K, 3), np.int32)
         val = np.empty(K, np.float32)
         if K:

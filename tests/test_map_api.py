@@ -220,7 +220,7 @@ def test_nonfinite_out_of_range_and_outside_grid_points_are_counted(rng):
 def test_empty_scans_and_float64_input(rng):
     m = NdtOmMap(0.3)
     rep = m.insert_scan(np.zeros((0, 3)), np.eye(4))
-    assert rep.points_in == 0 and len(m.known_cells()["index"]) == 0
+    assert rep.points_in == 0 and len(m.known_cells()["index"]) == m.known_cell_count() == 0
     pts = rng.normal(size=(500, 3)) + [3, 0, 0]
     a, b = NdtOmMap(0.3), NdtOmMap(0.3)
     a.insert_scan(pts.astype(np.float64), np.eye(4))
@@ -292,7 +292,8 @@ def test_len_repr_and_memory_report(rng):
     assert r.startswith("NdtOmMap(resolution=0.25, occupancy=True, scans=2") and "MiB" in r
     rep = m.memory_report()
     assert rep["total_bytes"] == m.memory_bytes() > 0
-    assert rep["gaussians"] == len(m) and rep["known_cells"] == len(m.known_cells()["index"])
+    known = len(m.known_cells()["index"])
+    assert rep["gaussians"] == len(m) and rep["known_cells"] == m.known_cell_count() == known > 0
     assert rep["bytes_per_gaussian"] > 0 and rep["process_pool_bytes"] <= rep["process_pool_budget_bytes"]
     # every cell with points holds a record: at least the Gaussians, at most what is held
     assert len(m) <= rep["records_in_use"] <= rep["record_bytes"] // RECORD_BYTES

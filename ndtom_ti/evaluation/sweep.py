@@ -132,7 +132,7 @@ def run_sweep(
         with NdtOmMap(res, config=config) as m:
             times, reps = _time_scans(m.insert_scan, scans)
             visits = sum(r.ray_cell_visits for r in reps)
-            full = _row("ndtom", res, scans, times, visits, len(m.known_cells()["index"]), len(m), m.memory_bytes())
+            full = _row("ndtom", res, scans, times, visits, m.known_cell_count(), len(m), m.memory_bytes())
         rows.append(full)
         if floor:
             say(f"{res:g} m: floor")
