@@ -100,6 +100,40 @@ def test_source_read_once_per_function():
     assert kernel_impl.getsourcelines.__module__ == "ndtom_ti.compiling"
 
 
+def test_source_wrapped_and_dedented_once_as_textwrap_does():
+    import ndtom_ti
+    from ndtom_ti import compiling
+
+    ndtom_ti.init("cpu")
+    if not compiling.fast_frontend():
+        pytest.skip("not the Taichi release the cheaper front end was written for")
+    from taichi.lang import kernel_impl
+
+    assert isinstance(kernel_impl.textwrap, compiling._RememberedTextwrap)
+    calls = []
+
+    class Counting:  # textwrap, counting its calls
+        def fill(self, text, **kw):
+            calls.append(text)
+            return textwrap.fill(text, **kw)
+
+        def dedent(self, text):
+            calls.append(text)
+            return textwrap.dedent(text)
+
+    tw = compiling._RememberedTextwrap(Counting())
+    lines = ["\tx = 1  ", "    if a:\t# c", "", "   ", "        y = [1,\t2]"]
+    for _ in range(3):
+        assert [tw.fill(ln, tabsize=4, width=9999) for ln in lines] == [
+            textwrap.fill(ln, tabsize=4, width=9999) for ln in lines
+        ]
+        assert tw.fill(lines[0], tabsize=8, width=9999) == textwrap.fill(lines[0], tabsize=8, width=9999)
+        text = "    def f():\n        return 1\n"
+        assert tw.dedent(text) == textwrap.dedent(text)
+    assert len(calls) == len(lines) + 2  # each argument once
+    assert compiling._RememberedTextwrap(textwrap).TextWrapper is textwrap.TextWrapper  # the rest as it is
+
+
 CLASS_TEST = textwrap.dedent(
     """
     import ndtom_ti
