@@ -268,6 +268,10 @@ class MapSnapshot:
         ``index`` (K, 3) int64, ``logodds`` (K,) float64, ``p_occ`` (K,) float64."""
         return known_cells_of(self.occ_index, self.occ_logodds)
 
+    def known_cell_count(self) -> int:
+        """How many cells ``known_cells()`` returns (``NdtOmMap.known_cell_count``)."""
+        return len(self.occ_index)
+
     def __len__(self) -> int:
         """Number of Gaussians: cells with ``n >= min_points`` that are occupied."""
         return int(np.count_nonzero((self.g_n >= max(self.config.min_points, 1)) & (self._g_logodds > 0.0)))

@@ -294,6 +294,7 @@ def test_len_repr_and_memory_report(rng):
     assert rep["total_bytes"] == m.memory_bytes() > 0
     known = len(m.known_cells()["index"])
     assert rep["gaussians"] == len(m) and rep["known_cells"] == m.known_cell_count() == known > 0
+    assert m.snapshot().known_cell_count() == known
     assert rep["bytes_per_gaussian"] > 0 and rep["process_pool_bytes"] <= rep["process_pool_budget_bytes"]
     # every cell with points holds a record: at least the Gaussians, at most what is held
     assert len(m) <= rep["records_in_use"] <= rep["record_bytes"] // RECORD_BYTES
