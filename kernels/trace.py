@@ -136,6 +136,61 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             elif v == ti.cast(mark, bt) and near == 0:
                 ndt_visit(slot, c, o, z, u, length, hit, res, ndt_prm, rec_icov, rec_miss)
 
+    @ti.func
+    def advance(
+        cur: ti.template(),
+        rem: ti.template(),
+        tmax: ti.template(),
+        li: ti.template(),
+        left: ti.template(),
+        step,
+        tdel,
+        dli,
+        res,
+        o,
+        d,
+    ):
+        # One step of the traversal: the axis whose face the ray crosses next.
+        # One axis crosses first by a clear margin (the common case): step it,
+        # advancing its crossing parameter by addition.
+        first = -1
+        if tmax[0] + TIE_MARGIN < tmax[1] and tmax[0] + TIE_MARGIN < tmax[2]:
+            first = 0
+        elif tmax[1] + TIE_MARGIN < tmax[0] and tmax[1] + TIE_MARGIN < tmax[2]:
+            first = 1
+        elif tmax[2] + TIE_MARGIN < tmax[0] and tmax[2] + TIE_MARGIN < tmax[1]:
+            first = 2
+        if first >= 0:
+            for a in ti.static(range(3)):
+                if a == first:
+                    cur[a] += step[a]
+                    rem[a] -= 1
+                    left -= 1
+                    li += dli[a]
+                    tmax[a] = tmax[a] + tdel[a] if rem[a] > 0 else BIG
+        else:
+            # Near a tie: the crossings recomputed by division, as the decision
+            # the margin stands in for (the sums stray far less than it).
+            for a in ti.static(range(3)):
+                tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+            tmin = ti.min(tmax[0], tmax[1], tmax[2])
+            ties = 0
+            up = False
+            for a in ti.static(range(3)):
+                if tmax[a] == tmin:
+                    ties += 1
+                    if step[a] > 0:
+                        up = True
+            # An exact tie (the segment crosses an edge or corner): axes stepping
+            # up move first, so the cell holding the crossing point is visited.
+            for a in ti.static(range(3)):
+                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                    cur[a] += step[a]
+                    rem[a] -= 1
+                    left -= 1
+                    li += dli[a]
+                    tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
+
     def rays(
         slot: ti.i32,
         pts: f64_2d,  # Rays
@@ -200,8 +255,47 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                     left = rem[0] + rem[1] + rem[2]
                     # Each pass steps at least one axis towards the endpoint cell, so the loop
                     # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+                    if ti.static(mode == "full"):
+                        # The rays start in the block (it holds the sensor's cell) and, once
+                        # out, stay out: each axis's index moves one way. So they visit the
+                        # block by its flat index until they leave it, then the tree, with no
+                        # bounds test a visit and neither path in the other's loop.
+                        inside = 1 if bsize[0] > 0 else 0
+                        lim = ti.Vector([-(1 << 30), -(1 << 30), -(1 << 30)], dt=ti.i32)
+                        for a in ti.static(range(3)):
+                            if step[a] > 0:
+                                lim[a] = b0[a] + bsize[a]
+                            elif step[a] < 0:
+                                lim[a] = b0[a] - 1
+                        last_row = -1
+                        while left > 0 and inside != 0:
+                            near = (i < n_hit) & (left <= near_cells)
+                            # Near the sensor every ray passes: count in the dense block,
+                            # applied to the tree once per cell by block_apply.
+                            block_visit(
+                                block1[li],
+                                near,
+                                slot,
+                                cur,
+                                o,
+                                z,
+                                u,
+                                length,
+                                i < n_hit,
+                                res,
+                                ndt_prm,
+                                rec_icov,
+                                rec_miss,
+                            )
+                            rr = li >> SHIFT  # a row of `leaf` cells along z
+                            if rr != last_row:
+                                bflag1[rr] = ti.i8(1)
+                                last_row = rr
+                            visits += 1
+                            advance(cur, rem, tmax, li, left, step, tdel, dli, res, o, d)
+                            if (cur == lim).any():
+                                inside = 0
                     while left > 0:
-                        rel = cur - b0
                         near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
                         if ti.static(mode == "dense"):
                             block_visit(
@@ -221,28 +315,6 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             )
                             if flags != 0:
                                 bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
-                        elif ti.static(full) and (rel >= 0).all() and (rel < bsize).all():
-                            # Near the sensor every ray passes: count in the dense block,
-                            # applied to the tree once per cell by block_apply.
-                            block_visit(
-                                block[rel[0], rel[1], rel[2]],
-                                near,
-                                slot,
-                                cur,
-                                o,
-                                z,
-                                u,
-                                length,
-                                i < n_hit,
-                                res,
-                                ndt_prm,
-                                rec_icov,
-                                rec_miss,
-                            )
-                            lb = ti.Vector([rel[0], rel[1], rel[2] // leaf])  # a row of `leaf` cells
-                            if (lb != last_leaf).any():
-                                bflag[lb[0], lb[1], lb[2]] = ti.i8(1)
-                                last_leaf = lb
                         elif owned(own, cur) != 0:  # (a tiled map's worker: its own cells only)
                             lf = cur // leaf
                             if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
