@@ -76,7 +76,7 @@ class Block(Group):
     block: np.ndarray  # [Bx, By, Bz] u16 or i32: rays that passed each cell
     bflag: np.ndarray  # [Bx, By, Bz / leaf] i8: rows of `leaf` cells along z that rays entered
     base: np.ndarray  # [3] i32: cell index of block[0, 0, 0]
-    block1: np.ndarray  # [Bx * By * Bz]: ``block``, flat (the "dense" rays step a flat index)
+    block1: np.ndarray  # [Bx * By * Bz]: ``block``, flat (the rays step a flat index in it)
     bflag1: np.ndarray  # [Bx * By * Bz / leaf]: ``bflag``, flat
 
     @classmethod

@@ -206,7 +206,6 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         occ_regions: i8_4d,  # Nodes
         leaves: i64_2d,
         block: b3d,  # Block (empty: every visit counts in the tree)
-        bflag: i8_3d,
         base: i32_1d,
         block1: b1d,
         bflag1: i8_1d,
@@ -411,7 +410,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             ("touched", Touched),
             "ctr",
             ("nodes", Nodes, ("occ_regions", "leaves")),
-            ("block", Block),
+            ("block", Block, ("block", "base", "block1", "bflag1")),
             ("records", Records, ("rec_n",)),
             ndt_part,
             "flags",
