@@ -64,6 +64,21 @@ STRIPES = 64
 CTR_SIZE = COUNTERS * (1 + STRIPES)
 
 
+# Taichi's vector methods (`.all()`, `.any()`, `.dot()`, `@`) are functions that its front
+# end parses and compiles again at every call site (~2-6 ms each of a first scan): the
+# kernels write these few out.
+@ti.func
+def inside(c, lo, hi):
+    # Whether lo <= c < hi on every axis (3-vectors).
+    return c[0] >= lo[0] and c[1] >= lo[1] and c[2] >= lo[2] and c[0] < hi[0] and c[1] < hi[1] and c[2] < hi[2]
+
+
+@ti.func
+def in_box(rel, size):
+    # Whether 0 <= rel < size on every axis (3-vectors).
+    return rel[0] >= 0 and rel[1] >= 0 and rel[2] >= 0 and rel[0] < size[0] and rel[1] < size[1] and rel[2] < size[2]
+
+
 def total(ctr, which: int) -> int:
     """A counter's value: its slot plus its striped copies."""
     return int(ctr[which] + ctr[COUNTERS + which :: COUNTERS].sum())
@@ -350,7 +365,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         for q in range(27):
             nb = c + ti.Vector([q // 9 - 1, (q // 3) % 3 - 1, q % 3 - 1], dt=ti.i32)
             if q != 13:
-                if (nb >= grid_lo).all() and (nb < grid_hi).all():
+                if inside(nb, grid_lo, grid_hi):
                     r = gslot[at(slot, nb)] - 1
                     # (a count already past the threshold stays there: the state bits above it)
                     if r >= 0 and rec_n[r] >= minp and rec_nbr[r] & NBR_COUNT < NDT_ERASED_NEIGHBOURS:
@@ -573,13 +588,21 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             rec_icov[r, 4],
             rec_icov[r, 5],
         )
-        inv = ti.Matrix([[i0, i1, i2], [i1, i3, i4], [i2, i4, i5]], dt=ti.f64)
         mu = ti.Vector([rec_icov[r, 6], rec_icov[r, 7], rec_icov[r, 8]])
-        a = inv @ u
+        # inv @ u and the dot products written out, in the order of Taichi's `@` and `dot`.
+        a = ti.Vector(
+            [i0 * u[0] + i1 * u[1] + i2 * u[2], i1 * u[0] + i3 * u[1] + i4 * u[2], i2 * u[0] + i4 * u[1] + i5 * u[2]]
+        )
         # x_ML on the ray's line, kept on the segment the ray travelled.
-        t = ti.min(ti.max(a.dot(mu - oc) / a.dot(u), 0.0), length)
+        g = mu - oc
+        t = ti.min(
+            ti.max((a[0] * g[0] + a[1] * g[1] + a[2] * g[2]) / (a[0] * u[0] + a[1] * u[1] + a[2] * u[2]), 0.0), length
+        )
         e = oc + t * u - mu
-        m2 = e.dot(inv @ e)
+        b = ti.Vector(
+            [i0 * e[0] + i1 * e[1] + i2 * e[2], i1 * e[0] + i3 * e[1] + i4 * e[2], i2 * e[0] + i4 * e[1] + i5 * e[2]]
+        )
+        m2 = e[0] * b[0] + e[1] * b[1] + e[2] * b[2]
         out = ti.i64(0)
         # Past m2 = 48, |logit(p)| < 4 eta exp(-24) < 2^-33: the term rounds to zero.
         if m2 < 48.0:
@@ -587,7 +610,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
             p_z = ti.f64(0.0)
             if hit:
                 w = oc + t * u - (z - centre)
-                p_z = ti.exp(-w.dot(w) * prm[1])
+                p_z = ti.exp(-(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * prm[1])
             p = 0.5 - prm[0] * p_n * (1.0 - p_z)
             out = ti.cast(ti.round(ti.log(p / (1.0 - p)) * MISS_SCALE), ti.i64)
         return out

@@ -50,6 +50,8 @@ from .ndt import (
     i32_2d,
     i64_1d,
     i64_2d,
+    in_box,
+    inside,
     u64_1d,
 )
 from .trace import block_type
@@ -175,7 +177,7 @@ def prepare(f: Storage, _cfg=None) -> Bound:
             # Exponent bits all set: inf or NaN. (ti.math.isinf/isnan cast to f32 first,
             # which made finite points past 3.4e38 read as infinite.)
             e = ti.Vector([(ti.bit_cast(p[a], ti.u64) >> ti.u64(52)) & ti.u64(0x7FF) for a in ti.static(range(3))])
-            if not (e == ti.u64(0x7FF)).any():
+            if e[0] != ti.u64(0x7FF) and e[1] != ti.u64(0x7FF) and e[2] != ti.u64(0x7FF):
                 st = ti.i8(3)
                 d2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
                 if d2 >= r2[0] and d2 <= r2[1]:
@@ -188,7 +190,7 @@ def prepare(f: Storage, _cfg=None) -> Bound:
                     for a in ti.static(range(3)):
                         w[a] = rot[3 * a] * p[0] + rot[3 * a + 1] * p[1] + rot[3 * a + 2] * p[2] + trans[a]
                     cf = ti.floor(w / res)
-                    if (cf >= grid_lo.cast(ti.f64)).all() and (cf < (grid_lo + grid_n).cast(ti.f64)).all():
+                    if inside(cf, grid_lo.cast(ti.f64), (grid_lo + grid_n).cast(ti.f64)):
                         for a in ti.static(range(3)):
                             out_world[i, a] = w[a]
                             out_cells[i, a] = ti.cast(cf[a], ti.i32)
@@ -443,7 +445,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         v = ne[at(slot, c)]
         ne[at(slot, c)] = NE_GAUSS
         rel = c - b0
-        if (rel >= 0).all() and (rel < bsize).all():
+        if in_box(rel, bsize):
             block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
         elif v & NE_COUNT != 0:
             ti.atomic_add(ctr[C_HIT_PASSED], 1)
@@ -561,7 +563,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     state = 0
                     if ti.static(ndt):  # (the paper's model reads no NDT arrays)
                         rel = c - b0
-                        if not ((rel >= 0).all() and (rel < bsize).all()):
+                        if not in_box(rel, bsize):
                             # The rays' sum, dropped: a hit cell takes the hit update only. (In the
                             # block the rays skipped hit cells, marked before them: no sum there.)
                             rec_miss[r] = ti.i64(0)
@@ -647,7 +649,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
             if rec_miss[r] != 0:  # (the tree's are apply_free's)
                 c = row(rec_cell, r)
                 rel = c - b0
-                if (rel >= 0).all() and (rel < bsize).all():
+                if in_box(rel, bsize):
                     erased = free_update(
                         slot,
                         c,
