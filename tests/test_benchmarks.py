@@ -1,4 +1,5 @@
-"""benchmarks/speed.py: several fresh processes per setting, each printed, and their medians."""
+"""benchmarks/speed.py: several fresh processes per setting, each printed, and their medians;
+benchmarks/threads.py: a row per loop size."""
 
 import importlib.util
 import subprocess
@@ -36,3 +37,21 @@ def test_runs_prints_each_process_and_the_medians():
         [sys.executable, str(ROOT / "benchmarks" / "speed.py"), "--runs", "0"], capture_output=True, text=True
     )
     assert bad.returncode == 2 and "--runs must be at least 1" in bad.stderr
+
+
+def test_threads_prints_a_row_per_loop_size():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--sizes", "0.2", "1", "--repeats", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = [line.split() for line in out.stdout.splitlines() if line.split()[:1] in (["0.2"], ["1.0"])]
+    assert [r[0] for r in rows] == ["0.2", "1.0"]
+    for r in rows:  # loop ms, wall ms and busy threads (unpinned; pinned where it could pin)
+        assert len(r) in (3, 5) and all(float(x) > 0 for x in r)
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--repeats", "0"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--repeats must be at least 1" in bad.stderr
