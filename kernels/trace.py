@@ -255,6 +255,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                     li = (co[0] - b0[0]) * strides[0] + (co[1] - b0[1]) * strides[1] + (co[2] - b0[2]) * strides[2]
                     dli = step * strides
                     left = rem[0] + rem[1] + rem[2]
+                    inside = 1  # whether the ray is in the block ("dense": always)
                     # Each pass steps at least one axis towards the endpoint cell, so the loop
                     # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
                     if ti.static(mode == "full"):
@@ -262,7 +263,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                         # out, stay out: each axis's index moves one way. So they visit the
                         # block by its flat index until they leave it, then the tree, with no
                         # bounds test a visit and neither path in the other's loop.
-                        inside = 1 if bsize[0] > 0 else 0
+                        if bsize[0] == 0:
+                            inside = 0
                         lim = ti.Vector([-(1 << 30), -(1 << 30), -(1 << 30)], dt=ti.i32)
                         for a in ti.static(range(3)):
                             if step[a] > 0:
@@ -386,19 +388,35 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                                     li += dli[a]
                                     tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                     if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
-                        if ti.static(mode == "dense"):  # li is the endpoint cell's now
+                        # Counted where the other rays' visits of the cell count: in the block
+                        # while the ray is in it (li is the endpoint cell's now), else in the
+                        # tree. One cell's count split between the two took eq. (12) twice.
+                        if inside != 0:
                             block_visit(
                                 block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss
                             )
                             if flags != 0:
                                 bflag1[li >> SHIFT] = ti.i8(1)
-                        else:
-                            note_leaf(olm, slot, ce, occ_regions, leaves, 0)
-                            g = visit(slot, ce, touched, cap, ctr)
-                            if ti.static(ndt) and g != 0:
-                                ndt_tree_visit(
-                                    slot, ce, o, z, u, length, False, res, ndt_prm, rec_n, rec_icov, rec_miss, ndt_minp
-                                )
+                        elif ti.static(mode == "full"):
+                            if owned(own, ce) != 0:
+                                note_leaf(olm, slot, ce, occ_regions, leaves, 0)
+                                g = visit(slot, ce, touched, cap, ctr)
+                                if ti.static(ndt) and g != 0:
+                                    ndt_tree_visit(
+                                        slot,
+                                        ce,
+                                        o,
+                                        z,
+                                        u,
+                                        length,
+                                        False,
+                                        res,
+                                        ndt_prm,
+                                        rec_n,
+                                        rec_icov,
+                                        rec_miss,
+                                        ndt_minp,
+                                    )
                         visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
                 jq = Q.next(ctr, Q_RAYS)

@@ -237,6 +237,50 @@ def test_dda_free_rays_count_their_last_cell():
     assert_logodds_equal(got, ref)
 
 
+@pytest.mark.parametrize("model", ["paper", "ndt"])
+def test_free_rays_give_one_map_whatever_the_block_holds(monkeypatch, model):
+    """max_range_mode='free' with the dense block holding all, part or none of each scan:
+    the same map, bit for bit. A free ray's last cell inside a block that held only part of
+    the scan was counted in the tree while the other rays' visits of it counted in the
+    block (eq. 12 applied twice; the NDT miss model moved cells by up to 4 in log-odds)."""
+    from ndtom_ti import scan_update
+
+    trace = scan_update.RayTracer.trace
+    wholes = []
+
+    def noting(self, mode, p):
+        out = trace(self, mode, p)
+        wholes.append(None if out is None else out[2])
+        return out
+
+    monkeypatch.setattr(scan_update.RayTracer, "trace", noting)
+
+    def build(block_cells):
+        rng = np.random.default_rng(3)
+        m = NdtOmMap(0.2, config=MapConfig(max_range=6.0, max_range_mode="free", miss_model=model))
+        if block_cells is not None:
+            m.plan.block_cells = block_cells
+        free = 0
+        for s in range(4):
+            T = np.eye(4)
+            T[:3, 3] = [0.3 * s, 0.1 * s, 0.0]
+            free += m.insert_scan(rng.normal(size=(12000, 3)) * [6.0, 6.0, 1.5], T).free_rays
+        assert free > 0
+        k = m.known_cells()
+        order = np.lexsort(k["index"].T[::-1])
+        return k["index"][order], k["logodds"][order]
+
+    cells, lo = build(None)
+    assert wholes == [True] * 4
+    for block_cells in (8**3 * 216, 0):
+        wholes.clear()
+        got_cells, got_lo = build(block_cells)
+        if block_cells:
+            assert False in wholes  # the block held part of a scan
+        np.testing.assert_array_equal(got_cells, cells)
+        np.testing.assert_array_equal(got_lo.view(np.uint32), lo.view(np.uint32))
+
+
 # --------------------------------------------------------------------------- eq. (12)
 
 
