@@ -65,18 +65,13 @@ CTR_SIZE = COUNTERS * (1 + STRIPES)
 
 
 # Taichi's vector methods (`.all()`, `.any()`, `.dot()`, `@`) are functions that its front
-# end parses and compiles again at every call site (~2-6 ms each of a first scan): the
-# kernels write these few out.
+# end parses and compiles again at every call site (~2-6 ms each of a first scan): written
+# out where the code runs rarely or once a point. (In the per-scan loops they stay: written
+# out, the ray loop ran 1.11x as long, for what LLVM made of the code around it.)
 @ti.func
 def inside(c, lo, hi):
     # Whether lo <= c < hi on every axis (3-vectors).
     return c[0] >= lo[0] and c[1] >= lo[1] and c[2] >= lo[2] and c[0] < hi[0] and c[1] < hi[1] and c[2] < hi[2]
-
-
-@ti.func
-def in_box(rel, size):
-    # Whether 0 <= rel < size on every axis (3-vectors).
-    return rel[0] >= 0 and rel[1] >= 0 and rel[2] >= 0 and rel[0] < size[0] and rel[1] < size[1] and rel[2] < size[2]
 
 
 def total(ctr, which: int) -> int:

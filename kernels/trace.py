@@ -30,7 +30,6 @@ from .ndt import (
     i32_3d,
     i64_1d,
     i64_2d,
-    in_box,
 )
 
 BLOCK_DTYPES = ("u16", "i32")
@@ -233,11 +232,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                     ce = row(cells, i)
                     z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
                     d = z - o
-                    # (|d| and u: the NDT miss model's, dead code without it.) Here and for li,
-                    # Taichi's .norm() and .dot() rather than written out: written out, the ray
-                    # loop ran 1.11x as long on one thread (8 alternated pairs; what LLVM made
-                    # of the code around the loop, not the loop's own IR).
-                    length = d.norm()
+                    length = d.norm()  # the NDT miss model's (dead code without it)
                     u = d / length
                     cur = co
                     step = ti.Vector([0, 0, 0], dt=ti.i32)
@@ -254,8 +249,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             tdel[a] = res / ti.abs(d[a])
                     visits = 0
                     last_leaf = ti.Vector([-(1 << 30), 0, 0], dt=ti.i32)
-                    # The flat index of the current cell in the block.
-                    li = (co - b0).dot(strides)
+                    li = (co - b0).dot(strides)  # flat index of the current cell in the block
                     dli = step * strides
                     left = rem[0] + rem[1] + rem[2]
                     inside = 1  # whether the ray is in the block ("dense": always)
@@ -300,7 +294,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                                 last_row = rr
                             visits += 1
                             advance(cur, rem, tmax, li, left, step, tdel, dli, res, o, d)
-                            if cur[0] == lim[0] or cur[1] == lim[1] or cur[2] == lim[2]:
+                            if (cur == lim).any():
                                 inside = 0
                     while left > 0:
                         near = (i < n_hit) & (left <= near_cells)  # left: |ce - cur|_1
@@ -324,8 +318,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                                 bflag1[li >> SHIFT] = ti.i8(1)  # rows of `leaf` cells along z
                         elif owned(own, cur) != 0:  # (a tiled map's worker: its own cells only)
                             lf = cur // leaf
-                            # A leaf is counted when a ray enters it.
-                            if lf[0] != last_leaf[0] or lf[1] != last_leaf[1] or lf[2] != last_leaf[2]:
+                            if (lf != last_leaf).any():  # a leaf is counted when a ray enters it
                                 note_leaf(olm, slot, cur, occ_regions, leaves, 0)
                                 last_leaf = lf
                             if ti.static(full):
@@ -471,7 +464,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         for r in range(nrec):
             if rec_n[r] >= ndt_minp:
                 rel = row(rec_cell, r) - b0
-                if in_box(rel, bsize):
+                if (rel >= 0).all() and (rel < bsize).all():
                     if ti.static(bt == "i32"):
                         block[rel[0], rel[1], rel[2]] = MARK_I32 - r
                     else:
@@ -480,7 +473,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
                         bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
         for i in range(n_hit):
             rel = row(cells, i) - b0
-            if in_box(rel, bsize):
+            if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)
 
     return Bound(

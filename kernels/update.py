@@ -50,7 +50,6 @@ from .ndt import (
     i32_2d,
     i64_1d,
     i64_2d,
-    in_box,
     inside,
     u64_1d,
 )
@@ -445,7 +444,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
         v = ne[at(slot, c)]
         ne[at(slot, c)] = NE_GAUSS
         rel = c - b0
-        if in_box(rel, bsize):
+        if (rel >= 0).all() and (rel < bsize).all():
             block[rel[0], rel[1], rel[2]] = ti.cast(0, bt)
         elif v & NE_COUNT != 0:
             ti.atomic_add(ctr[C_HIT_PASSED], 1)
@@ -563,7 +562,7 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                     state = 0
                     if ti.static(ndt):  # (the paper's model reads no NDT arrays)
                         rel = c - b0
-                        if not in_box(rel, bsize):
+                        if not ((rel >= 0).all() and (rel < bsize).all()):
                             # The rays' sum, dropped: a hit cell takes the hit update only. (In the
                             # block the rays skipped hit cells, marked before them: no sum there.)
                             rec_miss[r] = ti.i64(0)
@@ -649,7 +648,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
             if rec_miss[r] != 0:  # (the tree's are apply_free's)
                 c = row(rec_cell, r)
                 rel = c - b0
-                if in_box(rel, bsize):
+                if (rel >= 0).all() and (rel < bsize).all():
                     erased = free_update(
                         slot,
                         c,
