@@ -16,6 +16,12 @@ def _speed():
     return mod
 
 
+def _run(script: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
 def test_a_child_runs_one_setting_once():
     child = _speed()._child_args
     assert child(["--runs", "3", "--pin", "both", "--res", "0.2", "0.4"]) == ["--res", "0.2", "0.4"]
@@ -23,35 +29,21 @@ def test_a_child_runs_one_setting_once():
 
 
 def test_runs_prints_each_process_and_the_medians():
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "speed.py"), "--runs", "2", "--scans", "1", "--no-octomap"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    out = _run("speed.py", "--runs", "2", "--scans", "1", "--no-octomap")
     assert out.returncode == 0, out.stderr[-3000:]
     lines = out.stdout.splitlines()
     assert sum(line.split()[:2] == ["off", "0.20"] for line in lines) == 3  # two runs, one median
     assert "medians of 2 processes each:" in out.stdout
-    bad = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "speed.py"), "--runs", "0"], capture_output=True, text=True
-    )
+    bad = _run("speed.py", "--runs", "0")
     assert bad.returncode == 2 and "--runs must be at least 1" in bad.stderr
 
 
 def test_threads_prints_a_row_per_loop_size():
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--sizes", "0.2", "1", "--repeats", "1"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    out = _run("threads.py", "--sizes", "0.2", "1", "--repeats", "1", timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     rows = [line.split() for line in out.stdout.splitlines() if line.split()[:1] in (["0.2"], ["1.0"])]
     assert [r[0] for r in rows] == ["0.2", "1.0"]
     for r in rows:  # loop ms, wall ms and busy threads (unpinned; pinned where it could pin)
         assert len(r) in (3, 5) and all(float(x) > 0 for x in r)
-    bad = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--repeats", "0"], capture_output=True, text=True
-    )
+    bad = _run("threads.py", "--repeats", "0")
     assert bad.returncode == 2 and "--repeats must be at least 1" in bad.stderr
