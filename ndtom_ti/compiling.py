@@ -12,19 +12,12 @@ inlined calls.
 
 from __future__ import annotations
 
-import itertools
-import linecache
-import os
-import sys
 import threading
 
 from .kernels import families
-
-# The Taichi release whose front end fast_frontend was written against.
-WRITTEN_FOR = (1, 7, 4)
+from .taichi_import import WRITTEN_FOR, plain, replace_method_test
 
 _done = False
-_taichi_inside_class = None  # Taichi's own, replaced by _inside_class
 _lock = threading.Lock()
 
 
@@ -89,25 +82,6 @@ class _RememberedTextwrap:
         return getattr(self._tw, name)
 
 
-def _inside_class(level_of_class_stackframe: int) -> bool:
-    # Taichi's test of whether ti.kernel decorates a method: the first line of the caller's
-    # statement. Taichi reads it with inspect.getframeinfo, which looks for the frame's
-    # module in every module loaded (0.47 s of a first scan's 170 kernel definitions,
-    # profiled); linecache reads the same line.
-    from taichi.lang import kernel_impl
-
-    try:
-        frame = sys._getframe(level_of_class_stackframe)
-        lineno = frame.f_lineno
-        if hasattr(frame.f_code, "co_positions") and frame.f_lasti >= 0:  # 3.11+: as inspect's
-            first = next(itertools.islice(frame.f_code.co_positions(), frame.f_lasti // 2, None), (None,))[0]
-            lineno = lineno if first is None else first
-        line = linecache.getline(frame.f_code.co_filename, lineno, frame.f_globals).strip()
-    except (ValueError, AttributeError, TypeError):
-        return False
-    return any(pat.match(line) for pat in kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES)
-
-
 def fast_frontend() -> bool:
     """Use the cheaper source positions in Taichi's front end (once per process). Only on
     the Taichi release it was written for, and not with NDTOM_PLAIN_COMPILE=1. Returns
@@ -116,7 +90,7 @@ def fast_frontend() -> bool:
     with _lock:
         if _done:
             return True
-        if os.environ.get("NDTOM_PLAIN_COMPILE", "") not in ("", "0"):
+        if plain():
             return False
         import taichi
 
@@ -133,12 +107,7 @@ def fast_frontend() -> bool:
         ctx.get_pos_info = _pos_info
         from taichi.lang import kernel_impl
 
-        if callable(getattr(kernel_impl, "_inside_class", None)) and hasattr(
-            kernel_impl, "_KERNEL_CLASS_STACKFRAME_STMT_RES"
-        ):
-            global _taichi_inside_class
-            _taichi_inside_class = kernel_impl._inside_class
-            kernel_impl._inside_class = _inside_class
+        replace_method_test(kernel_impl)  # (in place already when ndtom_ti was imported before Taichi)
         read = (getattr(kernel_impl, "getsourcefile", None), getattr(kernel_impl, "getsourcelines", None))
         if all(callable(f) for f in read):
             kernel_impl.getsourcefile, kernel_impl.getsourcelines = _cached_source(*read)

@@ -141,14 +141,14 @@ CLASS_TEST = textwrap.dedent(
     from taichi.lang import kernel_impl
 
     ndtom_ti.init("cpu")
-    from ndtom_ti import compiling
+    from ndtom_ti import taichi_import
 
-    taichis = compiling._taichi_inside_class
-    assert kernel_impl._inside_class is compiling._inside_class
+    taichis = taichi_import.taichis
+    assert kernel_impl._inside_class is taichi_import.inside_class
     seen = []
 
     def both(level):  # one frame more than Taichi's own call: level + 1
-        seen.append((taichis(level + 1), compiling._inside_class(level + 1)))
+        seen.append((taichis(level + 1), taichi_import.inside_class(level + 1)))
         return seen[-1][1]
 
     kernel_impl._inside_class = both
@@ -197,3 +197,56 @@ def test_method_kernels_are_told_from_functions_as_taichi_does(tmp_path):
     script.write_text(CLASS_TEST)
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+
+
+METHODS = textwrap.dedent(
+    """
+    import ndtom_ti  # before Taichi: its method test is replaced while Taichi is imported
+    import taichi as ti
+    from taichi.lang import kernel_impl
+
+    print("TEST", kernel_impl._inside_class.__module__)
+    ndtom_ti.init("cpu")
+
+    @ti.data_oriented
+    class Cells:
+        def __init__(self):
+            self.x = ti.field(ti.i32, 4)
+
+        @ti.func
+        def get(self, i):
+            return self.x[i]
+
+        @ti.kernel
+        def fill(self, v: ti.i32):
+            for i in self.x:
+                self.x[i] = v
+
+        @ti.kernel
+        def total(self) -> ti.i32:
+            s = 0
+            for i in range(4):
+                s += self.get(i)
+            return s
+
+    @ti.kernel
+    def plain_kernel(v: ti.i32) -> ti.i32:
+        return v + 1
+
+    c = Cells()
+    c.fill(3)
+    print("SUM", c.total(), plain_kernel(4))
+    """
+)
+
+
+@pytest.mark.parametrize("plain", ["0", "1"])
+def test_methods_and_functions_told_apart_as_taichi_does(tmp_path, plain):
+    script = tmp_path / "m.py"
+    script.write_text(METHODS)
+    env = {**os.environ, "NDTOM_PLAIN_COMPILE": plain}
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    expect = "taichi.lang.kernel_impl" if plain == "1" else "ndtom_ti.taichi_import"
+    assert f"TEST {expect}" in p.stdout, p.stdout
+    assert "SUM 12 5" in p.stdout, p.stdout
