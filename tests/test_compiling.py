@@ -48,12 +48,17 @@ SCRIPT = textwrap.dedent(
 )
 
 
+def _run(path, text: str, plain: str):
+    """``text`` as a script at ``path``, in a fresh process, with NDTOM_PLAIN_COMPILE=plain."""
+    path.write_text(text)
+    env = {**os.environ, "NDTOM_PLAIN_COMPILE": plain}
+    return subprocess.run([sys.executable, str(path)], capture_output=True, text=True, env=env, timeout=300)
+
+
 @pytest.mark.parametrize("plain", ["0", "1"])
 def test_compile_errors_name_the_source_line(tmp_path, plain):
     script = tmp_path / "k.py"
-    script.write_text(SCRIPT)
-    env = {**os.environ, "NDTOM_PLAIN_COMPILE": plain}
-    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    p = _run(script, SCRIPT, plain)
     if plain == "1":
         # the plain front end: fast_frontend refuses, the assert says so
         assert p.returncode != 0 and "assert compiling.fast_frontend()" in p.stderr
@@ -242,10 +247,7 @@ METHODS = textwrap.dedent(
 
 @pytest.mark.parametrize("plain", ["0", "1"])
 def test_methods_and_functions_told_apart_as_taichi_does(tmp_path, plain):
-    script = tmp_path / "m.py"
-    script.write_text(METHODS)
-    env = {**os.environ, "NDTOM_PLAIN_COMPILE": plain}
-    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    p = _run(tmp_path / "m.py", METHODS, plain)
     assert p.returncode == 0, p.stderr
     expect = "taichi.lang.kernel_impl" if plain == "1" else "ndtom_ti.taichi_import"
     assert f"TEST {expect}" in p.stdout, p.stdout
