@@ -174,6 +174,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             for a in ti.static(range(3)):
                 tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
             tmin = ti.min(tmax[0], tmax[1], tmax[2])
+            if tmin == BIG:
+                left = 0  # a free ray's last cell, visited: no face left to cross
             ties = 0
             up = False
             for a in ti.static(range(3)):
@@ -184,7 +186,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             # An exact tie (the segment crosses an edge or corner): axes stepping
             # up move first, so the cell holding the crossing point is visited.
             for a in ti.static(range(3)):
-                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up) and rem[a] > 0:
                     cur[a] += step[a]
                     rem[a] -= 1
                     left -= 1
@@ -252,9 +254,16 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                     li = (co - b0).dot(strides)  # flat index of the current cell in the block
                     dli = step * strides
                     left = rem[0] + rem[1] + rem[2]
+                    if ti.static(full):
+                        # A free ray passes its last cell too: one visit more than its steps,
+                        # the last one where the ray's other visits of the block or tree count
+                        # (one cell's count split between the two took eq. 12 twice).
+                        if i >= n_hit:
+                            left += 1
                     inside = 1  # whether the ray is in the block ("dense": always)
                     # Each pass steps at least one axis towards the endpoint cell, so the loop
-                    # ends exactly there after at most |ce - co|_1 passes, whatever rounding does.
+                    # ends exactly there after at most |ce - co|_1 passes, whatever rounding does
+                    # (a free ray: one pass more, at that cell).
                     if ti.static(mode == "full"):
                         # The rays start in the block (it holds the sensor's cell) and, once
                         # out, stay out: each axis's index moves one way. So they visit the
@@ -367,6 +376,8 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             for a in ti.static(range(3)):
                                 tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
                             tmin = ti.min(tmax[0], tmax[1], tmax[2])
+                            if tmin == BIG:
+                                left = 0  # a free ray's last cell, visited: no face left to cross
                             ties = 0
                             up = False
                             for a in ti.static(range(3)):
@@ -377,43 +388,12 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                             # An exact tie (the segment crosses an edge or corner): axes stepping
                             # up move first, so the cell holding the crossing point is visited.
                             for a in ti.static(range(3)):
-                                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up):
+                                if tmax[a] == tmin and (ties == 1 or (step[a] > 0) == up) and rem[a] > 0:
                                     cur[a] += step[a]
                                     rem[a] -= 1
                                     left -= 1
                                     li += dli[a]
                                     tmax[a] = next_t(cur[a], step[a], rem[a], res, o[a], d[a])
-                    if ti.static(full) and i >= n_hit:  # a free ray passes its last cell too
-                        # Counted where the other rays' visits of the cell count: in the block
-                        # while the ray is in it (li is the endpoint cell's now), else in the
-                        # tree. One cell's count split between the two took eq. (12) twice.
-                        if inside != 0:
-                            block_visit(
-                                block1[li], False, slot, ce, o, z, u, length, False, res, ndt_prm, rec_icov, rec_miss
-                            )
-                            if flags != 0:
-                                bflag1[li >> SHIFT] = ti.i8(1)
-                        elif ti.static(mode == "full"):
-                            if owned(own, ce) != 0:
-                                note_leaf(olm, slot, ce, occ_regions, leaves, 0)
-                                g = visit(slot, ce, touched, cap, ctr)
-                                if ti.static(ndt) and g != 0:
-                                    ndt_tree_visit(
-                                        slot,
-                                        ce,
-                                        o,
-                                        z,
-                                        u,
-                                        length,
-                                        False,
-                                        res,
-                                        ndt_prm,
-                                        rec_n,
-                                        rec_icov,
-                                        rec_miss,
-                                        ndt_minp,
-                                    )
-                        visits += 1
                     tally(ctr, C_VISITS, i >> 5, visits)
                 jq = Q.next(ctr, Q_RAYS)
 
