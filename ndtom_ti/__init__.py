@@ -7,6 +7,9 @@ import os as _os
 
 # Taichi prints a version banner on import; a mapping library should not.
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+# Taichi's init asks its server for a newer release (a POST with a machine id, once a day, on
+# a thread): a mapping process makes no network call of its own accord. Set it to OFF to allow.
+_os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 
 from . import taichi_import as _taichi_import  # before anything imports Taichi
 

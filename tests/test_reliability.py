@@ -1173,3 +1173,33 @@ def test_config_values_of_the_wrong_type_are_clear_errors(tmp_path, plane_bag, t
 def test_export_of_a_folder_is_a_clear_error(tmp_path):
     r = run_cli("export", tmp_path)
     assert r.exit_code == 2 and "is a folder" in r.output, r.output
+
+
+NETWORK = textwrap.dedent(
+    """
+    import time
+
+    import ndtom_ti
+    import taichi._version_check as vc
+
+    calls = []
+    vc.try_check_version = lambda: calls.append(1)  # Taichi's POST to its server, stood in for
+    ndtom_ti.init("cpu")
+    time.sleep(0.5)
+    print("CHECKS", len(calls))
+    """
+)
+
+
+@pytest.mark.parametrize("user", [None, "OFF"])
+def test_init_makes_no_network_call_unless_the_user_allows_it(tmp_path, user):
+    # Taichi's init starts a thread that posts a machine id to its server once a day; a mapping
+    # process does not, unless the user sets TI_SKIP_VERSION_CHECK themselves.
+    env = {k: v for k, v in os.environ.items() if k != "TI_SKIP_VERSION_CHECK"}
+    if user is not None:
+        env["TI_SKIP_VERSION_CHECK"] = user
+    script = tmp_path / "net.py"
+    script.write_text(NETWORK)
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert f"CHECKS {0 if user is None else 1}" in p.stdout, p.stdout
