@@ -440,6 +440,15 @@ def test_symbol_guard_refuses_other_files(tmp_path):
     text.write_bytes(b"just text, not a library" * 10)
     with pytest.raises(hostpool.GuardFailed, match="ELF"):
         hostpool._symbol_offset(text)
+    empty = tmp_path / "empty.so"
+    empty.write_bytes(b"")
+    with pytest.raises(hostpool.GuardFailed, match="ELF"):
+        hostpool._symbol_offset(empty)
+    # Taichi's own library cut short: its section table lies past the end
+    cut = tmp_path / "cut.so"
+    cut.write_bytes(hostpool._library().read_bytes()[: 1 << 16])
+    with pytest.raises(hostpool.GuardFailed, match="truncated"):
+        hostpool._symbol_offset(cut)
     numpy_lib = next(Path(np.__file__).parent.glob("_core/_multiarray_umath*.so"), None)
     if numpy_lib is not None:  # an ELF library without Taichi's allocator
         with pytest.raises(hostpool.GuardFailed):
