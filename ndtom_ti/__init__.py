@@ -4,6 +4,7 @@ No Taichi field or kernel is created at import time: ``init`` (or the first map)
 """
 
 import os as _os
+import typing as _typing
 
 # Taichi prints a version banner on import; a mapping library should not.
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
@@ -25,6 +26,10 @@ from .runtime import NoFreeSlotError as NoFreeSlotError
 from .runtime import current_arch as current_arch
 from .runtime import init as init
 from .snapshot import MapSnapshot as MapSnapshot
+
+if _typing.TYPE_CHECKING:  # at run time imported on first use (__getattr__)
+    from .evaluation import metrics as metrics
+    from .evaluation import quality as quality
 
 __version__ = "0.1.0"
 __all__ = [

@@ -58,6 +58,8 @@ def replace_method_test(kernel_impl) -> bool:
     ):
         return False
     core = sys.modules.get("taichi._lib.core.taichi_python")
+    if core is None:
+        return False
     try:
         version = (core.get_version_major(), core.get_version_minor(), core.get_version_patch())
     except AttributeError:
