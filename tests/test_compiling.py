@@ -198,9 +198,7 @@ CLASS_TEST = textwrap.dedent(
 def test_method_kernels_are_told_from_functions_as_taichi_does(tmp_path):
     # The cheaper test of whether ti.kernel decorates a method gives Taichi's answer. (From a
     # file: both read the decorated line from the source.)
-    script = tmp_path / "kernels_in_classes.py"
-    script.write_text(CLASS_TEST)
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    out = _run(tmp_path / "kernels_in_classes.py", CLASS_TEST, "0")
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
 
 
