@@ -333,6 +333,13 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # Returns 1 when it erased a Gaussian.
         l = ti.min(ti.max(lo[at(slot, c)] + dl, l_min), l_max)
         lo[at(slot, c)] = l
+        # A reset leaves nothing to erase: later passes skip the index tree until a hit
+        # sets NE_GAUSS again. Stored beside lo, not in the branch: a store there inlines
+        # Taichi's node allocator once more (one thread per cell here, no race).
+        v = ne[at(slot, c)]
+        if l <= l_reset and g != 0:
+            v &= NE_COUNT
+        ne[at(slot, c)] = v
         erased = 0
         if l <= l_reset and g != 0:
             r = gslot[at(slot, c)] - 1
@@ -344,8 +351,6 @@ def device_funcs(f: Storage) -> SimpleNamespace:
                     ti.atomic_add(ctr[C_ERASED], 1)
                     gslot[at(slot, c)] = 0
                     rec_free[ti.cast(ti.atomic_add(ctr[C_FREE], 1), ti.i32)] = r
-            # Nothing left to erase: later passes skip the index tree until a hit sets it.
-            ne[at(slot, c)] = ne[at(slot, c)] & NE_COUNT
         return erased
 
     grid_hi = ti.Vector(list(L.hi))

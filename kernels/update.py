@@ -102,17 +102,21 @@ def cell_sums(order: ti.template(), o, cnt, pts: ti.template(), centre):
                 k -= 1
             order[k + 1] = v
     else:
+        # A max-heap of the indices (roots cnt // 2 - 1 .. 0), then its top swapped out
+        # (ends cnt - 1 .. 1): one loop, so that _sift_down is inlined once.
         s = cnt // 2 - 1
-        while s >= 0:  # a max-heap of the indices
-            _sift_down(order, o, s, cnt)
-            s -= 1
-        end = cnt - 1
-        while end > 0:
-            top = order[o]
-            order[o] = order[o + end]
-            order[o + end] = top
-            _sift_down(order, o, 0, end)
-            end -= 1
+        end = cnt
+        while s >= 0 or end > 1:
+            root = 0
+            if s >= 0:
+                root = s
+                s -= 1
+            else:
+                end -= 1
+                top = order[o]
+                order[o] = order[o + end]
+                order[o + end] = top
+            _sift_down(order, o, root, end)
     sv = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
     ss = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f64)
     for j in range(o, o + cnt):
@@ -508,9 +512,12 @@ def merge(f: Storage, cfg: MergeConfig) -> Bound:
                             continue
                         if ti.static(grouped):  # hits_dense did not touch the index tree (in_tree: a no-op)
                             note_leaf(glm, slot, c, gidx_regions, leaves, 1)
-                        gslot[at(slot, c)] = r + 1
                         for a in ti.static(range(3)):
                             rec_cell[r, a] = c[a]
+                    # Stored here, outside the branches, so that the cell's later index-tree
+                    # stores share this one's inlined node activation (Taichi inlines its
+                    # allocator at every store to a sparse field it cannot prove active).
+                    gslot[at(slot, c)] = r + 1
                     cnt = 0
                     if ti.static(grouped):
                         cnt = hcnt[s]
@@ -743,9 +750,8 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                 seen |= words[col + kb * row_words + kr]
                             read = seen != 0
                         if read:
-                            # The words a loop, the lanes unrolled: two inlined block_cells, not
-                            # eight (their compile took 0.9 s of a first scan; lanes as a loop
-                            # too cost ~15% of this kernel's time).
+                            # The words a loop (eight inlined block_cells took 0.9 s of a first
+                            # scan to compile; a loop over every lane cost ~15% of this kernel's time).
                             for kr in range(row_words):
                                 kw = kb * row_words + kr
                                 w = words[col + kw]
@@ -767,26 +773,36 @@ def block_apply(f: Storage, cfg: FreeConfig) -> Bound:
                                         t = ~w
                                         top = (t - ti.u64(ones)) & ~t & ti.u64(highs)
                                         w &= ~((top >> ti.u64(bits - 1)) * ti.u64(mask))
-                                    for lane in ti.static(range(lanes)):
-                                        v = ti.cast((w >> ti.u64(bits * lane)) & ti.u64(mask), ti.i32)
-                                        if v != 0 and mine != 0:
-                                            k = kw * lanes + lane
-                                            block_cell(
-                                                slot,
-                                                b0 + ti.Vector([i, j, k]),
-                                                v,
-                                                k >> SHIFT != last,
-                                                l_free,
-                                                l_min,
-                                                l_max,
-                                                rec_n,
-                                                ctr,
-                                                occ_regions,
-                                                leaves,
-                                                rec_free,
-                                            )
-                                            cells += 1
-                                            last = k >> SHIFT
+                                    if mine == 0:
+                                        w = ti.u64(0)
+                                    # The word's counted lanes, lowest first, through one block_cell:
+                                    # each inlined copy holds Taichi's node allocator, inlined at each
+                                    # store to a sparse field (half the kernel's code to generate).
+                                    while w != 0:
+                                        lane = lanes - 1
+                                        for q in ti.static(range(lanes - 2, -1, -1)):
+                                            if (w >> ti.u64(bits * q)) & ti.u64(mask) != 0:
+                                                lane = q
+                                        sh = ti.u64(bits * lane)
+                                        v = ti.cast((w >> sh) & ti.u64(mask), ti.i32)
+                                        w &= ~(ti.u64(mask) << sh)
+                                        k = kw * lanes + lane
+                                        block_cell(
+                                            slot,
+                                            b0 + ti.Vector([i, j, k]),
+                                            v,
+                                            k >> SHIFT != last,
+                                            l_free,
+                                            l_min,
+                                            l_max,
+                                            rec_n,
+                                            ctr,
+                                            occ_regions,
+                                            leaves,
+                                            rec_free,
+                                        )
+                                        cells += 1
+                                        last = k >> SHIFT
                     if cells > 0:
                         tally(ctr, C_BLOCK_CELLS, ij >> 3, cells)
                 jq = Q.next(ctr, Q_APPLY)
