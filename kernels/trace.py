@@ -30,6 +30,7 @@ from .ndt import (
     i32_3d,
     i64_1d,
     i64_2d,
+    rolled,
 )
 
 BLOCK_DTYPES = ("u16", "i32")
@@ -442,6 +443,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
         for r in range(nrec):
+            rolled(nrec)
             if rec_n[r] >= ndt_minp:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
@@ -452,6 +454,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
                     if flags != 0:
                         bflag[rel[0], rel[1], rel[2] // leaf] = ti.i8(1)
         for i in range(n_hit):
+            rolled(n_hit)
             rel = row(cells, i) - b0
             if (rel >= 0).all() and (rel < bsize).all():
                 block[rel[0], rel[1], rel[2]] = ti.cast(hit, bt_)

@@ -51,6 +51,7 @@ from .ndt import (
     i64_1d,
     i64_2d,
     inside,
+    rolled,
     u64_1d,
 )
 from .trace import block_type
@@ -286,6 +287,7 @@ def hits_group(f: Storage, _cfg=None) -> Bound:
         for c in range(HIT_CHUNKS):
             k = 0
             for s in range(c * size, ti.min(nh, (c + 1) * size)):
+                rolled(n)
                 v = hn[at(slot, row(hitlist, s))]
                 hcnt[s] = v
                 k += v
@@ -293,14 +295,17 @@ def hits_group(f: Storage, _cfg=None) -> Bound:
         for _ in range(1):  # prefix sums, one thread
             first[0] = 0
             for c in range(HIT_CHUNKS):
+                rolled(n)
                 first[c + 1] += first[c]
         for c in range(HIT_CHUNKS):
             run = first[c]
             for s in range(c * size, ti.min(nh, (c + 1) * size)):
+                rolled(n)
                 off[s] = run
                 run += hcnt[s]
                 hcnt[s] = 0
         for i in range(n):
+            rolled(n)
             s = hslot[at(slot, row(cells, i))]
             order[off[s] + ti.atomic_add(hcnt[s], 1)] = i
 
