@@ -1,5 +1,5 @@
 """benchmarks/speed.py: several fresh processes per setting, each printed, and their medians;
-benchmarks/threads.py: a row per loop size."""
+benchmarks/threads.py: a row per loop size; benchmarks/startup.py: the simulated hall's first scan."""
 
 import importlib.util
 import subprocess
@@ -47,3 +47,11 @@ def test_threads_prints_a_row_per_loop_size():
         assert len(r) in (3, 5) and all(float(x) > 0 for x in r)
     bad = _run("threads.py", "--repeats", "0")
     assert bad.returncode == 2 and "--repeats must be at least 1" in bad.stderr
+
+
+def test_startup_times_the_halls_first_scan():
+    out = _run("startup.py", "--hall", "3", timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    line = out.stdout.splitlines()[-1]
+    assert line.startswith("import ") and "init + first scan" in line and "total" in line
+    assert int(line.split("(")[1].split()[0].replace(",", "")) > 10_000  # the hall's points, not the random scan's
