@@ -347,12 +347,13 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         # A reset leaves nothing to erase: later passes skip the index tree until a hit
         # sets NE_GAUSS again. Stored beside lo, not in the branch: a store there inlines
         # Taichi's node allocator once more (one thread per cell here, no race).
+        reset = l <= l_reset and g != 0
         v = ne[at(slot, c)]
-        if l <= l_reset and g != 0:
+        if reset:
             v &= NE_COUNT
         ne[at(slot, c)] = v
         erased = 0
-        if l <= l_reset and g != 0:
+        if reset:
             r = gslot[at(slot, c)] - 1
             if r >= 0:
                 if rec_n[r] > 0:
