@@ -50,6 +50,16 @@ class Records(Group):
 
 
 @dataclass(frozen=True)
+class Picked(Group):
+    """The records a kernel reads (ndtom_ti.record_index): ``pick[:npick]``, then the records
+    from ``tail0`` up to its record count; npick 0 and tail0 0: every record, in order."""
+
+    pick: np.ndarray  # [P] i32: record numbers
+    npick: int
+    tail0: int
+
+
+@dataclass(frozen=True)
 class NdtRecords(Group):
     """What the NDT miss model adds to the records (config.MapConfig.miss_model "ndt")."""
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-from .args import Block, Bound, NdtRecords, Nodes, Rays, Records, Sensor, Touched
+from .args import Block, Bound, NdtRecords, Nodes, Picked, Rays, Records, Sensor, Touched
 from .layout import Storage
 from .ndt import (
     BIG,
@@ -430,6 +430,9 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
 
     def mark_gaussians(
         nrec: ti.i32,  # records in use
+        pick: i32_1d,  # Picked: the records that may lie in the block
+        npick: ti.i32,
+        tail0: ti.i32,
         rec_n: i32_1d,  # Records
         rec_cell: i32_2d,
         ndt_minp: ti.i32,  # NdtRecords
@@ -442,8 +445,11 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
-        for r in range(nrec):
+        for i in range(npick + nrec - tail0):
             rolled(nrec)
+            r = tail0 + i - npick
+            if i < npick:
+                r = pick[i]
             if rec_n[r] >= ndt_minp:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():
@@ -463,6 +469,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         mark_gaussians,
         (
             "nrec",
+            ("picked", Picked),
             ("records", Records, ("rec_n", "rec_cell")),
             ("ndt", NdtRecords, ("ndt_minp",)),
             ("block", Block, ("block", "bflag", "base")),

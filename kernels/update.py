@@ -16,6 +16,7 @@ from .args import (
     Model,
     NdtRecords,
     Nodes,
+    Picked,
     Records,
     Touched,
     TreeSums,
@@ -641,6 +642,9 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
     def apply_marked(
         slot: ti.i32,
         nrec: ti.i32,  # records in use
+        pick: i32_1d,  # Picked: the records that may lie in the block (those mark_gaussians read)
+        npick: ti.i32,
+        tail0: ti.i32,
         l_min: ti.f32,  # Model
         l_max: ti.f32,
         rec_n: i32_1d,  # Records
@@ -656,7 +660,10 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
     ):
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([shape[0], shape[1], shape[2]], dt=ti.i32)
-        for r in range(nrec):
+        for i in range(npick + nrec - tail0):
+            r = tail0 + i - npick
+            if i < npick:
+                r = pick[i]
             if rec_miss[r] != 0:  # (the tree's are apply_free's)
                 c = row(rec_cell, r)
                 rel = c - b0
@@ -682,6 +689,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
         (
             "slot",
             "nrec",
+            ("picked", Picked),
             ("model", Model, ("l_min", "l_max")),
             ("records", Records, ("rec_n", "rec_cell", "rec_free")),
             "ctr",

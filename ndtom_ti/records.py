@@ -12,9 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 from .cellkeys import lex_order
-from .kernels.args import NdtRecords, Records
+from .kernels.args import NdtRecords, Picked, Records
 from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
 from .kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
+from .record_index import MIN_RECORDS, RecordIndex
 
 START_RECORDS = 1024
 # The NDT miss model's record state bits (kernels/ndt.py), as the two low bits of ndt_state.
@@ -33,10 +34,21 @@ class GaussianRecords:
     [C] i32, the neighbouring cells' Gaussians erased since the record's last points and,
     above them, its NBR_FRESH and NBR_BACK bits (kernels/ndt.py); a
     placeholder row each without it. ``count``: records handed out so far (in use or on
-    the free stack).
+    the free stack). ``index``: the records by place (record_index), for the NDT miss
+    model's kernels that read those of a scan's block; ``grid`` (lo, hi): the grid's cell
+    index range.
     """
 
-    def __init__(self, ndt: bool, ndt_prm: np.ndarray | None = None, ndt_minp: int = 0, capacity: int = START_RECORDS):
+    def __init__(
+        self,
+        ndt: bool,
+        ndt_prm: np.ndarray | None = None,
+        ndt_minp: int = 0,
+        capacity: int = START_RECORDS,
+        grid: tuple | None = None,
+    ):
+        lo, hi = grid if grid is not None else ((-(2**30),) * 3, (2**30,) * 3)
+        self.index = RecordIndex(lo, hi)
         self.ndt = bool(ndt)
         self.ndt_prm = np.zeros(9) if ndt_prm is None else ndt_prm
         self.ndt_minp = int(ndt_minp)
@@ -92,6 +104,18 @@ class GaussianRecords:
         cap = self.capacity
         self.grow(cap + max(cap // 8, new_cells))
 
+    def in_box(self, lo, hi, min_records: int = MIN_RECORDS) -> Picked:
+        """The records whose cells may lie in the box [lo, hi] (cell indices, inclusive);
+        every record where the map has fewer than ``min_records``."""
+        pick, npick, tail0 = self.index.pick(lo, hi, self.cell, self.n, self.count, min_records)
+        return Picked(pick=pick, npick=npick, tail0=tail0)
+
+    def taken(self, nfree_before: int) -> None:
+        """Merge took the free stack from ``nfree_before`` records down to ``nfree``: those
+        records have new cells."""
+        if self.nfree < nfree_before:
+            self.index.note_taken(self.free[self.nfree : nfree_before])
+
     def clear_miss(self) -> None:
         self.miss[:] = 0
 
@@ -129,6 +153,7 @@ class GaussianRecords:
     ) -> None:
         """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
         k = len(index)
+        self.index.reset()
         self.grow(max(START_RECORDS, k))
         self.n[:k] = n
         self.cell[:k] = index

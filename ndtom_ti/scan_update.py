@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .kernels.args import Block, GroupedHits, Model, Rays, Sensor, Touched, TreeSums
+from .kernels.args import Block, GroupedHits, Model, Picked, Rays, Sensor, Touched, TreeSums
 from .kernels.ndt import (
     C_BLOCK_CELLS,
     C_ERASED,
@@ -34,6 +34,7 @@ from .kernels.ndt import (
 )
 from .kernels.trace import RaysConfig
 from .kernels.update import FreeConfig, MergeConfig
+from .record_index import MIN_RECORDS
 from .scaninput import as_points, as_pose, cell_box
 from .slot import MapSlot
 
@@ -87,6 +88,9 @@ class UpdatePlan:
         pressure.
     touched_rows: rows of the list of tree cells a scan's rays touch (doubled past a
         scan that overflows it; that scan visits every cell of the map instead).
+    index_records: from this many Gaussian records on, the NDT miss model reads only
+        those whose cells may lie in the scan's block, found by place (record_index);
+        below it, every record (0: always by place).
     """
 
     block_cells: int = BLOCK_CELLS
@@ -94,11 +98,12 @@ class UpdatePlan:
     row_flags: str = "auto"
     one_pass: bool = True
     touched_rows: int = TOUCHED_START
+    index_records: int = MIN_RECORDS
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "row_flags" and value not in ROW_FLAGS:
             raise ValueError(f"row_flags must be one of {ROW_FLAGS}, got {value!r}")
-        if name in ("block_cells", "u16_rays", "touched_rows") and (
+        if name in ("block_cells", "u16_rays", "touched_rows", "index_records") and (
             isinstance(value, bool) or int(value) != value or int(value) < (1 if name == "touched_rows" else 0)
         ):
             raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
@@ -143,6 +148,8 @@ class RayTracer:
         self.ctr = ctr  # the update's counters
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
+        # The records the NDT miss model's kernels read this scan (those the block may hold).
+        self.picked = Picked(pick=np.zeros(1, np.int32), npick=0, tail0=0)
         self.touched = np.empty((0, 3), np.int32)  # plan.touched_rows is at least 1
         self.sync_touched()
         self.empty = {
@@ -199,8 +206,11 @@ class RayTracer:
             # The Gaussians the rays test are those of the scan's start: merge runs after them.
             if ndt and blk.block.size:
                 _, own_cells, own_n = p.own_hits  # hit marks are cleared by merge: its hits only
+                # The records apply_marked reads too: merge's new ones hold no sums.
+                self.picked = self.records.in_box(base, base + np.array(blk.block.shape) - 1, self.plan.index_records)
                 k.mark_gaussians(bt)(
                     nrec=self.records.count,
+                    picked=self.picked,
                     records=self.records.group,
                     ndt=self.records.ndt_group,
                     block=blk,
@@ -586,7 +596,9 @@ class ScanUpdate:
                 )
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
+                nfree = recs.nfree
                 recs.count, recs.nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
+                recs.taken(nfree)
                 todo = int(ctr[C_NO_RECORD])
                 if not todo:
                     break
@@ -606,6 +618,7 @@ class ScanUpdate:
                 k.apply_marked()(
                     slot=slot,
                     nrec=recs.count,
+                    picked=self.tracer.picked,
                     model=model,
                     records=recs.group,
                     ctr=ctr,

@@ -76,7 +76,7 @@ class MapSlot:
         self._ctr = np.zeros(CTR_SIZE, np.int64)  # export's counters
         self.glo = np.array(layout.lo, np.int64)
         self.ghi = np.array(layout.hi, np.int64)
-        self.records = GaussianRecords(ndt, ndt_params, ndt_min_points)
+        self.records = GaussianRecords(ndt, ndt_params, ndt_min_points, grid=(self.glo, self.ghi))
         self.budget = MemoryBudget(self.storage, self.index, self.kernels, occupancy)
 
     # ------------------------------------------------------------------ lifetime

@@ -1,5 +1,6 @@
 """benchmarks/speed.py: several fresh processes per setting, each printed, and their medians;
-benchmarks/threads.py: a row per loop size; benchmarks/startup.py: the simulated hall's first scan."""
+benchmarks/threads.py: a row per loop size; benchmarks/startup.py: the simulated hall's first
+scan; benchmarks/big_map.py: records read by place and all of them, at each size of the map."""
 
 import importlib.util
 import subprocess
@@ -55,3 +56,15 @@ def test_startup_times_the_halls_first_scan():
     line = out.stdout.splitlines()[-1]
     assert line.startswith("import ") and "init + first scan" in line and "total" in line
     assert int(line.split("(")[1].split()[0].replace(",", "")) > 10_000  # the hall's points, not the random scan's
+
+
+def test_big_map_times_both_ways_at_each_size():
+    out = _run("big_map.py", "--hall-scans", "3", "--scans", "1", "--copies", "1", "2", timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = [line.split() for line in out.stdout.splitlines() if line.split()[:1] in (["0"], ["1"], ["2"])]
+    assert [r[0] for r in rows] == ["0", "1", "2"]
+    gaussians = [int(r[1].replace(",", "")) for r in rows]
+    assert gaussians[0] > 0 and gaussians[2] > gaussians[1] > gaussians[0]  # the map grew elsewhere
+    assert all(float(x) > 0 for r in rows for x in r[2:])
+    bad = _run("big_map.py", "--copies", "4", "2")
+    assert bad.returncode == 2 and "--copies must be increasing" in bad.stderr

@@ -94,6 +94,8 @@ def test_update_plan_is_checked():
         plan.block_cells = -1
     with pytest.raises(ValueError, match="touched_rows"):
         UpdatePlan(touched_rows=0)
+    with pytest.raises(ValueError, match="index_records"):
+        UpdatePlan(index_records=-1)
     m = NdtOmMap(1.0)
     m.block_cells = 4096  # the map's older attribute is the plan's
     assert m.plan.block_cells == 4096
@@ -120,6 +122,7 @@ def assert_same_map(ref, m):
         {"u16_rays": U16_MAX_RAYS, "row_flags": "never"},
         {"u16_rays": U16_MAX_RAYS, "row_flags": "always"},
         {"block_cells": 0},
+        {"index_records": 0},
     ],
 )
 @pytest.mark.parametrize("model", ["paper", "ndt"])
