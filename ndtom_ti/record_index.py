@@ -56,6 +56,9 @@ class RecordIndex:
         self.moved: list[np.ndarray] = []
         self.n_moved = 0
 
+    def nbytes(self) -> int:
+        return (0 if self.keys is None else self.keys.nbytes) + self.order.nbytes + self.stale.nbytes
+
     def bucket_of(self, c) -> np.ndarray:
         return (np.asarray(c, np.int64) - self.glo) >> self.shift
 

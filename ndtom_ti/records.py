@@ -66,7 +66,7 @@ class GaussianRecords:
         return self.count - self.nfree
 
     def nbytes(self) -> int:
-        return self.capacity * (RECORD_BYTES + (NDT_RECORD_BYTES if self.ndt else 0))
+        return self.capacity * (RECORD_BYTES + (NDT_RECORD_BYTES if self.ndt else 0)) + self.index.nbytes()
 
     def grow(self, capacity: int) -> None:
         """Hold ``capacity`` records, keeping those handed out (and, mid-update, the
