@@ -18,6 +18,7 @@ from .kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
 from .record_index import MIN_RECORDS, RecordIndex
 
 START_RECORDS = 1024
+_ALL = np.zeros(1, np.int32)  # Picked.pick when every record is read
 # The NDT miss model's record state bits (kernels/ndt.py), as the two low bits of ndt_state.
 STATE_SHIFT = NBR_FRESH.bit_length() - 1
 assert NBR_BACK == NBR_FRESH << 1
@@ -49,6 +50,9 @@ class GaussianRecords:
     ):
         lo, hi = grid if grid is not None else ((-(2**30),) * 3, (2**30,) * 3)
         self.index = RecordIndex(lo, hi)
+        # The box of every cell a record was given (None: none yet): it may be wider than the
+        # cells of the records now.
+        self.extent: tuple[np.ndarray, np.ndarray] | None = None
         self.ndt = bool(ndt)
         self.ndt_prm = np.zeros(9) if ndt_prm is None else ndt_prm
         self.ndt_minp = int(ndt_minp)
@@ -106,15 +110,29 @@ class GaussianRecords:
 
     def in_box(self, lo, hi, min_records: int = MIN_RECORDS) -> Picked:
         """The records whose cells may lie in the box [lo, hi] (cell indices, inclusive);
-        every record where the map has fewer than ``min_records``."""
+        every record where the map has fewer than ``min_records``, or where the box holds
+        every cell a record was given (no index is built for a map the block holds)."""
+        ext = self.extent
+        if ext is not None and (ext[0] >= lo).all() and (ext[1] <= hi).all():
+            return Picked(pick=_ALL, npick=0, tail0=0)
         pick, npick, tail0 = self.index.pick(lo, hi, self.cell, self.n, self.count, min_records)
         return Picked(pick=pick, npick=npick, tail0=tail0)
 
-    def taken(self, nfree_before: int) -> None:
-        """Merge took the free stack from ``nfree_before`` records down to ``nfree``: those
-        records have new cells."""
-        if self.nfree < nfree_before:
-            self.index.note_taken(self.free[self.nfree : nfree_before])
+    def taken(self, nfree_before: int, count_before: int) -> None:
+        """Merge took the free stack from ``nfree_before`` records down to ``nfree`` and
+        handed out records from ``count_before`` on: those records have new cells."""
+        ids = self.free[self.nfree : nfree_before]
+        if len(ids):
+            self.index.note_taken(ids)
+            self._widen(self.cell[ids])
+        if self.count > count_before:
+            self._widen(self.cell[count_before : self.count])
+
+    def _widen(self, cells: np.ndarray) -> None:
+        lo = np.array([cells[:, a].min() for a in range(3)], np.int64)  # per column: axis=0 is slow
+        hi = np.array([cells[:, a].max() for a in range(3)], np.int64)
+        ext = self.extent
+        self.extent = (lo, hi) if ext is None else (np.minimum(ext[0], lo), np.maximum(ext[1], hi))
 
     def clear_miss(self) -> None:
         self.miss[:] = 0
@@ -154,6 +172,9 @@ class GaussianRecords:
         """Fill an empty set of records with loaded Gaussians (record i: cell ``index[i]``)."""
         k = len(index)
         self.index.reset()
+        self.extent = None
+        if k:
+            self._widen(np.asarray(index))
         self.grow(max(START_RECORDS, k))
         self.n[:k] = n
         self.cell[:k] = index

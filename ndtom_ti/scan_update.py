@@ -596,9 +596,9 @@ class ScanUpdate:
                 )
                 # At once, like the record count: an update cut short later must not hand
                 # out the records merge took from the free stack again.
-                nfree = recs.nfree
+                nfree, count = recs.nfree, recs.count
                 recs.count, recs.nfree = min(int(ctr[C_RECORDS]), cap), int(ctr[C_FREE])
-                recs.taken(nfree)
+                recs.taken(nfree, count)
                 todo = int(ctr[C_NO_RECORD])
                 if not todo:
                     break
