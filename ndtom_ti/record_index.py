@@ -11,8 +11,10 @@ overlaps.
 A record changes cells only when merge hands it from the free stack to a new cell: those
 records are noted as moved (their old entries skipped), and records handed out since the
 index was last brought up to date form a tail; both are read besides the buckets until the
-next update takes them in. Updates merge the new entries into the sorted arrays (linear
-in the records), and run when the moved and the tail reach an eighth of the records indexed.
+next update takes them in. The index is one sorted int64 array, bucket key above record
+number: an update sorts the new entries and merges them into it (numpy's stable sort finds
+the two sorted runs: linear in the records), when the moved and the tail reach an eighth of
+the records indexed.
 """
 
 from __future__ import annotations
@@ -22,11 +24,15 @@ import numpy as np
 # Below this many records every record is read: picking them by place (~3 ms a scan for a
 # block of ~90 k records) costs about what reading ~1 M records in order does.
 MIN_RECORDS = 1 << 20
-# Bucket edge: 2**4 = 16 cells (3.2 m at 0.2 m), larger only where the grid is too wide for keys.
+# Bucket edge: 2**4 = 16 cells (3.2 m at 0.2 m), larger only where the grid has more than
+# 2**31 buckets (a key and a record number share an int64).
 SHIFT = 4
+# Moved and tail records an update waits for at least (besides an eighth of those indexed).
+UPDATE_MIN = 4096
 # Columns of buckets (x, y) a box may span before every record is read instead.
 MAX_COLUMNS = 1 << 16
 _EMPTY = np.zeros(1, np.int32)
+_RECORD = np.int64(0xFFFFFFFF)  # the low half of an entry: its record number
 
 
 class RecordIndex:
@@ -39,39 +45,55 @@ class RecordIndex:
         self.glo = np.asarray(glo, np.int64)
         span = np.asarray(ghi, np.int64) - self.glo
         shift = SHIFT
-        while float(np.prod((span >> shift) + 1, dtype=np.float64)) >= 2.0**62:
+        while float(np.prod((span >> shift) + 1, dtype=np.float64)) >= 2.0**31:
             shift += 1
         self.shift = shift
         self.nb = (span >> shift) + 1  # buckets per axis
-        # 4-byte keys where the grid's buckets fit (the default grid's 2**30 do)
-        self.key_type = np.int32 if float(np.prod(self.nb, dtype=np.float64)) < 2.0**31 else np.int64
         # picks made, those of part of the records, updates, records seen taken to new cells
         self.reads = self.partial = self.updates = self.moves = 0
         self.reset()
 
     def reset(self) -> None:
         """Forget every record (the records were replaced, as by a load)."""
-        self.keys: np.ndarray | None = None  # sorted bucket keys of the indexed records
-        self.order = np.zeros(0, np.int32)  # their record numbers
+        self.entries: np.ndarray | None = None  # sorted: bucket key << 32 | record number
         self.n_indexed = 0  # records [0, n_indexed) were handed out when the index was updated
         self.stale = np.zeros(0, bool)  # indexed records that moved since
         self.span: tuple[np.ndarray, np.ndarray] | None = None  # may be wider than the records now
         self.moved: list[np.ndarray] = []
         self.n_moved = 0
+        # buffers reused by updates: the entries' (self.entries is a view of it), the other
+        # one merges write into, the merge's mask, the stale flags'
+        self._whole: np.ndarray | None = None
+        self._spare: np.ndarray | None = None
+        self._fresh: np.ndarray | None = None
+        self._stale = np.zeros(0, bool)
 
     def nbytes(self) -> int:
-        return (0 if self.keys is None else self.keys.nbytes) + self.order.nbytes + self.stale.nbytes
+        bufs = (self._whole, self._spare, self._fresh, self._stale)
+        return sum(b.nbytes for b in bufs if b is not None)
 
     def bucket_of(self, c) -> np.ndarray:
         return (np.asarray(c, np.int64) - self.glo) >> self.shift
 
     def bucket_keys(self, cells: np.ndarray) -> np.ndarray:
         b = (np.asarray(cells, np.int64) - self.glo) >> self.shift
-        return ((b[:, 0] * self.nb[1] + b[:, 1]) * self.nb[2] + b[:, 2]).astype(self.key_type)
+        k = b[:, 0] * self.nb[1]
+        k += b[:, 1]
+        k *= self.nb[2]
+        k += b[:, 2]
+        return k
+
+    def _entries(self, ids: np.ndarray, cell: np.ndarray) -> np.ndarray:
+        """Sorted entries of records ``ids``."""
+        e = self.bucket_keys(cell[ids])
+        e <<= 32
+        e |= ids
+        e.sort()
+        return e
 
     def note_taken(self, ids: np.ndarray) -> None:
         """Records merge took from the free stack: their cells may have changed."""
-        if self.keys is None or not len(ids):
+        if self.entries is None or not len(ids):
             return
         ids = ids[ids < self.n_indexed]  # later ones are in the tail
         ids = ids[~self.stale[ids]]
@@ -82,28 +104,48 @@ class RecordIndex:
             self.moves += len(ids)
 
     def update(self, cell: np.ndarray, n: np.ndarray, count: int) -> None:
-        """Take in the tail and the moved records; drop the entries of moved or erased ones."""
-        if self.keys is None:
-            keys, order = np.zeros(0, self.key_type), np.zeros(0, np.int32)
-            new = np.arange(count, dtype=np.int32)
+        """Take in the tail and the moved records (without points: none); drop the entries
+        of moved ones. (Erased records keep theirs until merge takes them: the kernels skip
+        records without points, and a pass over the index to find them cost more.)"""
+        if self.entries is None:
+            new = np.flatnonzero(n[:count] > 0)
+            self.entries = self._whole = self._entries(new, cell)
         else:
-            keep = ~self.stale[self.order]
-            keep &= n[self.order] > 0  # erased: back in the index when merge takes them again
-            keys, order = self.keys[keep], self.order[keep]
+            kept = self.entries
+            if self.n_moved:
+                kept = kept[~self.stale[kept & _RECORD]]
             new = np.concatenate([*self.moved, np.arange(self.n_indexed, count, dtype=np.int32)])
-        new = new[n[new] > 0]
-        k = self.bucket_keys(cell[new])
-        s = np.argsort(k, kind="stable")
-        at = np.searchsorted(keys, k[s], side="right")
-        self.keys = np.insert(keys, at, k[s])
-        self.order = np.insert(order, at, new[s])
+            new = new[n[new] > 0]
+            add = self._entries(new, cell)
+            # merged into the other of two buffers kept from update to update: fresh memory is
+            # slow to touch on some virtual machines (~0.3 s for this merge at 6 M records)
+            total = len(kept) + len(add)
+            spare = self._spare if self._spare is not None and len(self._spare) >= total else None
+            if spare is None:
+                spare = np.empty(total + (total >> 3), np.int64)
+            at = np.searchsorted(kept, add, side="right")
+            at += np.arange(len(add))
+            out = spare[:total]
+            if self._fresh is None or len(self._fresh) < total:
+                self._fresh = np.empty(len(spare), bool)
+            fresh = self._fresh[:total]
+            fresh[:] = False
+            fresh[at] = True
+            out[at] = add
+            np.logical_not(fresh, out=fresh)
+            out[fresh] = kept
+            self._spare = self._whole
+            self._whole, self.entries = spare, out
         self.n_indexed = count
         if len(new):  # buckets that held indexed records: a box over all of them reads every record
             c = cell[new]
             lo = self.bucket_of([c[:, a].min() for a in range(3)])
             hi = self.bucket_of([c[:, a].max() for a in range(3)])
             self.span = (lo, hi) if self.span is None else (np.minimum(self.span[0], lo), np.maximum(self.span[1], hi))
-        self.stale = np.zeros(count, bool)
+        if len(self._stale) < count:
+            self._stale = np.zeros(count + (count >> 3), bool)
+        self.stale = self._stale[:count]
+        self.stale[:] = False
         self.moved, self.n_moved = [], 0
         self.updates += 1
 
@@ -116,12 +158,12 @@ class RecordIndex:
         in order (fewer than ``min_records``, or a box that holds most of the map)."""
         self.reads += 1
         if count < min_records:
-            if self.keys is not None:
+            if self.entries is not None:
                 self.reset()
             return _EMPTY, 0, 0
-        if self.keys is None or count - self.n_indexed + self.n_moved > max(4096, self.n_indexed >> 3):
+        if self.entries is None or count - self.n_indexed + self.n_moved > max(UPDATE_MIN, self.n_indexed >> 3):
             self.update(cell, n, count)
-        assert self.keys is not None
+        assert self.entries is not None
         blo = np.maximum(self.bucket_of(lo), 0)
         bhi = np.minimum(self.bucket_of(hi), self.nb - 1)
         tail = count - self.n_indexed
@@ -136,18 +178,17 @@ class RecordIndex:
             xs = np.arange(blo[0], bhi[0] + 1, dtype=np.int64)
             ys = np.arange(blo[1], bhi[1] + 1, dtype=np.int64)
             col = ((xs[:, None] * self.nb[1] + ys[None, :]) * self.nb[2]).ravel()
-            kt = self.key_type  # (values of the keys' type: numpy would copy the keys to compare others)
-            first = np.searchsorted(self.keys, (col + blo[2]).astype(kt), side="left")
-            stop = np.searchsorted(self.keys, (col + bhi[2]).astype(kt), side="right")
+            first = np.searchsorted(self.entries, (col + blo[2]) << 32, side="left")
+            stop = np.searchsorted(self.entries, (col + bhi[2] + 1) << 32, side="left")
             lens = stop - first
-            total = int(lens.sum())
-            if total + self.n_moved + tail > count // 2:
+            if int(lens.sum()) + self.n_moved + tail > count // 2:
                 return _EMPTY, 0, 0  # most of the map: in order is faster
-            # the columns' runs of the sorted arrays, those that touch joined, copied as slices
+            # the columns' runs of the sorted entries, those that touch joined, copied as slices
             f, t = first[lens > 0], stop[lens > 0]
             cut = np.flatnonzero(f[1:] != t[:-1]) + 1
             runs = zip(f[np.r_[0, cut]].tolist(), t[np.r_[cut - 1, len(t) - 1]].tolist()) if len(f) else ()
-            sel = np.concatenate([self.order[a:b] for a, b in runs] or [np.zeros(0, np.int32)])
+            sel = np.concatenate([self.entries[a:b] for a, b in runs] or [np.zeros(0, np.int64)])
+            sel = (sel & _RECORD).astype(np.int32)
             if self.n_moved:
                 sel = sel[~self.stale[sel]]
         picked = np.concatenate([sel, *self.moved]) if self.moved else sel

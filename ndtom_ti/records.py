@@ -9,6 +9,11 @@ none free (``grow_for``).
 
 from __future__ import annotations
 
+import mmap
+import os
+import platform
+import sys
+
 import numpy as np
 
 from .cellkeys import lex_order
@@ -18,10 +23,67 @@ from .kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
 from .record_index import MIN_RECORDS, RecordIndex
 
 START_RECORDS = 1024
+MAX_RECORDS = 2**31 - 2  # record numbers + 1 are int32 in the kernels
 _ALL = np.zeros(1, np.int32)  # Picked.pick when every record is read
 # The NDT miss model's record state bits (kernels/ndt.py), as the two low bits of ndt_state.
 STATE_SHIFT = NBR_FRESH.bit_length() - 1
 assert NBR_BACK == NBR_FRESH << 1
+
+
+# The record arrays: dtype and columns (0: one column, a 1-D array), and whether only the NDT
+# miss model has them (else a placeholder row).
+_ARRAYS = (
+    (np.int32, 0, False),  # n
+    (np.int32, 3, False),  # cell
+    (np.float64, 3, False),  # mean
+    (np.float64, 6, False),  # scat
+    (np.int32, 0, False),  # free
+    (np.int64, 0, True),  # miss
+    (np.float64, 9, True),  # icov
+    (np.int32, 0, True),  # nbr
+)
+# Linux's MAP_NORESERVE (x86-64, arm64): the reservation takes no memory until written
+_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000 if platform.machine() in ("x86_64", "aarch64") else 0)
+
+
+class _Space:
+    """Address space reserved for ``rows`` records (Linux): anonymous mappings, one per
+    array, backed by memory only where written, so that the records grow in place. Copying
+    millions of records into new arrays made a scan wait for seconds (3.4 s at 7 M records:
+    fresh memory is slow to touch on some virtual machines)."""
+
+    def __init__(self, maps: list, rows: int, ndt: bool):
+        self.maps, self.rows, self.ndt = maps, rows, ndt
+
+    @classmethod
+    def reserve(cls, capacity: int, ndt: bool) -> _Space | None:
+        if not sys.platform.startswith("linux") or not _NORESERVE:
+            return None
+        try:
+            ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            return None
+        row = sum(np.dtype(t).itemsize * max(c, 1) for t, c, _ in _ARRAYS)
+        rows = max(capacity, min(MAX_RECORDS, ram // row))  # no more records than memory holds
+        maps = []
+        try:
+            for t, c, only_ndt in _ARRAYS:
+                n = rows if ndt or not only_ndt else 1
+                size = max(n * np.dtype(t).itemsize * max(c, 1), 1)
+                maps.append(mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _NORESERVE))
+        except (OSError, ValueError, OverflowError):  # refused (strict overcommit): copy as before
+            for m in maps:
+                m.close()
+            return None
+        return cls(maps, rows, ndt)
+
+    def views(self, capacity: int) -> tuple:
+        out = []
+        for m, (t, c, only_ndt) in zip(self.maps, _ARRAYS):
+            n = capacity if self.ndt or not only_ndt else 1
+            a = np.frombuffer(m, t, n * max(c, 1))
+            out.append(a.reshape(n, c) if c else a)
+        return tuple(out)
 
 
 class GaussianRecords:
@@ -59,6 +121,7 @@ class GaussianRecords:
         self.count = 0
         self.nfree = 0
         self.n = np.zeros(0, np.int32)
+        self._space: _Space | None = None
         self.grow(capacity)
 
     @property
@@ -74,9 +137,17 @@ class GaussianRecords:
 
     def grow(self, capacity: int) -> None:
         """Hold ``capacity`` records, keeping those handed out (and, mid-update, the
-        rays' miss sums not applied yet)."""
+        rays' miss sums not applied yet). Within the reserved space (Linux) the arrays grow
+        in place: longer views of the same memory, nothing copied."""
         k = self.count
-        old = self.n if k or self.nfree else None
+        if self._space is None or capacity > self._space.rows:
+            self._space = _Space.reserve(capacity, self.ndt)
+            if self._space is not None and (k or self.nfree):
+                self._copy_into(self._space.views(capacity))
+        if self._space is not None:
+            self._use(*self._space.views(capacity))
+            return
+        # no reserved space: new arrays, the records copied into them
         n_ = np.zeros(capacity, np.int32)
         cell = np.zeros((capacity, 3), np.int32)
         mean = np.zeros((capacity, 3), np.float64)
@@ -85,13 +156,21 @@ class GaussianRecords:
         miss = np.zeros(capacity if self.ndt else 1, np.int64)
         icov = np.zeros((capacity if self.ndt else 1, 9), np.float64)
         nbr = np.zeros(capacity if self.ndt else 1, np.int32)
-        if old is not None:
-            n_[:k], cell[:k], mean[:k], scat[:k] = self.n[:k], self.cell[:k], self.mean[:k], self.scat[:k]
-            if self.ndt:
-                miss[:k] = self.miss[:k]
-                icov[:k] = self.icov[:k]
-                nbr[:k] = self.nbr[:k]
-            free[: self.nfree] = self.free[: self.nfree]
+        if k or self.nfree:
+            self._copy_into((n_, cell, mean, scat, free, miss, icov, nbr))
+        self._use(n_, cell, mean, scat, free, miss, icov, nbr)
+
+    def _copy_into(self, arrays) -> None:
+        n_, cell, mean, scat, free, miss, icov, nbr = arrays
+        k = self.count
+        n_[:k], cell[:k], mean[:k], scat[:k] = self.n[:k], self.cell[:k], self.mean[:k], self.scat[:k]
+        if self.ndt:
+            miss[:k] = self.miss[:k]
+            icov[:k] = self.icov[:k]
+            nbr[:k] = self.nbr[:k]
+        free[: self.nfree] = self.free[: self.nfree]
+
+    def _use(self, n_, cell, mean, scat, free, miss, icov, nbr) -> None:
         self.n, self.cell, self.mean, self.scat, self.free = n_, cell, mean, scat, free
         self.miss, self.icov, self.nbr = miss, icov, nbr
         # The arrays as kernel arguments (rebuilt with them).
