@@ -275,6 +275,14 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         return ti.Vector([a[i, 0], a[i, 1], a[i, 2]], dt=ti.i32)
 
     @ti.func
+    def picked(i, pick: ti.template(), npick, tail0) -> ti.i32:
+        # The i-th record of a Picked (args.py): pick[:npick], then tail0 on.
+        r = tail0 + i - npick
+        if i < npick:
+            r = pick[i]
+        return r
+
+    @ti.func
     def at(slot, c) -> ti.types.vector(4, ti.i32):
         return ti.Vector([slot, c[0], c[1], c[2]], dt=ti.i32)
 
@@ -636,6 +644,7 @@ def device_funcs(f: Storage) -> SimpleNamespace:
         SHIFT=SHIFT,
         queue=queue,
         row=row,
+        picked=picked,
         at=at,
         note_leaf=note_leaf,
         tally=tally,

@@ -423,7 +423,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
     block_apply clears them: their rows are flagged where it reads flags), then those of
     the scan's hit cells the hit mark (merge clears them)."""
     F = device_funcs(f)
-    row, leaf = F.row, F.leaf
+    row, leaf, picked = F.row, F.leaf, F.picked
     mark, bt_ = block_mark(bt), block_type(bt)
     hit = HIT_U16 if bt == "u16" else HIT_I32
     b3d = ti.types.ndarray(dtype=bt_, ndim=3)
@@ -447,9 +447,7 @@ def mark_gaussians(f: Storage, bt: str) -> Bound:
         bsize = ti.Vector([block.shape[0], block.shape[1], block.shape[2]], dt=ti.i32)
         for i in range(npick + nrec - tail0):
             rolled(nrec)
-            r = tail0 + i - npick
-            if i < npick:
-                r = pick[i]
+            r = picked(i, pick, npick, tail0)
             if rec_n[r] >= ndt_minp:
                 rel = row(rec_cell, r) - b0
                 if (rel >= 0).all() and (rel < bsize).all():

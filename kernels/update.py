@@ -637,6 +637,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
     the block left after merge."""
     F = device_funcs(f)
     row, free_update, take_miss, tally, erased_beside = F.row, F.free_update, F.take_miss, F.tally, F.erased_beside
+    picked = F.picked
     ndt_reset = F.ndt_reset
 
     def apply_marked(
@@ -661,9 +662,7 @@ def apply_marked(f: Storage, _cfg=None) -> Bound:
         b0 = ti.Vector([base[0], base[1], base[2]], dt=ti.i32)
         bsize = ti.Vector([shape[0], shape[1], shape[2]], dt=ti.i32)
         for i in range(npick + nrec - tail0):
-            r = tail0 + i - npick
-            if i < npick:
-                r = pick[i]
+            r = picked(i, pick, npick, tail0)
             if rec_miss[r] != 0:  # (the tree's are apply_free's)
                 c = row(rec_cell, r)
                 rel = c - b0

@@ -31,7 +31,7 @@ SHIFT = 4
 UPDATE_MIN = 4096
 # Columns of buckets (x, y) a box may span before every record is read instead.
 MAX_COLUMNS = 1 << 16
-_EMPTY = np.zeros(1, np.int32)
+NO_PICK = np.zeros(1, np.int32)  # ``pick`` of an answer that picks none by place (npick 0)
 _RECORD = np.int64(0xFFFFFFFF)  # the low half of an entry: its record number
 
 
@@ -58,7 +58,6 @@ class RecordIndex:
         self.entries: np.ndarray | None = None  # sorted: bucket key << 32 | record number
         self.n_indexed = 0  # records [0, n_indexed) were handed out when the index was updated
         self.stale = np.zeros(0, bool)  # indexed records that moved since
-        self.span: tuple[np.ndarray, np.ndarray] | None = None  # may be wider than the records now
         self.moved: list[np.ndarray] = []
         self.n_moved = 0
         # buffers reused by updates: the entries' (self.entries is a view of it), the other
@@ -76,7 +75,7 @@ class RecordIndex:
         return (np.asarray(c, np.int64) - self.glo) >> self.shift
 
     def bucket_keys(self, cells: np.ndarray) -> np.ndarray:
-        b = (np.asarray(cells, np.int64) - self.glo) >> self.shift
+        b = self.bucket_of(cells)
         k = b[:, 0] * self.nb[1]
         k += b[:, 1]
         k *= self.nb[2]
@@ -137,11 +136,6 @@ class RecordIndex:
             self._spare = self._whole
             self._whole, self.entries = spare, out
         self.n_indexed = count
-        if len(new):  # buckets that held indexed records: a box over all of them reads every record
-            c = cell[new]
-            lo = self.bucket_of([c[:, a].min() for a in range(3)])
-            hi = self.bucket_of([c[:, a].max() for a in range(3)])
-            self.span = (lo, hi) if self.span is None else (np.minimum(self.span[0], lo), np.maximum(self.span[1], hi))
         if len(self._stale) < count:
             self._stale = np.zeros(count + (count >> 3), bool)
         self.stale = self._stale[:count]
@@ -160,21 +154,19 @@ class RecordIndex:
         if count < min_records:
             if self.entries is not None:
                 self.reset()
-            return _EMPTY, 0, 0
+            return NO_PICK, 0, 0
         if self.entries is None or count - self.n_indexed + self.n_moved > max(UPDATE_MIN, self.n_indexed >> 3):
             self.update(cell, n, count)
         assert self.entries is not None
         blo = np.maximum(self.bucket_of(lo), 0)
         bhi = np.minimum(self.bucket_of(hi), self.nb - 1)
         tail = count - self.n_indexed
-        if self.span is not None and (blo <= self.span[0]).all() and (bhi >= self.span[1]).all():
-            return _EMPTY, 0, 0  # the box holds every indexed record
         if (blo > bhi).any():
             sel = np.zeros(0, np.int32)
         else:
             cols = int(bhi[0] - blo[0] + 1) * int(bhi[1] - blo[1] + 1)
             if cols > MAX_COLUMNS:
-                return _EMPTY, 0, 0
+                return NO_PICK, 0, 0
             xs = np.arange(blo[0], bhi[0] + 1, dtype=np.int64)
             ys = np.arange(blo[1], bhi[1] + 1, dtype=np.int64)
             col = ((xs[:, None] * self.nb[1] + ys[None, :]) * self.nb[2]).ravel()
@@ -182,7 +174,7 @@ class RecordIndex:
             stop = np.searchsorted(self.entries, (col + bhi[2] + 1) << 32, side="left")
             lens = stop - first
             if int(lens.sum()) + self.n_moved + tail > count // 2:
-                return _EMPTY, 0, 0  # most of the map: in order is faster
+                return NO_PICK, 0, 0  # most of the map: in order is faster
             # the columns' runs of the sorted entries, those that touch joined, copied as slices
             f, t = first[lens > 0], stop[lens > 0]
             cut = np.flatnonzero(f[1:] != t[:-1]) + 1
@@ -195,5 +187,5 @@ class RecordIndex:
         picked.sort()  # the kernels read the records in memory order
         self.partial += 1
         if not len(picked):
-            return _EMPTY, 0, self.n_indexed
+            return NO_PICK, 0, self.n_indexed
         return np.ascontiguousarray(picked, np.int32), len(picked), self.n_indexed

@@ -20,11 +20,10 @@ from .cellkeys import lex_order
 from .kernels.args import NdtRecords, Picked, Records
 from .kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
 from .kernels.ndt import NBR_BACK, NBR_COUNT, NBR_FRESH
-from .record_index import MIN_RECORDS, RecordIndex
+from .record_index import MIN_RECORDS, NO_PICK, RecordIndex
 
 START_RECORDS = 1024
 MAX_RECORDS = 2**31 - 2  # record numbers + 1 are int32 in the kernels
-_ALL = np.zeros(1, np.int32)  # Picked.pick when every record is read
 # The NDT miss model's record state bits (kernels/ndt.py), as the two low bits of ndt_state.
 STATE_SHIFT = NBR_FRESH.bit_length() - 1
 assert NBR_BACK == NBR_FRESH << 1
@@ -193,7 +192,7 @@ class GaussianRecords:
         every cell a record was given (no index is built for a map the block holds)."""
         ext = self.extent
         if ext is not None and (ext[0] >= lo).all() and (ext[1] <= hi).all():
-            return Picked(pick=_ALL, npick=0, tail0=0)
+            return Picked(pick=NO_PICK, npick=0, tail0=0)
         pick, npick, tail0 = self.index.pick(lo, hi, self.cell, self.n, self.count, min_records)
         return Picked(pick=pick, npick=npick, tail0=tail0)
 

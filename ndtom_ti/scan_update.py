@@ -34,7 +34,7 @@ from .kernels.ndt import (
 )
 from .kernels.trace import RaysConfig
 from .kernels.update import FreeConfig, MergeConfig
-from .record_index import MIN_RECORDS
+from .record_index import MIN_RECORDS, NO_PICK
 from .scaninput import as_points, as_pose, cell_box
 from .slot import MapSlot
 
@@ -149,7 +149,7 @@ class RayTracer:
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
         # The records the NDT miss model's kernels read this scan (those the block may hold).
-        self.picked = Picked(pick=np.zeros(1, np.int32), npick=0, tail0=0)
+        self.picked = Picked(pick=NO_PICK, npick=0, tail0=0)
         self.touched = np.empty((0, 3), np.int32)  # plan.touched_rows is at least 1
         self.sync_touched()
         self.empty = {
