@@ -1,5 +1,5 @@
-"""Map file size and save/load time: formats 6, 5 and 4 (compressed) against format 3 (raw
-arrays), paired in one process on the same maps.
+"""Map file size and save/load time: formats 7 (compact: Gaussians rounded), 6, 5 and 4
+(compressed) against format 3 (raw arrays), paired in one process on the same maps.
 
     ndtom map ../shared/data/norlab_outdoor_stationary_14.bag -r 0.2 -o norlab.ndtom
     python benchmarks/mapfile_size.py norlab.ndtom [more.ndtom ...] --repeats 5
@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ndtom_ti.mapfile import RAW_VERSION, VERSION
+from ndtom_ti.mapfile import COMPACT_VERSION, RAW_VERSION, VERSION
 from ndtom_ti.snapshot import MapSnapshot
 
 
@@ -44,7 +44,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.maps:
             s = MapSnapshot.load(path)
-            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, 5, VERSION})}
+            files = {v: Path(tmp) / f"v{v}.ndtom" for v in sorted({RAW_VERSION, 4, 5, VERSION, COMPACT_VERSION})}
             times: dict[str, list[tuple[float, float]]] = {}
             m = None
             if args.map:

@@ -309,10 +309,12 @@ class NdtOmMap:
         """All cell state as numpy arrays (what ``save`` writes; ``cellstate.ARRAYS``)."""
         return self._slot.state()
 
-    def save(self, path: str | Path) -> Path:
-        """Write the map to one versioned file, atomically (see ``ndtom_ti.mapfile``)."""
+    def save(self, path: str | Path, *, compact: bool = False) -> Path:
+        """Write the map to one versioned file, atomically (see ``ndtom_ti.mapfile``).
+        ``compact``: the Gaussians rounded (means to res / 131070, scatter to float32), for
+        files about half the size where Gaussians are dense; the default is lossless."""
         path = check_target(path)  # before the work: a FIFO, device or folder is refused
-        return self.snapshot().save(path)
+        return self.snapshot().save(path, compact=compact)
 
     @classmethod
     def load(cls, path: str | Path) -> NdtOmMap:

@@ -1,4 +1,5 @@
-"""The payload of map files of versions 4-6: the snapshot's arrays, losslessly compressed.
+"""The payload of map files of versions 4-7: the snapshot's arrays, compressed (losslessly
+up to version 6; version 7 rounds the Gaussians, on request).
 
 Raw arrays took ~17.5 bytes a known cell, mostly cell indices and log-odds of free space.
 Here each array becomes one to three zstd frames, back to back in the array table's order:
@@ -29,6 +30,17 @@ What remains is the Gaussians' float64 means and scatter terms (BALM at 0.2 m: ~
 byte a byte), so no lossless coding of their bytes takes them much below ~6.6 B a value
 (XOR or differences with the previous record, a neighbouring cell, came out larger).
 
+Version 7 (``compact``, written only when asked for) is version 6 with the Gaussians rounded:
+
+- ``fraction16`` (the means, relative to their cell's centre, so inside +-res/2): each as
+  a 16-bit fraction of the cell, ``round((v / scale + 0.5) * 65535)``, in planes; ``scale``
+  (the resolution) is in the table. A mean moves by at most res / 131070 (1.5 um at 0.2 m).
+- ``float32`` (the scatter matrices): rounded to float32 (a relative 6e-8), then coded as
+  ``nonzero``.
+
+BALM at 0.2 m: the means take 6 B a record instead of ~20.5, the scatter ~19 instead of
+~40; 2.95 B a known cell in all instead of 6.0 (docs/large-maps.md).
+
 Each frame declares its decompressed size, which must equal what the table's shape needs
 (checked before anything is inflated), so a file never makes the reader inflate more than
 its arrays' declared size; frames carry zstd's own checksum besides the file's SHA-256.
@@ -51,10 +63,14 @@ LEVEL = 1
 # Streams compressed at another level, by coding and stream: the scatter rows kept (their low
 # bytes close to random) at level -1, ~1.7x faster for ~1% more of their bytes (BALM 0.2 m:
 # 7.1 -> 4.2 ms, 4.37 -> 4.42 MB). (The means' planes at -1 grew 5%; the log-odds' 50%.)
+# (The float32 scatter rows stay at level 1: 19.2 B a record against 20.5 at -1, BALM 0.3 m.)
 _LEVELS = {("nonzero", 1): -1}
-# The newest payload this module writes (the map file's version); encode(version=4 or 5)
+# The newest lossless payload (the map file's default version); encode(version=4 or 5)
 # still writes those versions'.
 VERSION = 6
+# The compact payload: version 6 with the Gaussians rounded (``fraction16``, ``float32``).
+COMPACT_VERSION = 7
+NEWEST = COMPACT_VERSION
 # A zstd frame cannot expand more than this (a 3-byte RLE block header stands for 128 KiB):
 # a larger declared size is a lie, refused before any memory is taken for it.
 _MAX_RATIO = 2**15
@@ -87,12 +103,17 @@ CODINGS = {
         "g_ndt_state": "raw",
     },
 }
+CODINGS[COMPACT_VERSION] = {**CODINGS[6], "g_mean_rel": "fraction16", "g_scatter": "float32"}
 CODING = CODINGS[VERSION]
+# What the rounding codings store of each value: (dtype, arrays they may code).
+_ROUNDED = {"fraction16": ("<u2", ("g_mean_rel",)), "float32": ("<f4", ("g_scatter",))}
+_FRACTION = 65535
 # The codings each version's reader takes for an array that is not an index.
 _VALUE_CODINGS = {
     4: ("raw", "planes", "nonzero"),
     5: ("raw", "planes", "nonzero"),
     6: ("raw", "planes", "nonzero", "values"),
+    7: ("raw", "planes", "nonzero", "values", "fraction16", "float32"),
 }
 # The ``values`` coding: at most this many distinct values in its table (codes 1-255; 0 escapes),
 # each found by a multiplicative hash of its 32 bits into a table of 2**_HASH_BITS slots.
@@ -253,7 +274,7 @@ def _deltas(name: str, idx: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, n
     return [d8, np.concatenate(far)], lo, span
 
 
-def _code(name: str, a: np.ndarray, coding: str) -> tuple[dict, list[np.ndarray], list[bytes]]:
+def _code(name: str, a: np.ndarray, coding: str, scale: float) -> tuple[dict, list[np.ndarray], list[bytes]]:
     """One array's table entry (less its streams), its streams and their frames."""
     coded = _values(a) if coding == "values" and a.itemsize * math.prod(a.shape[1:]) == 4 else None
     if coding == "values" and coded is None:  # (rows of another size, or values that do not repeat)
@@ -264,6 +285,18 @@ def _code(name: str, a: np.ndarray, coding: str) -> tuple[dict, list[np.ndarray]
         entry.update(lo=lo.tolist(), span=span.tolist())
     elif coding == "nonzero":
         raws = _nonzero(a)
+    elif coding == "fraction16":
+        if not np.isfinite(a).all():
+            raise ValueError(f"array {name!r} holds values that are not finite: it cannot be saved compact")
+        q = np.clip(np.rint((a / scale + 0.5) * _FRACTION), 0, _FRACTION)
+        raws = [_planes(q.astype(_ROUNDED[coding][0]))]
+        entry["scale"] = scale
+    elif coding == "float32":
+        with np.errstate(over="ignore"):
+            f = a.astype(_ROUNDED[coding][0])
+        if np.isinf(f).any() and not np.isinf(a).any():  # (a file that would not load again)
+            raise ValueError(f"array {name!r} holds values past float32's range: save it without compact")
+        raws = _nonzero(f)
     elif coded is not None:
         raws = coded
     else:
@@ -272,17 +305,22 @@ def _code(name: str, a: np.ndarray, coding: str) -> tuple[dict, list[np.ndarray]
     return entry, raws, [_compress(r.reshape(-1).view(np.uint8).data, v) for r, v in zip(raws, levels, strict=True)]
 
 
-def encode(arrays: dict[str, np.ndarray], version: int = VERSION) -> tuple[list[dict], list[bytes]]:
+def encode(
+    arrays: dict[str, np.ndarray], version: int = VERSION, scale: float | None = None
+) -> tuple[list[dict], list[bytes]]:
     """Table entries (name, dtype, shape, coding, streams) and the frames, in order, of
     ``arrays`` (name -> array of its dtype; index arrays with rows in (i, j, k) order), as
-    a payload of ``version`` (4, 5 or 6)."""
+    a payload of ``version`` (4-7; 7 needs ``scale``, the resolution the means are
+    fractions of)."""
     coding = CODINGS[version]
+    if version == COMPACT_VERSION and not (scale is not None and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"a compact payload needs the resolution as its scale, got {scale!r}")
     codings = {name: "delta" if name in _INDEX else coding.get(name, "raw") for name in arrays}
     # Each array coded and compressed in a worker, the largest first: numpy's passes and zstd
     # let the GIL go, so two cores share the work; saving takes about half its CPU time.
     order = sorted(arrays, key=lambda n: -arrays[n].nbytes)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        futures = {name: pool.submit(_code, name, arrays[name], codings[name]) for name in order}
+        futures = {name: pool.submit(_code, name, arrays[name], codings[name], scale or 1.0) for name in order}
         table, blobs = [], []
         for name in arrays:  # the table and the frames in the caller's order
             entry, raws, frames = futures[name].result()
@@ -299,10 +337,19 @@ def check_table(table: list[dict], payload_bytes: int, bad: Bad, version: int = 
     total = 0
     for e in table:
         name, shape, coding = e["name"], e["shape"], e.get("coding")
-        rows, row_bytes = shape[0], math.prod(shape[1:]) * np.dtype(e["dtype"]).itemsize
         if coding not in (("delta",) if name in _INDEX else _VALUE_CODINGS.get(version, ())):
             bad(f"array {name!r} has coding {coding!r}")
-        want = 3 if coding == "values" else 2 if coding in ("delta", "nonzero") else 1
+        stored = e["dtype"]
+        if coding in _ROUNDED:
+            stored, names = _ROUNDED[coding]
+            if name not in names:
+                bad(f"array {name!r} cannot have coding {coding!r}")
+        if coding == "fraction16":
+            scale = e.get("scale")
+            if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 0 < scale < math.inf):
+                bad(f"array {name!r} has scale {scale!r}: not a positive number")
+        rows, row_bytes = shape[0], math.prod(shape[1:]) * np.dtype(stored).itemsize
+        want = 3 if coding == "values" else 2 if coding in ("delta", "nonzero", "float32") else 1
         streams = e.get("streams")
         if not (isinstance(streams, list) and len(streams) == want and all(isinstance(s, dict) for s in streams)):
             bad(f"array {name!r} needs {want} streams, the table has {streams!r}")
@@ -314,10 +361,11 @@ def check_table(table: list[dict], payload_bytes: int, bad: Bad, version: int = 
                 bad(f"array {name!r} declares {raw} bytes in a {nb}-byte stream: more than zstd can hold")
             total += nb
         first = streams[0]["raw_nbytes"]
-        need = rows if coding in ("delta", "values") else (rows + 7) // 8 if coding == "nonzero" else rows * row_bytes
+        nonzero = coding in ("nonzero", "float32")
+        need = rows if coding in ("delta", "values") else (rows + 7) // 8 if nonzero else rows * row_bytes
         if first != need:
             bad(f"array {name!r} of shape {shape} declares {first} bytes in its first stream")
-        if coding == "nonzero":
+        if nonzero:
             second = streams[1]["raw_nbytes"]
             if second > rows * row_bytes or (row_bytes and second % row_bytes):
                 bad(f"array {name!r} declares {second} bytes of rows for {rows} rows of {row_bytes} bytes")
@@ -384,18 +432,23 @@ def decode(table: list[dict], payload: bytes, bad: Bad) -> dict[str, np.ndarray]
         if e["coding"] == "planes":
             out[name] = _unplane(raws[0], dtype, shape, shape[0])
             continue
-        if e["coding"] == "nonzero":
+        if e["coding"] == "fraction16":
+            q = _unplane(raws[0], np.dtype(_ROUNDED["fraction16"][0]), shape, shape[0])
+            out[name] = ((q / _FRACTION - 0.5) * e["scale"]).astype(dtype)
+            continue
+        if e["coding"] in ("nonzero", "float32"):
+            stored = np.dtype(_ROUNDED["float32"][0]) if e["coding"] == "float32" else dtype
             rows = shape[0]
             bits = np.unpackbits(np.frombuffer(raws[0], np.uint8), bitorder="little")
             keep = bits[:rows].view(bool)
             n = int(np.count_nonzero(keep))
             if bits[rows:].any():
                 bad(f"array {name!r} sets bits past its {rows} rows")
-            row_bytes = dtype.itemsize * math.prod(shape[1:])
+            row_bytes = stored.itemsize * math.prod(shape[1:])
             if len(raws[1]) != n * row_bytes:
                 bad(f"array {name!r} holds {len(raws[1])} bytes of rows for {n} rows that are not zero")
             a = np.zeros(shape, dtype)
-            a[np.flatnonzero(keep)] = _unplane(raws[1], dtype, shape, n)
+            a[np.flatnonzero(keep)] = _unplane(raws[1], stored, shape, n)
             out[name] = a
             continue
         if e["coding"] == "values":

@@ -9,7 +9,7 @@ Layout (little endian):
     4 bytes   format version (uint32)
     8 bytes   header length H (uint64)
     H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256
-    payload   versions 4-6: each array's zstd frames, back to back (``mapcodec``; the table
+    payload   versions 4-7: each array's zstd frames, back to back (``mapcodec``; the table
               gives name, dtype, shape, coding and the frames' sizes); versions 1-3: the
               arrays' raw bytes (the table gives name, dtype, shape, offset, nbytes)
 """
@@ -40,11 +40,14 @@ MAGIC = b"NDTOMTI\n"
 # 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
 # 5: scatter matrices without their rows of zeros (mapcodec's "nonzero" coding).
 # 6: log-odds as a byte a cell into a table of their frequent values (mapcodec's "values").
+# 7: version 6 with the Gaussians rounded (means to res / 131070, scatter to float32): written
+#    only on request (``compact``), the default stays lossless.
 VERSION = mapcodec.VERSION
+COMPACT_VERSION = mapcodec.COMPACT_VERSION
 # The last version of raw arrays; write(..., version=RAW_VERSION) still writes it.
 RAW_VERSION = 3
 # The versions write() writes (5, 4 and 3 for older readers).
-_WRITES = (VERSION, 5, 4, RAW_VERSION)
+_WRITES = (VERSION, COMPACT_VERSION, 5, 4, RAW_VERSION)
 # The file's arrays are a map's cell state (ARRAYS: dtype and trailing dimensions, in file
 # order; ROWS: those describing the same cells).
 _COLUMNS = {name: cols for name, (_, cols) in ARRAYS.items()}
@@ -61,7 +64,8 @@ class MapFileError(ValueError):
 
 def write(path: str | Path, settings: dict, arrays: dict, *, version: int = VERSION) -> Path:
     """Write a map's ``settings`` (as ``MapSnapshot.settings()`` gives them) and cell
-    ``arrays`` (``cellstate.ARRAYS``) to ``path``, atomically; ``version=RAW_VERSION``
+    ``arrays`` (``cellstate.ARRAYS``) to ``path``, atomically; ``version=COMPACT_VERSION``
+    rounds the Gaussians (about half the bytes where they are dense), ``version=RAW_VERSION``
     writes the uncompressed format that ndtom_ti before format 4 reads, ``version=4`` or
     ``5`` those formats."""
     path = check_target(path)
@@ -83,7 +87,7 @@ def _encode(s: dict, cells: dict, version: int) -> tuple[bytes, list]:
     """The header bytes and the payload's parts of a map file."""
     arrays = {name: np.ascontiguousarray(cells[name], dtype=dtype) for name, (dtype, _) in ARRAYS.items()}
     if version >= 4:
-        table, blobs = mapcodec.encode(arrays, version)
+        table, blobs = mapcodec.encode(arrays, version, float(s["resolution"]))
     else:
         table, blobs, offset = [], [], 0
         for name, a in arrays.items():
@@ -146,10 +150,10 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
         if len(prefix) < _PREFIX.size:
             raise MapFileError(f"{path} is truncated ({size} bytes): no complete header")
         _, version, hlen = _PREFIX.unpack(prefix)
-        if version > VERSION:
+        if version > mapcodec.NEWEST:
             raise MapFileError(
                 f"{path} is map format version {version}; this ndtom_ti reads up to version "
-                f"{VERSION}. Upgrade ndtom_ti to read it."
+                f"{mapcodec.NEWEST}. Upgrade ndtom_ti to read it."
             )
         if version < 1:
             raise MapFileError(f"{path} has invalid format version {version}")

@@ -206,11 +206,17 @@ class MapSnapshot:
 
     # ------------------------------------------------------------------ writing
 
-    def save(self, path: str | Path, *, version: int = mapfile.VERSION) -> Path:
+    def save(self, path: str | Path, *, version: int | None = None, compact: bool = False) -> Path:
         """Write a map file, atomically, byte for byte as ``NdtOmMap.save`` of the same
-        map writes it (``NdtOmMap.load`` and :meth:`load` read it); ``version=RAW_VERSION``
+        map writes it (``NdtOmMap.load`` and :meth:`load` read it). ``compact``: the
+        Gaussians rounded, means to res / 131070 and scatter to float32 (format 7; about
+        half the bytes where Gaussians are dense; not lossless). ``version=RAW_VERSION``
         (``ndtom_ti.mapfile``) writes the uncompressed format that ndtom_ti before format 4
         reads."""
+        if compact and version not in (None, mapfile.COMPACT_VERSION):
+            raise ValueError(f"compact maps are format {mapfile.COMPACT_VERSION}; version {version} is lossless")
+        if version is None:
+            version = mapfile.COMPACT_VERSION if compact else mapfile.VERSION
         return mapfile.write(path, self.settings(), self.state(), version=version)
 
     def export(self, path: str | Path, fmt: str | None = None, **options: Any) -> Exported:

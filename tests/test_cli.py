@@ -143,6 +143,26 @@ def test_info_of_a_map_file_and_of_nothing(bags, tmp_path: Path) -> None:
     assert_user_error(run("info", tmp_path / "nothing.bag"), "does not exist")
 
 
+def test_map_compact_writes_a_smaller_rounded_map_that_info_names(bags, tmp_path: Path) -> None:
+    """`ndtom map --compact` writes format 7 (Gaussians rounded), which `ndtom info` says and
+    `ndtom_ti` loads; without it the map file is the lossless format 6."""
+    from ndtom_ti.mapfile import read_header
+
+    exact, small = tmp_path / "m.ndtom", tmp_path / "c.ndtom"
+    for out, extra in ((exact, []), (small, ["--compact"])):
+        assert (
+            run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--max-scans", "3", "--no-progress", *extra).exit_code
+            == 0
+        )
+    assert read_header(exact)["version"] == 6 and read_header(small)["version"] == 7
+    assert small.stat().st_size < exact.stat().st_size
+    a, b = NdtOmMap.load(exact), NdtOmMap.load(small)
+    assert len(a) == len(b) > 0
+    r = run("info", small)
+    assert r.exit_code == 0 and "compact: Gaussians rounded" in r.output, r.output
+    assert "Gaussians rounded" not in run("info", exact).output
+
+
 # ---------------------------------------------------------------------------- map
 @pytest.mark.parametrize("kind", ["ros1", "mcap"])
 def test_map_writes_the_right_map_with_its_settings(bags, tmp_path: Path, kind: str) -> None:

@@ -48,6 +48,7 @@ def _build_bases() -> dict[str, bytes]:
             # the same map in formats 5 and 4 and in the raw format of version 3 (older files must keep loading)
             out[f"{name} v5"] = m.snapshot().save(Path(tmp) / "v5.ndtom", version=5).read_bytes()
             out[f"{name} v4"] = m.snapshot().save(Path(tmp) / "v4.ndtom", version=4).read_bytes()
+            out[f"{name} v7"] = m.snapshot().save(Path(tmp) / "v7.ndtom", compact=True).read_bytes()
             out[f"{name} v3"] = m.snapshot().save(Path(tmp) / "v3.ndtom", version=RAW_VERSION).read_bytes()
             del m
     gc.collect()
@@ -96,7 +97,8 @@ def repack(header: dict, arrays: dict[str, np.ndarray], head: bytes) -> bytes:
     repeated, raises)."""
     version = struct.unpack("<I", head[8:12])[0]
     if version >= 4:
-        table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]}, version)
+        scale = header.get("resolution") if version == mapcodec.COMPACT_VERSION else None
+        table, frames = mapcodec.encode({e["name"]: arrays[e["name"]] for e in header["arrays"]}, version, scale)
         header["arrays"] = table
         payload = b"".join(frames)
         header["payload_bytes"] = len(payload)
@@ -371,7 +373,7 @@ def teardown_module(module):
         print(f"\nmap file fuzz ({EXAMPLES} examples asked): {dict(OUTCOMES)}")
 
 
-@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v5", "ndtom v4", "ndtom v3", "rndt v3"])
+@pytest.mark.parametrize("name", ["ndtom", "rndt", "ndtom v7", "ndtom v5", "ndtom v4", "ndtom v3", "rndt v3"])
 def test_every_single_row_cut_is_a_map_file_error(tmp_path, name):
     """Deterministic companion: each array one row short (checksum valid) is refused."""
     head, header, payload = split(bases()[name])
@@ -453,6 +455,52 @@ def test_codec_round_trip_is_bit_for_bit(arrays, version):
     for name, a in arrays.items():
         b = back[name]
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+
+
+@settings(max_examples=EXAMPLES, deadline=None, database=None, derandomize=EXAMPLES <= 500)
+@given(
+    arrays=codec_arrays(),
+    scale=st.sampled_from([0.05, 0.2, 0.3, 1.0, 7.5]),
+    where=st.lists(st.floats(-0.5, 0.5), min_size=1, max_size=120),
+    terms=st.lists(st.floats(-1e6, 1e6, width=64) | st.sampled_from([0.0, -0.0, 1e-300, 5e-324]), min_size=1),
+)
+def test_compact_codec_rounds_within_its_bounds(arrays, scale, where, terms):
+    """Format 7: every array but the Gaussians' means and scatter bit for bit; each mean
+    (inside its cell, +-scale/2, the cell's edges among them) within scale / 131070 and still
+    inside; each scatter term its float32 rounding (zero rows, -0.0 and subnormals too)."""
+    n = len(arrays["g_index"])
+    arrays["g_mean_rel"] = np.resize(np.array(where + [-0.5, 0.5]) * scale, (n, 3))
+    scatter = np.resize(np.array(terms, np.float64), (n, 6))
+    scatter[np.all(arrays["g_scatter"].view(np.uint64) == 0, axis=1)] = 0.0  # the strategy's rows of zeros
+    arrays["g_scatter"] = scatter
+    table, frames = mapcodec.encode(arrays, mapcodec.COMPACT_VERSION, scale)
+    payload = b"".join(frames)
+    mapcodec.check_table(table, len(payload), _raise, mapcodec.COMPACT_VERSION)
+    back = mapcodec.decode(table, payload, _raise)
+    for name, a in arrays.items():
+        b = back[name]
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        if name == "g_mean_rel":
+            assert (np.abs(b - a) <= scale / 131070 * (1 + 1e-9)).all() and (np.abs(b) <= scale / 2).all()
+        elif name == "g_scatter":
+            assert b.tobytes() == a.astype(np.float32).astype(np.float64).tobytes()
+        else:
+            assert a.tobytes() == b.tobytes(), name
+
+
+def test_compact_codec_refuses_what_it_cannot_round():
+    """Means that are not finite, scatter past float32's range, or no scale: a ValueError
+    before anything is written (a file that would not load again is never made)."""
+    good = {"g_mean_rel": np.zeros((2, 3)), "g_scatter": np.ones((2, 6))}
+    for arrays, text in (
+        ({**good, "g_mean_rel": np.array([[0.0, np.nan, 0.0], [0.0, 0.0, 0.0]])}, "not finite"),
+        ({**good, "g_scatter": np.full((2, 6), 1e39)}, "float32's range"),
+    ):
+        with pytest.raises(ValueError, match=text):
+            mapcodec.encode(arrays, mapcodec.COMPACT_VERSION, 0.2)
+    for scale in (None, 0.0, float("nan")):
+        with pytest.raises(ValueError, match="needs the resolution"):
+            mapcodec.encode(good, mapcodec.COMPACT_VERSION, scale)
 
 
 def _logodds(kind: str, n: int = 300_000) -> np.ndarray:

@@ -90,7 +90,10 @@ def _info_header(title: str, h: dict, first: list[tuple[str, str]] | None = None
     for key, text in first or []:
         t.add_row(key, escape(text))
     md = h.get("metadata") or {}
-    t.add_row("format version", escape(str(h.get("version"))))
+    version = h.get("version")
+    rounded = any(a.get("coding") in ("fraction16", "float32") for a in h.get("arrays", []))
+    stored = " (compact: Gaussians rounded, means to res/131070, scatter to float32)" if rounded else ""
+    t.add_row("format version", escape(f"{version}{stored}"))
     t.add_row("resolution", escape(f"{h.get('resolution')} m"))
     t.add_row("occupancy", escape(str(h.get("occupancy"))))
     t.add_row("scans inserted", fmt_count(int(h.get("scans_inserted", 0))))

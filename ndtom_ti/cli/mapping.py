@@ -213,11 +213,17 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
 
 
 def _finish_mapping(
-    m: Any, summary: Any, output: Path, bar: _Bar, extra_rows: list | None = None, signals: Any = None
+    m: Any,
+    summary: Any,
+    output: Path,
+    bar: _Bar,
+    extra_rows: list | None = None,
+    signals: Any = None,
+    compact: bool = False,
 ) -> int:
     """Print the summary, write the map (also after Ctrl-C, SIGTERM, a memory stop or a bad
-    scan), return the exit code. ``signals``: the command's StopSignals; from here on a
-    signal only waits for the map to be on disk."""
+    scan; ``compact``: its Gaussians rounded), return the exit code. ``signals``: the
+    command's StopSignals; from here on a signal only waits for the map to be on disk."""
     if signals is not None:
         signals.phase = "saving"
     bar.stop(summary)
@@ -226,7 +232,7 @@ def _finish_mapping(
     if summary.scans_used or summary.scans_resumed:
         m.metadata.setdefault("options", {})["arch"] = bar.arch_used
         try:
-            wrote = m.save(output)
+            wrote = m.save(output, compact=compact)
         except OSError as exc:
             out.print(_summary_table(summary, None))
             fail(f"cannot write the map to {output}: {exc}", "choose another path with -o", EXIT_FAILURE)
@@ -298,6 +304,14 @@ def map_(
             show_default=False,
         ),
     ] = None,
+    compact: Annotated[
+        bool,
+        typer.Option(
+            "--compact",
+            help="Write the Gaussians rounded (means to res/131070, scatter to float32): about half the file "
+            "where Gaussians are dense (indoors). Not lossless; the default is.",
+        ),
+    ] = False,
     cloud_topic: Annotated[
         str | None, typer.Option(help="PointCloud2 (or depth image) topic; needed only when the recording has several.")
     ] = None,
@@ -523,7 +537,9 @@ def map_(
                     wait_for_browser=not no_wait,
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
                     progress=bar,
-                    finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
+                    finish=lambda m, summary, signals=None: _finish_mapping(
+                        m, summary, out_path, bar, signals=signals, compact=compact
+                    ),
                 )
             finally:
                 bar.stop()
@@ -564,7 +580,7 @@ def map_(
                     sig.phase = "saving"  # from here on a signal waits for the checkpoint and the map
                     bar.stop(summary)
                     tiles.finish(m, summary, "ndtom map")
-                code = _finish_mapping(m, summary, out_path, bar, signals=sig)
+                code = _finish_mapping(m, summary, out_path, bar, signals=sig, compact=compact)
             finally:
                 m.close()  # its slot (or its workers) back now: the map is on disk
             if tiles is not None and code == EXIT_OK:

@@ -231,9 +231,9 @@ class TiledMap:
         s = MapSnapshot.join(self.engine.snapshots())
         return replace(s, metadata=copy.deepcopy(self.metadata))
 
-    def save(self, path: str | Path) -> Path:
+    def save(self, path: str | Path, *, compact: bool = False) -> Path:
         """Write the whole map to one map file (as ``NdtOmMap.save``)."""
-        return self.snapshot().save(path)
+        return self.snapshot().save(path, compact=compact)
 
     def memory_report(self) -> dict:
         """The workers' memory reports, summed (``workers``: each one's)."""
