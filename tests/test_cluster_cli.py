@@ -26,6 +26,7 @@ import test_pipeline_bags as pb  # noqa: E402
 from ndtom_ti.cli import tiles  # noqa: E402
 from ndtom_ti.cli import app  # noqa: E402
 from ndtom_ti.cluster import TiledMap  # noqa: E402
+from ndtom_ti.mapfile import read_header  # noqa: E402
 from ndtom_ti.snapshot import MapSnapshot  # noqa: E402
 from ndtom_ti.tiledfile import write_manifest  # noqa: E402
 
@@ -329,6 +330,10 @@ def test_a_tiled_folder_is_read_as_a_map(tmp_path: Path, local_engine) -> None:
     assert r.exit_code == 0 and "Exported" in r.output, r.output
     assert run("merge", t).exit_code == 0
     assert_same_cells(tmp_path / "m.ndtom", tmp_path / "site.ndtom")
+    assert run("merge", t, "-o", tmp_path / "small.ndtom", "--compact").exit_code == 0
+    assert (
+        read_header(tmp_path / "small.ndtom")["version"] == 7 and read_header(tmp_path / "site.ndtom")["version"] == 6
+    )
     pytest.importorskip("viser")
     from ndtom_ti.viewer.cli import view_command
 

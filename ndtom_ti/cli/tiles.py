@@ -273,6 +273,12 @@ def merge(
             show_default=False,
         ),
     ] = None,
+    compact: Annotated[
+        bool,
+        typer.Option(
+            "--compact", help="Write the Gaussians rounded (format 7, as `ndtom map --compact`); the default is lossless."
+        ),
+    ] = False,
 ) -> None:
     """Join the tiles of a tiled map into one map file: the map one process would have
     made of the same scans, cell for cell."""
@@ -292,7 +298,7 @@ def merge(
         md = dict(snap.metadata)
         md["merged_from"] = str(folder.expanduser().resolve())
         md["complete"] = bool(doc.get("complete"))
-        wrote = replace(snap, metadata=md).save(out_path)
+        wrote = replace(snap, metadata=md).save(out_path, compact=compact)
         if not doc.get("complete"):
             console_err().print(
                 Text(
