@@ -276,7 +276,8 @@ def merge(
     compact: Annotated[
         bool,
         typer.Option(
-            "--compact", help="Write the Gaussians rounded (format 7, as `ndtom map --compact`); the default is lossless."
+            "--compact",
+            help="Write the Gaussians rounded (format 7, as `ndtom map --compact`); the default is lossless.",
         ),
     ] = False,
 ) -> None:
