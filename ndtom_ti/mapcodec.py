@@ -274,8 +274,9 @@ def _deltas(name: str, idx: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, n
     return [d8, np.concatenate(far)], lo, span
 
 
-def _code(name: str, a: np.ndarray, coding: str, scale: float) -> tuple[dict, list[np.ndarray], list[bytes]]:
-    """One array's table entry (less its streams), its streams and their frames."""
+def _code(name: str, a: np.ndarray, coding: str, scale: float | None) -> tuple[dict, list[np.ndarray], list[bytes]]:
+    """One array's table entry (less its streams), its streams and their frames (``scale``:
+    what ``fraction16`` takes fractions of, checked by encode)."""
     coded = _values(a) if coding == "values" and a.itemsize * math.prod(a.shape[1:]) == 4 else None
     if coding == "values" and coded is None:  # (rows of another size, or values that do not repeat)
         coding = "raw"
@@ -288,6 +289,7 @@ def _code(name: str, a: np.ndarray, coding: str, scale: float) -> tuple[dict, li
     elif coding == "fraction16":
         if not np.isfinite(a).all():
             raise ValueError(f"array {name!r} holds values that are not finite: it cannot be saved compact")
+        assert scale is not None
         q = np.clip(np.rint((a / scale + 0.5) * _FRACTION), 0, _FRACTION)
         raws = [_planes(q.astype(_ROUNDED[coding][0]))]
         entry["scale"] = scale
@@ -320,7 +322,7 @@ def encode(
     # let the GIL go, so two cores share the work; saving takes about half its CPU time.
     order = sorted(arrays, key=lambda n: -arrays[n].nbytes)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        futures = {name: pool.submit(_code, name, arrays[name], codings[name], scale or 1.0) for name in order}
+        futures = {name: pool.submit(_code, name, arrays[name], codings[name], scale) for name in order}
         table, blobs = [], []
         for name in arrays:  # the table and the frames in the caller's order
             entry, raws, frames = futures[name].result()

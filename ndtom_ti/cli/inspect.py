@@ -85,14 +85,17 @@ def _info_tiled(folder: Path) -> None:
 
 
 def _info_header(title: str, h: dict, first: list[tuple[str, str]] | None = None) -> None:
+    from ..mapfile import COMPACT_VERSION  # (loaded already: the header was read through it)
+
     out = console_out()
     t = make_table(title, "", "", header=False)
     for key, text in first or []:
         t.add_row(key, escape(text))
     md = h.get("metadata") or {}
     version = h.get("version")
-    rounded = any(a.get("coding") in ("fraction16", "float32") for a in h.get("arrays", []))
-    stored = " (compact: Gaussians rounded, means to res/131070, scatter to float32)" if rounded else ""
+    stored = (
+        " (compact: Gaussians rounded, means to res/131070, scatter to float32)" if version == COMPACT_VERSION else ""
+    )
     t.add_row("format version", escape(f"{version}{stored}"))
     t.add_row("resolution", escape(f"{h.get('resolution')} m"))
     t.add_row("occupancy", escape(str(h.get("occupancy"))))
