@@ -1,8 +1,9 @@
 """Sparse storage of NDT-OMs: two Taichi SNode trees shared by every map in the process.
 
-Both trees are ``pointer(slots x L1) -> pointer(L2) -> dense(leaf^3)`` with
-struct-of-arrays leaves (docs: two pointer levels over dense 8^3 leaves measured fastest
-for rays). The first index is the map's slot, so all maps share one set of node
+Both trees are ``pointer(slots x L1) -> pointer(L2) -> dense(leaf^3)`` whose leaves hold
+a cell's fields side by side (one ``place`` of them all: a cell's log-odds and ray count
+share a cache line; docs: two pointer levels over dense 8^3 leaves measured fastest for
+rays). The first index is the map's slot, so all maps share one set of node
 allocators: Taichi reserves pool memory per node type in chunks of up to 128 MiB, and
 per-map trees would each reserve their own.
 

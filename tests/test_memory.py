@@ -500,3 +500,35 @@ def test_the_cpu_pool_asks_for_huge_pages_and_a_scan_gets_them():
     assert out.returncode == 0, out.stderr[-2000:]
     advised, _, huge_kib = map(int, values(out.stdout, "HUGE"))
     assert advised == 0 and (huge_kib == 0 or _thp_mode() == "always")
+
+
+def test_a_cells_free_space_fields_share_its_bytes_in_the_leaf():
+    """A free-space update reads and writes a cell's log-odds and ray count together: the
+    leaves hold them side by side (8 B a cell, OCC_CELL_BYTES), one cache line for both."""
+    import taichi as ti
+
+    from ndtom_ti.kernels.layout import OCC_CELL_BYTES
+
+    st = runtime.storage(None)
+    m = NdtOmMap(0.2)
+    try:
+        m.insert_scan(np.array([[1.0, 0.0, 0.0]]), np.eye(4))
+        slot = m._slot.index
+
+        @ti.kernel
+        def offsets(s: ti.i32) -> ti.types.vector(3, ti.i64):
+            base = ti.get_addr(st.lo.snode, [s, 0, 0, 0])
+            return ti.Vector(
+                [
+                    ti.get_addr(st.ne.snode, [s, 0, 0, 0]) - base,
+                    ti.get_addr(st.lo.snode, [s, 0, 0, 1]) - base,
+                    ti.get_addr(st.lo.snode, [s, 0, 1, 0]) - base,
+                ],
+                dt=ti.i64,
+            )
+
+        ne_at, next_cell, next_row = (int(v) for v in offsets(slot))
+        assert (ne_at, next_cell) == (4, OCC_CELL_BYTES)
+        assert next_row == 8 * OCC_CELL_BYTES  # z fastest: a leaf's row of 8 cells is 64 B
+    finally:
+        m.close()
