@@ -19,6 +19,7 @@ from .ndt import (
     NE_GAUSS,
     Q_RAYS,
     TIE_MARGIN,
+    cpu_threads,
     device_funcs,
     f64_1d,
     f64_2d,
@@ -34,7 +35,14 @@ from .ndt import (
 )
 
 BLOCK_DTYPES = ("u16", "i32")
-RAY_CHUNK = 64  # rays a thread takes from the queue at a time (~4k cell visits at 0.2 m)
+
+
+def ray_chunk(threads: int) -> int:
+    """Rays a thread takes from the ray queue at a time: ~2048 / threads, from 64 to 1024,
+    so a scan of 57k rays is ~28 chunks a thread whatever their number. On the project's
+    2-core VM 1024 took a 0.2 m hall scan's rays 11-12 ms against 14-14.5 ms with 64 (two
+    threads; one thread: the same), docs/performance.md."""
+    return max(64, min(1024, 2048 // max(1, threads)))
 
 
 def block_type(bt: str):
@@ -99,6 +107,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
     ndt_visit, ndt_tree_visit, add_miss = F.ndt_visit, F.ndt_tree_visit, F.add_miss
     Q, SHIFT, leaf, owned, owner_spec = F.queue, F.SHIFT, F.leaf, F.owned, F.owner_spec
     mode, ndt = cfg.mode, cfg.ndt
+    chunk = ray_chunk(cpu_threads())
     bt = block_type(cfg.bt)
     mark = block_mark(cfg.bt)
     counts = block_counts(cfg.bt)
@@ -228,10 +237,10 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
         near_cells = 0
         if ti.static(ndt):
             near_cells = ti.cast(ndt_prm[8], ti.i32)
-        for wq in range(Q.span(n, RAY_CHUNK)):
+        for wq in range(Q.span(n, chunk)):
             jq = Q.first(wq, ctr, Q_RAYS)
-            while jq < Q.end(n, RAY_CHUNK):
-                for i in range(Q.begin(jq, n, RAY_CHUNK), Q.stop(jq, n, RAY_CHUNK)):
+            while jq < Q.end(n, chunk):
+                for i in range(Q.begin(jq, n, chunk), Q.stop(jq, n, chunk)):
                     ce = row(cells, i)
                     z = ti.Vector([pts[i, 0], pts[i, 1], pts[i, 2]])
                     d = z - o
