@@ -149,7 +149,7 @@ def _queue_kernel(threads, chunk):
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3, 4, 16])
-@pytest.mark.parametrize("chunk", [1, 7, 64])
+@pytest.mark.parametrize("chunk", [1, 7, 64, 1024])  # 1024: the rays' chunk on 1-2 threads
 def test_queue_takes_every_item_once(threads, chunk):
     take = _queue_kernel(threads, chunk)
     for n in (0, 1, chunk - 1, chunk, chunk + 1, 2 * chunk + 3, 1000, 57455):
@@ -160,3 +160,10 @@ def test_queue_takes_every_item_once(threads, chunk):
         if n >= 4 * chunk:
             half = -(-n // (2 * chunk)) * chunk
             assert seq[0] == 0 and seq[half] == 1 and seq[chunk] == 2
+
+
+def test_the_rays_chunk_follows_the_threads_within_its_bounds():
+    from ndtom_ti.kernels.trace import ray_chunk
+
+    assert [ray_chunk(t) for t in (1, 2, 3, 4, 8, 16, 32, 64, 256)] == [1024, 1024, 682, 512, 256, 128, 64, 64, 64]
+    assert ray_chunk(0) == 1024  # (no thread count known: as one)
