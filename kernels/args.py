@@ -109,6 +109,7 @@ class Sensor(Group):
     origin: np.ndarray  # [3] f64: world sensor origin
     ocell: np.ndarray  # [3] i32: its cell
     res: float  # cell size (m)
+    sbox: np.ndarray  # [8 * 6] i32: each octant's settled box (trace.settled_growth); lo > hi: none
 
 
 @dataclass(frozen=True)

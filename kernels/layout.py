@@ -217,6 +217,9 @@ class Storage:
         # zero between updates, which hold ``lock`` while they use it.
         self.block_buf = np.zeros(0, np.int32)
         self.bflag_buf = np.zeros(0, np.int8)
+        # The settled boxes' hit marks (trace.settled_growth): a scan's stamp where it hits.
+        self.hmask_buf: np.ndarray = np.zeros((1, 1, 1), np.uint8)
+        self.hmask_stamp = 0
         self.lock = threading.RLock()
 
     def set_owner(self, slot: int, owner: TileOwner | None) -> None:

@@ -49,6 +49,7 @@ C_HIT_PASSED = 7  # hit cells outside the block that rays also passed
 C_FREE = 8  # records of erased Gaussians on the free stack (copied in and out by the caller)
 C_NO_RECORD = 9  # hit cells merge left for want of a record (see merge's ``left``)
 C_NDT_STILL = 10  # tree cells rays passed whose NDT miss terms all rounded to zero: not updated
+C_SKIPPED = 14  # ray steps across the settled boxes (trace.settled_growth): cells passed, nothing to update
 # Work queues of the queued loops (see make_queue): the next chunk to take, zero before the loop.
 Q_RAYS = 11
 Q_MERGE = 12
@@ -171,6 +172,7 @@ f64_1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
 f32_1d = ti.types.ndarray(dtype=ti.f32, ndim=1)
 i8_4d = ti.types.ndarray(dtype=ti.i8, ndim=4)
 i8_3d = ti.types.ndarray(dtype=ti.i8, ndim=3)
+u8_3d = ti.types.ndarray(dtype=ti.u8, ndim=3)
 i8_1d = ti.types.ndarray(dtype=ti.i8, ndim=1)
 i64_2d = ti.types.ndarray(dtype=ti.i64, ndim=2)
 i32_3d = ti.types.ndarray(dtype=ti.i32, ndim=3)

@@ -53,9 +53,10 @@ from .ndt import (
     i64_2d,
     inside,
     rolled,
+    u8_3d,
     u64_1d,
 )
-from .trace import block_type
+from .trace import block_type, settled_growth
 
 HIT_CHUNK = 64  # hit cells a thread takes from merge's queue at a time
 COLUMN_CHUNK = 32  # block columns a thread takes from block_apply's queue at a time
@@ -163,6 +164,7 @@ def prepare(f: Storage, _cfg=None) -> Bound:
     """Sensor-frame points to world points and cells, each with its status."""
     grid_lo = device_funcs(f).grid_lo
     grid_n = ti.Vector(list(f.layout.cells))
+    grow_settled = settled_growth(f)
 
     def prepare(
         pts: ti.types.ndarray(ndim=2),  # [N, 3] sensor-frame points (f32 or f64)
@@ -174,8 +176,16 @@ def prepare(f: Storage, _cfg=None) -> Bound:
         out_world: f64_2d,  # [N, 3]
         out_cells: i32_2d,  # [N, 3]
         status: i8_1d,  # [N] 0 hit, 1 free ray, 2 not finite, 3 out of range, 4 outside the grid
+        ocell: i32_1d,  # [3] the sensor's cell
+        slot: ti.i32,  # the settled boxes (trace.settled_growth), of this map's cells:
+        l_min: ti.f32,
+        hmask: u8_3d,  # [reach + 1]^3 bricks of 2^3 cells around the sensor's cell: ``stamp`` where a hit falls
+        stamp: ti.i32,
+        reach: ti.i32,  # -1: no marks, no boxes
+        sbox: i32_1d,  # out [8 * 6]
     ):
         # No atomics: the caller compacts by status (contended counters cost more).
+        co = ti.Vector([ocell[0], ocell[1], ocell[2]], dt=ti.i32)
         for i in range(n):
             p = ti.Vector([ti.cast(pts[i, 0], ti.f64), ti.cast(pts[i, 1], ti.f64), ti.cast(pts[i, 2], ti.f64)])
             st = ti.i8(2)
@@ -196,14 +206,49 @@ def prepare(f: Storage, _cfg=None) -> Bound:
                         w[a] = rot[3 * a] * p[0] + rot[3 * a + 1] * p[1] + rot[3 * a + 2] * p[2] + trans[a]
                     cf = ti.floor(w / res)
                     if inside(cf, grid_lo.cast(ti.f64), (grid_lo + grid_n).cast(ti.f64)):
+                        c = ti.Vector([0, 0, 0], dt=ti.i32)
                         for a in ti.static(range(3)):
                             out_world[i, a] = w[a]
-                            out_cells[i, a] = ti.cast(cf[a], ti.i32)
+                            c[a] = ti.cast(cf[a], ti.i32)
+                            out_cells[i, a] = c[a]
+                        r = c - co + reach
+                        if st == 0 and r[0] >= 0 and r[1] >= 0 and r[2] >= 0:
+                            if r[0] <= 2 * reach and r[1] <= 2 * reach and r[2] <= 2 * reach:
+                                hmask[r[0] >> 1, r[1] >> 1, r[2] >> 1] = ti.cast(stamp, ti.u8)
                     else:
                         st = ti.i8(4)
             status[i] = st
+        # The hits stamped: the sensor's settled surroundings, on one thread (waking the pool
+        # would cost more than the ~0.2 ms they take).
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            if reach >= 0:
+                grow_settled(slot, co, l_min, hmask, stamp, sbox)
+            else:
+                for k in range(8 * 6):
+                    sbox[k] = 0 if k % 6 < 3 else -1
 
-    return Bound(prepare, ("pts", "n", "rot", "trans", "res", "r2", "out_world", "out_cells", "status"))
+    return Bound(
+        prepare,
+        (
+            "pts",
+            "n",
+            "rot",
+            "trans",
+            "res",
+            "r2",
+            "out_world",
+            "out_cells",
+            "status",
+            "ocell",
+            "slot",
+            "l_min",
+            "hmask",
+            "stamp",
+            "reach",
+            "sbox",
+        ),
+    )
 
 
 def hits_count(f: Storage, _cfg=None) -> Bound:

@@ -23,6 +23,7 @@ from .kernels.ndt import (
     C_NDT_STILL,
     C_NO_RECORD,
     C_RECORDS,
+    C_SKIPPED,
     C_TOUCHED,
     C_VISITS,
     CTR_SIZE,
@@ -32,7 +33,7 @@ from .kernels.ndt import (
     U16_MAX_RAYS,
     total,
 )
-from .kernels.trace import RaysConfig
+from .kernels.trace import SETTLED_REACH, RaysConfig
 from .kernels.update import FreeConfig, MergeConfig
 from .record_index import MIN_RECORDS, NO_PICK
 from .scaninput import as_points, as_pose, cell_box
@@ -43,6 +44,8 @@ from .slot import MapSlot
 # the part nearest the sensor, where rays are densest, and the rest counts in the tree.
 BLOCK_CELLS = 1 << 25
 TOUCHED_START = 1 << 20
+# The settled boxes (trace.settled_growth) of a scan that has none: lo > hi in each octant.
+NO_BOX = np.tile(np.array([0, 0, 0, -1, -1, -1], np.int32), 8)
 ROW_FLAGS = ("auto", "always", "never")
 
 
@@ -59,6 +62,9 @@ class ScanReport:
     cells_hit: int = 0
     cells_passed: int = 0  # distinct cells rays passed without an endpoint: free-space updates
     ray_cell_visits: int = 0
+    # ray steps across the sensor's settled surroundings, not visited: cells there are at the
+    # free clamp with no Gaussian, where a pass changes nothing (UpdatePlan.settled_box)
+    ray_cells_crossed: int = 0
     gaussians_erased: int = 0
     ray_batches: int = 0  # batches the rays were traced in under memory pressure (0: one pass)
     seconds: float = 0.0
@@ -91,6 +97,9 @@ class UpdatePlan:
     index_records: from this many Gaussian records on, the NDT miss model reads only
         those whose cells may lie in the scan's block, found by place (record_index);
         below it, every record (0: always by place).
+    settled_box: on the CPU, the rays cross the sensor's settled surroundings (a box of
+        cells at the free clamp with no Gaussian and no hit of the scan, where a pass
+        changes nothing: trace.settled_growth) in one step instead of cell by cell.
     """
 
     block_cells: int = BLOCK_CELLS
@@ -99,8 +108,11 @@ class UpdatePlan:
     one_pass: bool = True
     touched_rows: int = TOUCHED_START
     index_records: int = MIN_RECORDS
+    settled_box: bool = True
 
     def __setattr__(self, name: str, value: Any) -> None:
+        if name in ("one_pass", "settled_box") and not isinstance(value, bool):
+            raise ValueError(f"{name} must be True or False, got {value!r}")
         if name == "row_flags" and value not in ROW_FLAGS:
             raise ValueError(f"row_flags must be one of {ROW_FLAGS}, got {value!r}")
         if name in ("block_cells", "u16_rays", "touched_rows", "index_records") and (
@@ -126,6 +138,7 @@ class PreparedRays:
     one_pass: bool  # the whole scan fits the memory budget at once
     hit_nodes: tuple[np.ndarray, np.ndarray] | None  # (nodes the hits add, hit cells) when batched
     mine: np.ndarray | None = None  # a tiled map's worker: which hits lie in its cells (else all)
+    sbox: np.ndarray = field(default_factory=lambda: NO_BOX)  # the settled boxes (trace.settled_growth)
 
     @cached_property
     def own_hits(self) -> tuple[np.ndarray, np.ndarray, int]:
@@ -140,11 +153,17 @@ class RayTracer:
     near the sensor (its box, its buffers, the empty blocks), the list of tree cells rays
     touch, and the ray kernels' driver, in one pass or in batches under memory pressure."""
 
-    def __init__(self, *, slot: MapSlot, plan: UpdatePlan, ctr: np.ndarray, resolution: float, ndt: bool, arch: str):
+    def __init__(
+        self, *, slot: MapSlot, plan: UpdatePlan, ctr: np.ndarray, resolution: float, ndt: bool, arch: str, l_min: float
+    ):
         self.st, self.slot, self.k = slot.storage, slot.index, slot.kernels
         self.records, self.budget, self.plan = slot.records, slot.budget, plan
         self.resolution, self.ndt, self.arch = resolution, ndt, arch
+        self.l_min = l_min  # the free clamp: cells there take nothing from passing rays
         self.layout = slot.layout
+        self.no_box = NO_BOX
+        self.sbox = self.no_box  # the last scan's settled box
+        self.no_marks = np.zeros((1, 1, 1), np.uint8)  # prepare's marks when there is no settled box
         self.ctr = ctr  # the update's counters
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
         self.batches = 0  # ray batches of the last scan (0: one pass)
@@ -173,9 +192,10 @@ class RayTracer:
         bt = "u16" if self.arch == "cpu" and len(p.world) <= self.plan.u16_rays else "i32"
         ndt = mode == "full" and self.ndt
         blk = self.block_for(self.block_box(p) if dense else None, p.ocell, bt)
+        self.sbox = p.sbox if mode == "full" else self.no_box
         common = {
             "slot": slot,
-            "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution),
+            "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution, sbox=self.sbox),
             "touched": self.touched_group,
             "ctr": ctr,
             "nodes": self.budget.nodes,
@@ -276,6 +296,24 @@ class RayTracer:
                 budget.refuse(need)  # nothing of this scan is kept
         return None
 
+    def hit_marks(self) -> tuple[np.ndarray, int, int]:
+        """(marks, stamp, reach) for ``prepare`` to stamp a scan's hits near the sensor in
+        and grow the settled boxes from (trace.settled_growth): on the CPU, for a map that
+        updates all its cells (a tiled map's worker knows only its own); else (a stand-in,
+        0, -1): no boxes."""
+        st = self.st
+        if self.arch != "cpu" or self.layout.owner is not None or not self.plan.settled_box:
+            return self.no_marks, 0, -1
+        side = SETTLED_REACH + 1  # bricks of 2^3 cells
+        if st.hmask_buf.shape != (side,) * 3:
+            st.hmask_buf = np.zeros((side,) * 3, np.uint8)
+            st.hmask_stamp = 0
+        elif st.hmask_stamp == 255:  # a byte's stamps used up: cleared once every 255 scans
+            st.hmask_buf[:] = 0
+            st.hmask_stamp = 0
+        st.hmask_stamp += 1  # unique to this scan among the storage's maps since the last clear
+        return st.hmask_buf, st.hmask_stamp, SETTLED_REACH
+
     def block_box(self, p: PreparedRays):
         """The cell box the dense block should cover: the scan's, or, when that is larger
         than the block can be, the box of all but its farthest 0.1% of points on each axis.
@@ -342,7 +380,15 @@ class ScanUpdate:
             l_hit=config.l_hit, l_free=config.l_free, l_min=float(config.logodds_min), l_max=float(config.logodds_max)
         )
         # The rays: the dense block, the touched list, one pass or batches.
-        self.tracer = RayTracer(slot=slot, plan=plan, ctr=self.ctr, resolution=resolution, ndt=self.ndt, arch=arch)
+        self.tracer = RayTracer(
+            slot=slot,
+            plan=plan,
+            ctr=self.ctr,
+            resolution=resolution,
+            ndt=self.ndt,
+            arch=arch,
+            l_min=float(np.float32(config.logodds_min)),
+        )
         self._tree_ready = False  # compile_tree_path done
 
     def _ndt_kw(self) -> dict:
@@ -383,6 +429,8 @@ class ScanUpdate:
         status = np.empty(n, np.int8)
         free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
         r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
+        hmask, stamp, reach = self.tracer.hit_marks() if n else (self.tracer.no_marks, 0, -1)
+        sbox = np.empty(48, np.int32)
         if n:
             self.k.prepare()(
                 pts=pts,
@@ -394,6 +442,13 @@ class ScanUpdate:
                 out_world=world,
                 out_cells=cells,
                 status=status,
+                ocell=ocell.astype(np.int32),
+                slot=self.slot,
+                l_min=self.tracer.l_min,
+                hmask=hmask,
+                stamp=stamp,
+                reach=reach,
+                sbox=sbox,
             )
         cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
         n_hit, n_free = int(cnt[0]), int(cnt[1])
@@ -430,7 +485,8 @@ class ScanUpdate:
                 hit_nodes = (new, cells[:n_hit])
         # A tiled map's worker traces every ray but merges only the hits in its cells.
         mine = self.owner.owned(cells[:n_hit]) if self.owner is not None else None
-        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes, mine)
+        sbox = sbox if n else self.tracer.no_box
+        return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes, mine, sbox)
 
     # ------------------------------------------------------------------ rays
 
@@ -477,7 +533,7 @@ class ScanUpdate:
         bt = "u16" if self.arch == "cpu" and self.plan.u16_rays > 0 else "i32"
         pts, cells = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int32)
         none = Rays(pts=pts, cells=cells, n_hit=0, n=0)
-        sensor = Sensor(origin=np.zeros(3), ocell=np.zeros(3, np.int32), res=self.resolution)
+        sensor = Sensor(origin=np.zeros(3), ocell=np.zeros(3, np.int32), res=self.resolution, sbox=self.tracer.no_box)
         blk, nodes, ndt = self.tracer.empty[bt], self.budget.nodes, self._ndt_kw()
         keep = ctr.copy()  # the queues' counters move
         k.rays(RaysConfig(bt=bt, mode="full", ndt=self.ndt))(
@@ -658,6 +714,7 @@ class ScanUpdate:
         self.st.note_usage()
         rep.cells_hit = nh
         rep.ray_cell_visits = total(ctr, C_VISITS)
+        rep.ray_cells_crossed = total(ctr, C_SKIPPED)
         rep.gaussians_erased = int(ctr[C_ERASED])
         rep.ray_batches = self.tracer.batches
         recs.nfree = int(ctr[C_FREE])
