@@ -228,6 +228,7 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
             # The exit: the first crossing of a face of the box ahead of the ray.
             texit = ti.f64(BIG)
             ax = -1
+            kx = 0  # the exit axis's crossings up to and through the exit face
             for a in ti.static(range(3)):
                 if step[a] != 0:
                     j = shi[a] - cur[a] if step[a] > 0 else cur[a] - slo[a]
@@ -236,12 +237,13 @@ def rays(f: Storage, cfg: RaysConfig) -> Bound:
                         if t < texit:
                             texit = t
                             ax = a
+                            kx = j + 1
             ok = ax >= 0
             k = ti.Vector([0, 0, 0], dt=ti.i32)  # crossings before the exit, per axis
             for a in ti.static(range(3)):
                 if ok and step[a] != 0:
                     if a == ax:
-                        k[a] = (shi[a] - cur[a] if step[a] > 0 else cur[a] - slo[a]) + 1
+                        k[a] = kx
                     elif texit > tmax[a]:
                         k[a] = ti.cast(ti.floor((texit - tmax[a]) * ti.abs(d[a]) * inv_res), ti.i32) + 1  # / tdel
                     if k[a] > rem[a]:

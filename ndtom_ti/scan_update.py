@@ -161,8 +161,7 @@ class RayTracer:
         self.resolution, self.ndt, self.arch = resolution, ndt, arch
         self.l_min = l_min  # the free clamp: cells there take nothing from passing rays
         self.layout = slot.layout
-        self.no_box = NO_BOX
-        self.sbox = self.no_box  # the last scan's settled box
+        self.sbox = NO_BOX  # the last scan's settled boxes
         self.no_marks = np.zeros((1, 1, 1), np.uint8)  # prepare's marks when there is no settled box
         self.ctr = ctr  # the update's counters
         self.block_density = 0.0  # ray visits per cell of the last scan's dense block
@@ -192,7 +191,7 @@ class RayTracer:
         bt = "u16" if self.arch == "cpu" and len(p.world) <= self.plan.u16_rays else "i32"
         ndt = mode == "full" and self.ndt
         blk = self.block_for(self.block_box(p) if dense else None, p.ocell, bt)
-        self.sbox = p.sbox if mode == "full" else self.no_box
+        self.sbox = p.sbox if mode == "full" else NO_BOX
         common = {
             "slot": slot,
             "sensor": Sensor(origin=p.origin, ocell=p.ocell.astype(np.int32), res=self.resolution, sbox=self.sbox),
@@ -430,7 +429,7 @@ class ScanUpdate:
         free_at = cfg.max_range if cfg.max_range_mode == "free" else 0.0
         r2 = np.array([cfg.min_range**2, cfg.max_range**2, free_at])
         hmask, stamp, reach = self.tracer.hit_marks() if n else (self.tracer.no_marks, 0, -1)
-        sbox = np.empty(48, np.int32)
+        sbox = NO_BOX.copy()  # prepare grows them (none when it does not run)
         if n:
             self.k.prepare()(
                 pts=pts,
@@ -485,7 +484,6 @@ class ScanUpdate:
                 hit_nodes = (new, cells[:n_hit])
         # A tiled map's worker traces every ray but merges only the hits in its cells.
         mine = self.owner.owned(cells[:n_hit]) if self.owner is not None else None
-        sbox = sbox if n else self.tracer.no_box
         return PreparedRays(world, cells, n_hit, origin, ocell, rep, box, one_pass, hit_nodes, mine, sbox)
 
     # ------------------------------------------------------------------ rays
@@ -533,7 +531,7 @@ class ScanUpdate:
         bt = "u16" if self.arch == "cpu" and self.plan.u16_rays > 0 else "i32"
         pts, cells = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int32)
         none = Rays(pts=pts, cells=cells, n_hit=0, n=0)
-        sensor = Sensor(origin=np.zeros(3), ocell=np.zeros(3, np.int32), res=self.resolution, sbox=self.tracer.no_box)
+        sensor = Sensor(origin=np.zeros(3), ocell=np.zeros(3, np.int32), res=self.resolution, sbox=NO_BOX)
         blk, nodes, ndt = self.tracer.empty[bt], self.budget.nodes, self._ndt_kw()
         keep = ctr.copy()  # the queues' counters move
         k.rays(RaysConfig(bt=bt, mode="full", ndt=self.ndt))(
