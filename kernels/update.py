@@ -338,6 +338,7 @@ def hits_group(f: Storage, _cfg=None) -> Bound:
                 hcnt[s] = v
                 k += v
             first[c + 1] = k
+        ti.loop_config(serialize=True)  # (waking the pool costs more than these take)
         for _ in range(1):  # prefix sums, one thread
             first[0] = 0
             for c in range(HIT_CHUNKS):
@@ -403,6 +404,7 @@ def hits_dense(f: Storage, bt: str) -> Bound:
                 if rank[i] == 0:
                     k += 1
             first[c + 1] = k
+        ti.loop_config(serialize=True)  # (waking the pool costs more than these take)
         for _ in range(1):  # prefix sums, one thread
             first[0] = 0
             for c in range(HIT_CHUNKS):
@@ -418,6 +420,7 @@ def hits_dense(f: Storage, bt: str) -> Bound:
                     hcnt[s] = ti.cast(block[q[0], q[1], q[2]], ti.i32)
                     block[q[0], q[1], q[2]] = ti.cast(s, bt)
                     s += 1
+        ti.loop_config(serialize=True)
         for _ in range(1):
             run = 0
             for s in range(first[HIT_CHUNKS]):
