@@ -170,3 +170,80 @@ def test_the_settled_box_is_off_when_asked_and_takes_only_a_bool():
     pts = np.random.default_rng(3).normal(size=(2000, 3)) * 3
     for _ in range(4):
         assert m.insert_scan(pts, np.eye(4)).ray_cells_crossed == 0
+
+
+# ---------------------------------------------------------------------------- random scenes
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+def room_scan(rng, origin, half, res, n, grid_frac, blob):
+    """Endpoints of one scan from ``origin`` in a room of half-size ``half``: its walls,
+    floor and ceiling, a share ``grid_frac`` of them snapped to cell corners (exits that tie
+    with other faces), and ``blob`` points of an object near the sensor (hits in settled
+    space)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = np.min(np.where(d != 0, (np.sign(d) * half - origin) / np.where(d != 0, d, 1.0), np.inf), axis=1)
+    pts = origin + d * t[:, None] * rng.uniform(0.97, 1.0, (n, 1))
+    k = int(grid_frac * n)
+    pts[:k] = np.round(pts[:k] / res) * res
+    if blob:
+        pts[:blob] = origin + rng.uniform(0.4, 1.2, 3) * rng.choice([-1.0, 1.0], 3) + rng.normal(size=(blob, 3)) * 0.05
+    return pts
+
+
+@settings(max_examples=20, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    res=st.sampled_from([0.1, 0.2, 0.35, 0.5]),
+    model=st.sampled_from(["paper", "ndt"]),
+    clamp=st.sampled_from([None, -0.5]),
+    far=st.sampled_from([0.0, 731.3, -1201.7]),
+    scans=st.integers(4, 8),
+    speed=st.sampled_from([0.0, 0.05, 0.3]),
+    grid_frac=st.sampled_from([0.0, 0.3]),
+    blob_at=st.integers(1, 8),
+)
+def test_random_rooms_give_the_map_of_the_full_traversal(
+    seed, res, model, clamp, far, scans, speed, grid_frac, blob_at
+):
+    """Random rooms, sensor paths (also far from the grid's origin and on cell corners),
+    resolutions, clamps and models: the settled box changes no array of the map."""
+    rng = np.random.default_rng(seed)
+    half = rng.uniform(3.0, 9.0, 3) * [1.0, 1.0, 0.4]
+    cfg = MapConfig(miss_model=model) if clamp is None else MapConfig(miss_model=model, logodds_min=clamp)
+    on, off = pair(res, config=cfg)
+    try:
+        walk = []
+        o = rng.uniform(-0.3, 0.3, 3) * half
+        heading = rng.normal(size=3) * [1.0, 1.0, 0.1]
+        heading /= np.linalg.norm(heading)
+        for s in range(scans):
+            at = o + s * speed * heading
+            if s % 2:
+                at = np.round(at / res) * res  # the sensor on a cell corner
+            pts = room_scan(rng, at, half, res, 3000, grid_frac, 60 if s == blob_at else 0)
+            T = np.eye(4)
+            T[:3, 3] = at + [far, -far, 0.37 * far / 20.0]  # (the grid is flatter than wide)
+            walk.append((pts - at, T))
+        crossed = insert_both_exact(on, off, walk)
+        assert_same_snapshot(on, off)
+        if clamp is not None and speed <= 0.05:
+            assert crossed > 0  # a clamp reached in one look and a slow sensor: the box is there
+    finally:
+        on.close()
+        off.close()
+
+
+def insert_both_exact(on: NdtOmMap, off: NdtOmMap, scans) -> int:
+    """insert_both for scans whose rays may pass cell corners: a step through a corner
+    moves two or three axes at one visit, so the box's steps crossed may exceed the visits
+    they stand for. Returns the steps the box crossed."""
+    crossed = 0
+    for pts, T in scans:
+        a, b = on.insert_scan(pts, T), off.insert_scan(pts, T)
+        assert (a.cells_hit, a.gaussians_erased, a.points_used) == (b.cells_hit, b.gaussians_erased, b.points_used)
+        assert a.ray_cell_visits <= b.ray_cell_visits <= a.ray_cell_visits + a.ray_cells_crossed
+        crossed += a.ray_cells_crossed
+    return crossed
