@@ -229,8 +229,10 @@ def test_random_rooms_give_the_map_of_the_full_traversal(
             walk.append((pts - at, T))
         crossed = insert_both_exact(on, off, walk)
         assert_same_snapshot(on, off)
-        if clamp is not None and speed <= 0.05:
-            assert crossed > 0  # a clamp reached in one look and a slow sensor: the box is there
+        if clamp is not None and speed <= 0.05 and res <= 0.35:
+            # A clamp reached in one look and a slow sensor: the box is there (in rooms a few
+            # 0.5 m cells high a hit in the sensor's own 2^3-cell brick can hold every box back).
+            assert crossed > 0
     finally:
         on.close()
         off.close()
