@@ -249,3 +249,50 @@ def insert_both_exact(on: NdtOmMap, off: NdtOmMap, scans) -> int:
         assert a.ray_cell_visits <= b.ray_cell_visits <= a.ray_cell_visits + a.ray_cells_crossed
         crossed += a.ray_cells_crossed
     return crossed
+
+
+PLANS = [{"block_cells": 0}, {"one_pass": False}, {"row_flags": "always"}, {"u16_rays": 0}, {"settled_box": False}]
+
+
+@settings(max_examples=15, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    res=st.sampled_from([0.1, 0.2, 0.25, 0.35]),
+    model=st.sampled_from(["paper", "ndt"]),
+    clamp=st.sampled_from([None, -0.5]),
+    free_past=st.sampled_from([None, 3.0]),
+    far=st.sampled_from([0.0, -613.9]),
+    speed=st.sampled_from([0.0, 0.05, 0.3]),
+    plan=st.sampled_from(PLANS),
+)
+def test_random_rooms_give_one_map_on_every_plan(seed, res, model, clamp, free_past, far, speed, plan):
+    """The same random rooms through the default plan and another (the tree, batches, row
+    flags, 32-bit counts, no settled box), with rays past max_range carved as free or not:
+    one map."""
+    rng = np.random.default_rng(seed)
+    kw: dict = {"miss_model": model}
+    if clamp is not None:
+        kw["logodds_min"] = clamp
+    if free_past is not None:
+        kw.update(max_range=free_past, max_range_mode="free")
+    a, b = NdtOmMap(res, config=MapConfig(**kw)), NdtOmMap(res, config=MapConfig(**kw))
+    try:
+        for k, v in plan.items():
+            setattr(b.plan, k, v)
+        half = rng.uniform(3.0, 9.0, 3) * [1.0, 1.0, 0.4]
+        o = rng.uniform(-0.3, 0.3, 3) * half
+        heading = rng.normal(size=3) * [1.0, 1.0, 0.1]
+        heading /= np.linalg.norm(heading)
+        for s in range(6):
+            at = o + s * speed * heading
+            if s % 2:
+                at = np.round(at / res) * res
+            pts = room_scan(rng, at, half, res, 3000, 0.3, 60 if s == 3 else 0)
+            T = np.eye(4)
+            T[:3, 3] = at + [far, -far, far / 50.0]
+            ra, rb = a.insert_scan(pts - at, T), b.insert_scan(pts - at, T)
+            assert (ra.cells_hit, ra.gaussians_erased) == (rb.cells_hit, rb.gaussians_erased)
+        assert_same_snapshot(a, b)
+    finally:
+        a.close()
+        b.close()
