@@ -193,15 +193,27 @@ def room_scan(rng, origin, half, res, n, grid_frac, blob):
     return pts
 
 
-@settings(max_examples=20, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+def rooms(examples: int):
+    """The property tests' settings: ``examples`` rooms, no deadline, no example database."""
+    return settings(max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+
+
+# What the property tests draw alike: a seed, the miss model, the free clamp (the default,
+# or reached in one look) and the sensor's speed.
+ROOM = {
+    "seed": st.integers(0, 2**31 - 1),
+    "model": st.sampled_from(["paper", "ndt"]),
+    "clamp": st.sampled_from([None, -0.5]),
+    "speed": st.sampled_from([0.0, 0.05, 0.3]),
+}
+
+
+@rooms(20)
 @given(
-    seed=st.integers(0, 2**31 - 1),
+    **ROOM,
     res=st.sampled_from([0.1, 0.2, 0.35, 0.5]),
-    model=st.sampled_from(["paper", "ndt"]),
-    clamp=st.sampled_from([None, -0.5]),
     far=st.sampled_from([0.0, 731.3, -1201.7]),
     scans=st.integers(4, 8),
-    speed=st.sampled_from([0.0, 0.05, 0.3]),
     grid_frac=st.sampled_from([0.0, 0.3]),
     blob_at=st.integers(1, 8),
 )
@@ -254,15 +266,12 @@ def insert_both_exact(on: NdtOmMap, off: NdtOmMap, scans) -> int:
 PLANS = [{"block_cells": 0}, {"one_pass": False}, {"row_flags": "always"}, {"u16_rays": 0}, {"settled_box": False}]
 
 
-@settings(max_examples=15, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@rooms(15)
 @given(
-    seed=st.integers(0, 2**31 - 1),
+    **ROOM,
     res=st.sampled_from([0.1, 0.2, 0.25, 0.35]),
-    model=st.sampled_from(["paper", "ndt"]),
-    clamp=st.sampled_from([None, -0.5]),
     free_past=st.sampled_from([None, 3.0]),
     far=st.sampled_from([0.0, -613.9]),
-    speed=st.sampled_from([0.0, 0.05, 0.3]),
     plan=st.sampled_from(PLANS),
 )
 def test_random_rooms_give_one_map_on_every_plan(seed, res, model, clamp, free_past, far, speed, plan):
