@@ -193,6 +193,38 @@ def room_scan(rng, origin, half, res, n, grid_frac, blob):
     return pts
 
 
+def room_walk(rng, res, scans, speed, far, grid_frac, blob_at):
+    """A sensor's walk through a random room: (endpoints in the sensor frame, pose) a scan,
+    the sensor moving ``speed`` m a scan, every second pose on a cell corner, all of it
+    ``far`` m from the grid's origin (less in z: the grid is flatter than wide), an object
+    beside the sensor in scan ``blob_at``."""
+    half = rng.uniform(3.0, 9.0, 3) * [1.0, 1.0, 0.4]
+    o = rng.uniform(-0.3, 0.3, 3) * half
+    heading = rng.normal(size=3) * [1.0, 1.0, 0.1]
+    heading /= np.linalg.norm(heading)
+    walk = []
+    for s in range(scans):
+        at = o + s * speed * heading
+        if s % 2:
+            at = np.round(at / res) * res  # the sensor on a cell corner
+        pts = room_scan(rng, at, half, res, 3000, grid_frac, 60 if s == blob_at else 0)
+        T = np.eye(4)
+        T[:3, 3] = at + [far, -far, far / 50.0]
+        walk.append((pts - at, T))
+    return walk
+
+
+def room_config(model, clamp, free_past=None) -> MapConfig:
+    """The miss model, the free clamp (None: the default) and, with ``free_past``, rays past
+    that range carved as free."""
+    kw: dict = {"miss_model": model}
+    if clamp is not None:
+        kw["logodds_min"] = clamp
+    if free_past is not None:
+        kw.update(max_range=free_past, max_range_mode="free")
+    return MapConfig(**kw)
+
+
 def rooms(examples: int):
     """The property tests' settings: ``examples`` rooms, no deadline, no example database."""
     return settings(max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck))
@@ -208,13 +240,13 @@ ROOM = {
 }
 
 
-@rooms(20)
+@rooms(30)
 @given(
     **ROOM,
     res=st.sampled_from([0.1, 0.2, 0.35, 0.5]),
     far=st.sampled_from([0.0, 731.3, -1201.7]),
     scans=st.integers(4, 8),
-    grid_frac=st.sampled_from([0.0, 0.3]),
+    grid_frac=st.sampled_from([0.0, 0.3, 1.0]),
     blob_at=st.integers(1, 8),
 )
 def test_random_rooms_give_the_map_of_the_full_traversal(
@@ -222,23 +254,9 @@ def test_random_rooms_give_the_map_of_the_full_traversal(
 ):
     """Random rooms, sensor paths (also far from the grid's origin and on cell corners),
     resolutions, clamps and models: the settled box changes no array of the map."""
-    rng = np.random.default_rng(seed)
-    half = rng.uniform(3.0, 9.0, 3) * [1.0, 1.0, 0.4]
-    cfg = MapConfig(miss_model=model) if clamp is None else MapConfig(miss_model=model, logodds_min=clamp)
-    on, off = pair(res, config=cfg)
+    walk = room_walk(np.random.default_rng(seed), res, scans, speed, far, grid_frac, blob_at)
+    on, off = pair(res, config=room_config(model, clamp))
     try:
-        walk = []
-        o = rng.uniform(-0.3, 0.3, 3) * half
-        heading = rng.normal(size=3) * [1.0, 1.0, 0.1]
-        heading /= np.linalg.norm(heading)
-        for s in range(scans):
-            at = o + s * speed * heading
-            if s % 2:
-                at = np.round(at / res) * res  # the sensor on a cell corner
-            pts = room_scan(rng, at, half, res, 3000, grid_frac, 60 if s == blob_at else 0)
-            T = np.eye(4)
-            T[:3, 3] = at + [far, -far, 0.37 * far / 20.0]  # (the grid is flatter than wide)
-            walk.append((pts - at, T))
         crossed = insert_both_exact(on, off, walk)
         assert_same_snapshot(on, off)
         if clamp is not None and speed <= 0.05 and res <= 0.35:
@@ -278,28 +296,14 @@ def test_random_rooms_give_one_map_on_every_plan(seed, res, model, clamp, free_p
     """The same random rooms through the default plan and another (the tree, batches, row
     flags, 32-bit counts, no settled box), with rays past max_range carved as free or not:
     one map."""
-    rng = np.random.default_rng(seed)
-    kw: dict = {"miss_model": model}
-    if clamp is not None:
-        kw["logodds_min"] = clamp
-    if free_past is not None:
-        kw.update(max_range=free_past, max_range_mode="free")
-    a, b = NdtOmMap(res, config=MapConfig(**kw)), NdtOmMap(res, config=MapConfig(**kw))
+    walk = room_walk(np.random.default_rng(seed), res, 6, speed, far, 0.3, 3)
+    cfg = room_config(model, clamp, free_past)
+    a, b = NdtOmMap(res, config=cfg), NdtOmMap(res, config=cfg)
     try:
         for k, v in plan.items():
             setattr(b.plan, k, v)
-        half = rng.uniform(3.0, 9.0, 3) * [1.0, 1.0, 0.4]
-        o = rng.uniform(-0.3, 0.3, 3) * half
-        heading = rng.normal(size=3) * [1.0, 1.0, 0.1]
-        heading /= np.linalg.norm(heading)
-        for s in range(6):
-            at = o + s * speed * heading
-            if s % 2:
-                at = np.round(at / res) * res
-            pts = room_scan(rng, at, half, res, 3000, 0.3, 60 if s == 3 else 0)
-            T = np.eye(4)
-            T[:3, 3] = at + [far, -far, far / 50.0]
-            ra, rb = a.insert_scan(pts - at, T), b.insert_scan(pts - at, T)
+        for pts, T in walk:
+            ra, rb = a.insert_scan(pts, T), b.insert_scan(pts, T)
             assert (ra.cells_hit, ra.gaussians_erased) == (rb.cells_hit, rb.gaussians_erased)
         assert_same_snapshot(a, b)
     finally:
