@@ -1,11 +1,14 @@
 """benchmarks/speed.py: several fresh processes per setting, each printed, and their medians;
 benchmarks/threads.py: a row per loop size; benchmarks/startup.py: the simulated hall's first
-scan; benchmarks/big_map.py: records read by place and all of them, at each size of the map."""
+scan; benchmarks/big_map.py: records read by place and all of them, at each size of the map;
+benchmarks/record_entropy.py: the bits of the Gaussians no lossless coding can drop."""
 
 import importlib.util
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -68,3 +71,28 @@ def test_big_map_times_both_ways_at_each_size():
     assert all(float(x) > 0 for r in rows for x in r[2:])
     bad = _run("big_map.py", "--copies", "4", "2")
     assert bad.returncode == 2 and "--copies must be increasing" in bad.stderr
+
+
+def test_record_entropy_counts_the_bits_a_coder_must_keep(arch, tmp_path):
+    spec = importlib.util.spec_from_file_location("record_entropy", ROOT / "benchmarks" / "record_entropy.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rng = np.random.default_rng(0)
+    h32 = mod.bit_entropy(rng.normal(size=4096).astype(np.float32).astype(np.float64))
+    assert h32[:29].max() == 0 and h32[29:52].min() > 0.9  # a float32 in a float64: 29 zero bits
+    assert mod.bit_entropy(rng.normal(size=4096))[:52].min() > 0.9
+
+    import ndtom_ti
+
+    m = ndtom_ti.NdtOmMap(0.5)
+    for k in range(3):  # a wall of many points a cell: Gaussians of more than one point
+        wall = np.c_[np.full(2000, 5.0), rng.uniform(-3, 3, 2000), rng.uniform(0, 2, 2000)]
+        m.insert_scan(wall + rng.normal(scale=0.02, size=wall.shape), np.eye(4))
+    m.save(tmp_path / "wall.ndtom")
+    out = _run("record_entropy.py", str(tmp_path / "wall.ndtom"), timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    row = out.stdout.splitlines()[-1].split(" | ")
+    assert row[0] == "wall.ndtom"
+    full, low = (float(x) for x in row[3].split(" / "))
+    assert 9 * 40 * 0.8 < low <= 9 * 40 and low < full <= 9 * 64  # near-random low bits, 9 columns
+    assert float(row[4]) > 0
