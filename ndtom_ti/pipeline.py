@@ -17,6 +17,12 @@ recording. Bad input before the first scan is mapped
 A command that maps and then saves wraps both in :func:`ndtom_ti.signals.stop_signals`
 (SIGINT and SIGTERM: the map is saved, and signals during the save wait for it).
 
+Poses kilometres from their frame's origin (UTM and other georeferenced frames) would
+leave the map's grid at once: when the first pose lies outside the middle half of the grid,
+the loop maps in a frame shifted by that pose's position rounded to 100 m
+(:func:`frame_origin`), and records the shift in the map's metadata (``frame_origin``) and
+in ``summary.frame_origin``; the map's coordinates (Gaussians, exports) are in that frame.
+
 :func:`run_scans` is the one mapping loop: ``ndtom map``, the API and live mapping in the
 viewer run it, the viewer as its :class:`Observer` (kiss-icp's visualizer): it paces the
 scans, maps them under its lock and draws them; the default observer does nothing.
@@ -116,6 +122,8 @@ class MappingSummary:
     wall_seconds: float = 0.0  # the whole loop: reading, decoding, inserting
     wall_first_scan: float = 0.0  # the loop until the first scan was in (it compiles the kernels)
     points_first_scan: int = 0
+    # Where the map's (0, 0, 0) lies in the poses' frame when the loop shifted them (frame_origin)
+    frame_origin: list | None = None
     stopped: str | None = None  # None (ran to the end), 'interrupted', 'memory' or 'error' (a bad scan)
     error: str | None = None  # why it stopped early
 
@@ -305,6 +313,35 @@ def config_with_ranges(
 
 
 # ---------------------------------------------------------------------------- the loop
+FRAME_ORIGIN_STEP = 100.0  # m: a shifted frame's origin is rounded to this, to read well
+
+
+def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
+    """Where the map's frame starts in the poses' frame, for a run whose first pose is
+    ``T_world_sensor``: the one in the map's metadata (``frame_origin``: a map resumed, or
+    made to continue another), else, for a map that holds no scan, that pose's position
+    rounded to ``FRAME_ORIGIN_STEP`` when it lies outside the middle half of the map's grid
+    on an axis (poses in UTM or another georeferenced frame, kilometres from its origin,
+    where the grid ends); else None (the poses as they are)."""
+    kept = m.metadata.get("frame_origin") if isinstance(getattr(m, "metadata", None), dict) else None
+    if kept is not None:
+        try:
+            origin = np.asarray(kept, np.float64)
+        except (TypeError, ValueError):
+            origin = np.full(1, np.nan)
+        if origin.shape != (3,) or not np.isfinite(origin).all():
+            raise ValueError(f"the map's metadata has frame_origin {kept!r}, not three finite numbers (metres)")
+        return origin
+    layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
+    if layout is None or getattr(m, "scans_inserted", 0):
+        return None
+    p = np.asarray(T_world_sensor, np.float64)[:3, 3]
+    quarter = np.asarray(layout.cells, np.float64) * float(m.resolution) / 4.0
+    if not np.isfinite(p).all() or (np.abs(p) <= quarter).all():
+        return None
+    return np.round(p / FRAME_ORIGIN_STEP) * FRAME_ORIGIN_STEP
+
+
 class Observer:
     """What the mapping loop tells a viewer of it, and asks it (kiss-icp's visualizer).
     This one watches nothing and never waits; live mapping's (``viewer.live.LiveMapper``)
@@ -350,6 +387,7 @@ def run_scans(
         return time.perf_counter() - t0 - waited
 
     end: Any = object()
+    origin: Any = end  # frame_origin(), once the first scan is read
     ran_out = False  # every scan was inserted: a signal after that stops nothing
     with loop_signals() as sig:
         it = iter(scans)
@@ -382,6 +420,14 @@ def run_scans(
                 if not go:
                     break
                 points, T = scan_parts(scan)
+                if origin is end:  # decided at the first scan, kept in the map's metadata
+                    origin = frame_origin(m, T)
+                    if origin is not None:
+                        summary.frame_origin = origin.tolist()
+                        m.metadata["frame_origin"] = summary.frame_origin
+                if origin is not None:
+                    T = T.copy()
+                    T[:3, 3] -= origin
                 try:
                     rep = obs.insert(m, points, T)
                 except MapMemoryError as exc:

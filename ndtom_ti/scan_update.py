@@ -419,7 +419,9 @@ class ScanUpdate:
             lo, hi = self.glo * res, self.ghi * res
             raise ValueError(
                 f"sensor origin {origin.tolist()} is outside the map grid "
-                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout"
+                f"[{lo.tolist()}, {hi.tolist()}] m; use a coarser resolution or a larger Layout, or give "
+                "poses relative to a point near the sensor's path (`ndtom map` shifts a recording whose "
+                "first pose is that far itself)"
             )
 
         n = len(pts)

@@ -178,7 +178,10 @@ class MapSnapshot:
             doc = tiledfile.read_manifest(path)
             if not doc["tiles"]:
                 raise mapfile.MapFileError(f"{path} is a tiled map of {doc['scans']} scans without a known cell yet")
-            return cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
+            joined = cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
+            if doc.get("frame_origin") is not None:  # the run's shift of the poses (pipeline.frame_origin)
+                joined.metadata["frame_origin"] = doc["frame_origin"]
+            return joined
         if Path(path).is_dir():
             raise mapfile.MapFileError(tiledfile.not_tiled(path))
         settings, arrays = mapfile.read(path)

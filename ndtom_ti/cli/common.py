@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import signal
 import stat
@@ -235,6 +236,15 @@ def fmt_mib(b: float) -> str:
 
 def fmt_count(n: int) -> str:
     return f"{n:,}"
+
+
+def frame_origin_text(origin: list) -> str:
+    """A map's frame_origin (metadata), in words."""
+    ok = isinstance(origin, (list, tuple)) and len(origin) == 3
+    if not ok or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in origin):
+        return f"{origin!r} (not three numbers: the file's metadata is damaged)"
+    xyz = ", ".join(f"{v:,.0f}" for v in origin)
+    return f"({xyz}) m of the poses' frame is the map's (0, 0, 0): its coordinates and exports are relative to it"
 
 
 def fmt_secs(ns: int | None, start_ns: int | None = None) -> str:

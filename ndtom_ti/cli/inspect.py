@@ -24,6 +24,7 @@ from .common import (
     fmt_count,
     fmt_mib,
     fmt_secs,
+    frame_origin_text,
     make_table,
     user_errors,
 )
@@ -118,6 +119,8 @@ def _info_header(title: str, h: dict, first: list[tuple[str, str]] | None = None
     for key in ("source", "cloud_topic", "pose_source", "ndtom_ti_version", "created", "complete"):
         if key in md:
             t.add_row(key.replace("_", " "), escape(str(md[key])))
+    if md.get("frame_origin") is not None:
+        t.add_row("frame origin", escape(frame_origin_text(md["frame_origin"])))
     t.add_row("config", escape(", ".join(f"{k}={_config_value(k, v)}" for k, v in (h.get("config") or {}).items())))
     out.print(t)
 

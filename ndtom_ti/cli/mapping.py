@@ -35,6 +35,7 @@ from .common import (
     fail,
     fmt_count,
     fmt_mib,
+    frame_origin_text,
     init_taichi,
     make_table,
     need_extra,
@@ -174,6 +175,8 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     if summary.pose_source:
         t.add_row("poses", escape(summary.pose_source))
         t.add_row("map frame", escape(str(summary.fixed_frame)))
+    if summary.frame_origin is not None:
+        t.add_row("frame origin", escape(frame_origin_text(summary.frame_origin)))
     t.add_row("resolution", f"{summary.resolution:g} m" + ("" if summary.occupancy else " (no occupancy)"))
     resumed = (
         f" (and the first {fmt_count(summary.scans_resumed)}: the resumed checkpoint)" if summary.scans_resumed else ""

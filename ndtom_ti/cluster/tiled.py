@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -138,6 +139,12 @@ class TiledMap:
         check_job(self.folder, doc, self.job)
         self.scans_inserted = int(doc["scans"])
         self.points_inserted = int(doc.get("points", 0))
+        origin = doc.get("frame_origin")
+        if origin is not None:  # the resumed scans are shifted as the stopped run's were
+            ok = isinstance(origin, list) and len(origin) == 3
+            if not ok or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in origin):
+                raise ValueError(f"{self.folder}'s manifest has a bad frame_origin {origin!r}: three numbers expected")
+            self.metadata["frame_origin"] = [float(v) for v in origin]
         self._starts = self._starts_of(doc["tiles"], doc["tile_ids"])
 
     def _probe(self) -> None:
@@ -206,6 +213,8 @@ class TiledMap:
             "complete": bool(complete),
             "job": self.job,
         }
+        if self.metadata.get("frame_origin") is not None:  # the loop's shift of the poses (pipeline)
+            info["frame_origin"] = self.metadata["frame_origin"]
         path = write_manifest(self.folder, info, names)
         self._starts = self._starts_of([n for n, _ in names], [t for _, t in names])
         self._since = []
