@@ -140,7 +140,14 @@ def test_info_of_a_map_file_and_of_nothing(bags, tmp_path: Path) -> None:
     gaussians = NdtOmMap.load(out).metadata["summary"]["gaussians"]
     assert re.search(rf"Gaussians\W+{gaussians:,} \(cells of >= 3 points, occupied\)", r.output), r.output
     assert "Gaussian records" in r.output and "fewer points or in free cells" in r.output
+    assert "frame origin" not in r.output  # the plane's poses start near their frame's origin
     assert_user_error(run("info", tmp_path / "nothing.bag"), "does not exist")
+    m = NdtOmMap.load(out)
+    m.metadata["frame_origin"] = "east"  # a damaged or hand-made file is shown, not a crash
+    m.save(out)
+    del m
+    r = run("info", out)
+    assert r.exit_code == 0 and "frame origin" in r.output and "'east' (not three numbers" in r.output, r.output
 
 
 def test_map_compact_writes_a_smaller_rounded_map_that_info_names(bags, tmp_path: Path) -> None:

@@ -173,6 +173,37 @@ def test_checkpoints_make_a_tiled_map_and_resume(sim, reference, tmp_path):
         TiledMap(RES, workers=3, tile_size=8.0, engine="local", probe=False, folder=folder, resume=True)
 
 
+def test_a_resumed_run_keeps_the_shift_of_georeferenced_poses(sim, tmp_path):
+    """Poses kilometres from their frame's origin: the mapping loop shifts them by the first
+    one's position (rounded); the checkpoint keeps that shift and a resumed run applies it."""
+    from ndtom_ti.pipeline import MappingSummary, run_scans
+
+    utm = np.array([512_345.0, 5_412_345.0, 251.0])
+    far = [(pts, np.concatenate([T[:3], [[0, 0, 0, 1]]]) + np.pad(utm[:, None], ((0, 1), (3, 0)))) for pts, T in sim]
+    folder = tmp_path / "tiles"
+    half = len(sim) // 2
+    kw = {"workers": 2, "tile_size": 8.0, "engine": "local", "probe": False, "folder": folder}
+    with TiledMap(RES, **kw) as tm:
+        run_scans(tm, far[:half], MappingSummary())
+        tm.checkpoint()
+        origin = tm.metadata["frame_origin"]
+    assert origin == [512_300.0, 5_412_300.0, 300.0]
+    assert MapSnapshot.load(folder).metadata["frame_origin"] == origin  # the folder read as a map
+    with TiledMap(RES, resume=True, **kw) as tm:
+        assert tm.metadata["frame_origin"] == origin and tm.scans_inserted == half
+        summary = MappingSummary()
+        run_scans(tm, far[half:], summary)
+        assert summary.scans_used == len(sim) - half and summary.frame_origin == origin  # the kept one
+        got = tm.snapshot()
+    shifted = []
+    for pts, T in far:
+        T = T.copy()
+        T[:3, 3] -= origin
+        shifted.append((pts, T))
+    assert_same_map(one_process(shifted, "ndt"), got)
+    assert got.metadata["frame_origin"] == origin
+
+
 def test_a_resumed_run_must_name_the_same_job(sim, tmp_path):
     """``job`` (what the scans are) goes into the checkpoint; resuming with another is refused."""
     folder = tmp_path / "tiles"

@@ -186,6 +186,40 @@ def test_map_scans_accepts_pairs_and_objects() -> None:
     del m
 
 
+def test_poses_far_from_their_frames_origin_shift_the_maps_frame() -> None:
+    """Only a first pose outside the middle half of the grid shifts the frame (rounded to
+    100 m, recorded); near-origin poses and a map that already holds scans are left alone."""
+    from ndtom_ti.pipeline import FRAME_ORIGIN_STEP, frame_origin
+
+    def at(x, y, z):
+        T = np.eye(4)
+        T[:3, 3] = (x, y, z)
+        return T
+
+    with NdtOmMap(0.2) as m:  # the grid: +-3276.8 m across, +-409.6 m up
+        assert frame_origin(m, at(1600.0, -1600.0, 200.0)) is None
+        np.testing.assert_array_equal(frame_origin(m, at(1700.0, 5.0, 0.0)), [1700.0, 0.0, 0.0])
+        np.testing.assert_array_equal(frame_origin(m, at(10.0, 20.0, 260.0)), [0.0, 0.0, 300.0])
+        np.testing.assert_array_equal(frame_origin(m, at(512_345.0, 5_412_349.9, 31.0)), [512_300.0, 5_412_300.0, 0.0])
+        assert frame_origin(m, at(np.nan, 0.0, 0.0)) is None  # a bad pose: insert_scan says so
+        assert FRAME_ORIGIN_STEP == 100.0
+        pts = np.random.default_rng(3).normal([5.0, 0.0, 0.0], 0.01, (200, 3))
+        near, summary = map_scans([(pts, at(0.0, 0.0, 1.0))], 0.2)  # a local frame: no shift
+        assert summary.frame_origin is None and "frame_origin" not in near.metadata
+        near.close()
+        m.insert_scan(pts, at(0.0, 0.0, 1.0))
+        assert frame_origin(m, at(1700.0, 0.0, 0.0)) is None  # a map with scans keeps its frame
+        for bad in ("east", [1.0, 2.0], [1.0, float("nan"), 0.0]):  # a damaged file's metadata
+            m.metadata["frame_origin"] = bad
+            with pytest.raises(ValueError, match="not three finite numbers"):
+                frame_origin(m, at(0.0, 0.0, 0.0))
+    far, summary = map_scans([(pts, at(512_345.0, 5_412_345.0, 31.0))], 0.2)
+    assert summary.frame_origin == [512_300.0, 5_412_300.0, 0.0] == far.metadata["frame_origin"]
+    g = far.gaussians()
+    assert far.scans_inserted == 1 and len(g["n"]) > 0 and np.abs(g["mean"] - [50.0, 45.0, 31.0]).max() < 0.1
+    far.close()
+
+
 def test_config_files(tmp_path: Path) -> None:
     j = tmp_path / "c.json"
     j.write_text(json.dumps({"p_occupied": 0.7, "max_range": 30.0}))

@@ -436,14 +436,14 @@ def test_sigterm_before_any_scan_writes_nothing(tmp_path, plane_bag):
 
 
 # ---------------------------------------------------------------------------- a bad scan mid-run
-def poses_file(tmp_path: Path, far_from: int | None) -> Path:
+def poses_file(tmp_path: Path, far_from: int | None, offset=(20_000.0, 0.0, 0.0)) -> Path:
     from ndtom_ti.io import rot_to_quat
 
     lines = []
     for k, t in enumerate(pb.STAMPS):
         T = pb.T_map_lidar(k)
         if far_from is not None and k >= far_from:
-            T[0, 3] += 20_000.0  # 20 km: outside the grid at 0.25 m (+-4 km)
+            T[:3, 3] += offset  # 20 km: outside the grid at 0.25 m (+-4 km)
         q = rot_to_quat(T[:3, :3])
         lines.append(f"{t / 1e9:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {q[0]} {q[1]} {q[2]} {q[3]}")
     path = tmp_path / "poses.txt"
@@ -463,11 +463,44 @@ def test_pose_outside_the_grid_mid_run_saves_the_scans_before(tmp_path, plane_ba
     del m
 
 
-def test_pose_outside_the_grid_at_the_first_scan_is_bad_input(tmp_path, plane_bag):
+def test_poses_far_from_their_frames_origin_are_mapped_in_a_shifted_frame(tmp_path, plane_bag):
+    # Georeferenced poses (UTM: hundreds of km east, thousands north): the grid holds +-4 km.
+    utm = (512_345.0, 5_412_345.0, 251.0)
     out = tmp_path / "m.ndtom"
-    r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, 0), "-o", out)
-    assert r.exit_code == 2 and "outside the map grid" in r.output, r.output
-    assert not out.exists()
+    r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, 0, utm), "-o", out)
+    assert r.exit_code == 0, r.output
+    assert "frame origin" in r.output and "(512,300, 5,412,300, 300) m" in r.output, r.output
+    m = NdtOmMap.load(out)
+    origin = np.array([512_300.0, 5_412_300.0, 300.0])
+    assert m.metadata["frame_origin"] == origin.tolist() and m.scans_inserted == pb.N_CLOUDS
+    # The map of the poses shifted by the origin, as the loop shifts them.
+    ref = NdtOmMap(pb.RES)
+    rng = np.random.default_rng(42)
+    for k in range(pb.N_CLOUDS):
+        T = pb.T_map_lidar(k)
+        T[:3, 3] = (T[:3, 3] + utm) - origin
+        ref.insert_scan(pb.sensor_points(k, rng), T)
+    a, b = m.known_cells(), ref.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])
+    g = m.gaussians()
+    assert len(g["n"]) > 100 and np.abs(g["mean"] - (np.array(utm) - origin)).max() < 60  # near the shifted path
+    del m, ref
+    r = run_cli("info", out)
+    assert r.exit_code == 0 and "frame origin" in r.output and "5,412,300" in r.output, r.output
+
+
+def test_pose_outside_the_grid_at_the_first_scan_is_bad_input(tmp_path, plane_bag):
+    # A map that goes on from one already in a frame near the origin keeps that frame.
+    from ndtom_ti.pipeline import MappingSummary, run_scans
+
+    far = [(np.zeros((10, 3)), np.eye(4))]
+    far[0][1][0, 3] = 20_000.0
+    m = NdtOmMap(pb.RES, metadata={"frame_origin": [0.0, 0.0, 0.0]})
+    with pytest.raises(ValueError, match="outside the map grid"):
+        run_scans(m, far, MappingSummary())
+    assert m.scans_inserted == 0
+    del m
 
 
 def test_map_scans_stops_at_a_bad_scan_or_a_damaged_message():
