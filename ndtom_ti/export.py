@@ -181,8 +181,9 @@ def write_ply(
     return atomic_write(path, write)
 
 
-def write_pcd(g: dict, path: str | Path) -> Path:
-    """PCL's PCD 0.7, binary: one point per Gaussian mean with ``n`` and ``p_occ``."""
+def write_pcd(g: dict, path: str | Path, *, comment: str | None = None) -> Path:
+    """PCL's PCD 0.7, binary: one point per Gaussian mean with ``n`` and ``p_occ``;
+    ``comment``: header lines (``#``) after the first."""
     k = len(g["n"])
     dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("n", "<u4"), ("p_occ", "<f4")])
     v = np.zeros(k, dt)
@@ -192,7 +193,8 @@ def write_pcd(g: dict, path: str | Path) -> Path:
     v["p_occ"] = g["p_occ"]
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\n"
-        "VERSION 0.7\n"
+        + "".join(f"# {line}\n" for line in (comment or "").splitlines())
+        + "VERSION 0.7\n"
         "FIELDS x y z n p_occ\n"
         "SIZE 4 4 4 4 4\n"
         "TYPE F F F U F\n"
@@ -502,6 +504,19 @@ class Exported:
         return self.paths[0]
 
 
+def frame_origin_note(metadata: dict) -> str | None:
+    """A header comment for a map made in a shifted frame (``frame_origin`` in its metadata,
+    pipeline.frame_origin): where the file's (0, 0, 0) lies in the recording's frame."""
+    v = metadata.get("frame_origin") if isinstance(metadata, dict) else None
+    try:
+        xyz = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        return None
+    if v is None or xyz.shape != (3,) or not np.isfinite(xyz).all():
+        return None
+    return f"frame_origin {xyz[0]:.3f} {xyz[1]:.3f} {xyz[2]:.3f}: add it to these coordinates for the recording's frame"
+
+
 def export_file(
     m: Any,
     path: str | Path,
@@ -547,6 +562,7 @@ def export_file(
             f"OctoMap tree of {n_occ:,} occupied and {n_free:,} free cells at {m.resolution:g} m to {out}",
         )
     g = m.gaussians(min_points=min_points, min_probability=mp)
+    shift = frame_origin_note(m.metadata)
     if fmt == "ply":
         from . import __version__
 
@@ -554,9 +570,9 @@ def export_file(
             f"ndtom_ti {__version__} NDT-OM Gaussians: resolution {m.resolution:g} m, "
             f"p_occ > {mp:g}; covariances in m^2"
         )
-        out = write_ply(g, path, comment=comment)
+        out = write_ply(g, path, comment=comment + (f"\n{shift}" if shift else ""))
     elif fmt == "pcd":
-        out = write_pcd(g, path)
+        out = write_pcd(g, path, comment=shift)
     elif fmt == "npz":
         out = write_npz(g, path, resolution=m.resolution, metadata=m.metadata)
     else:

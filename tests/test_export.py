@@ -269,6 +269,25 @@ def test_pcd_holds_means_n_and_occupancy(map_file: Path, tmp_path: Path) -> None
     np.testing.assert_array_equal(v["p_occ"], g["p_occ"].astype(np.float32))
 
 
+def test_a_shifted_maps_exports_say_its_frame_origin(map_file: Path, tmp_path: Path) -> None:
+    """A map made in a shifted frame (georeferenced poses, pipeline.frame_origin): PLY and
+    PCD headers and the npz's metadata say where the file's (0, 0, 0) lies; others do not."""
+    m = NdtOmMap.load(map_file)
+    plain = export_map(m, tmp_path / "plain.ply")[0]
+    assert not [line for line in read_ply(plain)[0] if "frame_origin" in line]
+    m.metadata["frame_origin"] = [512_300.0, 5_412_300.0, 0.0]
+    note = "frame_origin 512300.000 5412300.000 0.000: add it to these coordinates for the recording's frame"
+    header, v = read_ply(export_map(m, tmp_path / "m.ply")[0])
+    assert f"comment {note}" in header and len(v) > 100
+    head, v2 = read_pcd(export_map(m, tmp_path / "m.pcd")[0])
+    assert len(v2) == len(v) and (tmp_path / "m.pcd").read_bytes().split(b"\n")[1] == f"# {note}".encode()
+    with np.load(export_map(m, tmp_path / "m.npz")[0]) as z:
+        assert json.loads(str(z["metadata"]))["frame_origin"] == [512_300.0, 5_412_300.0, 0.0]
+    m.metadata["frame_origin"] = "east"  # damaged metadata: no note, the export goes on
+    assert not [line for line in read_ply(export_map(m, tmp_path / "d.ply")[0])[0] if "frame_origin" in line]
+    del m
+
+
 def known(map_file: Path) -> dict:
     m = NdtOmMap.load(map_file)
     k = m.known_cells()
