@@ -335,9 +335,14 @@ def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
     layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
     if layout is None or getattr(m, "scans_inserted", 0):
         return None
+    return far_origin(T_world_sensor, np.asarray(layout.cells, np.float64) * float(m.resolution))
+
+
+def far_origin(T_world_sensor: Any, span: Any) -> np.ndarray | None:
+    """The pose's position rounded to ``FRAME_ORIGIN_STEP`` when it lies outside the middle
+    half of a grid ``span`` metres across (per axis, centred on the origin); else None."""
     p = np.asarray(T_world_sensor, np.float64)[:3, 3]
-    quarter = np.asarray(layout.cells, np.float64) * float(m.resolution) / 4.0
-    if not np.isfinite(p).all() or (np.abs(p) <= quarter).all():
+    if not np.isfinite(p).all() or (np.abs(p) <= np.asarray(span, np.float64) / 4.0).all():
         return None
     return np.round(p / FRAME_ORIGIN_STEP) * FRAME_ORIGIN_STEP
 

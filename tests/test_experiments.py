@@ -311,6 +311,14 @@ def test_given_scans_and_bad_options(tmp_path, rng):
     s = ex.run_experiments([(pts, T), (pts[::-1].copy(), T)], 1.0, tmp_path, plots=False)
     assert s["source_kind"] == "scans" and s["scans"] == 2
     assert s["fig1_min_score"]["rcu"] >= 0.999
+    far = T.copy()  # georeferenced poses: mapped relative to the first one, rounded (the same figures)
+    far[:3, 3] += [512_345.0, 5_412_345.0, 0.0]
+    said: list = []
+    s2 = ex.run_experiments(
+        [(pts, far), (pts[::-1].copy(), far)], 1.0, tmp_path / "far", plots=False, progress=said.append
+    )
+    assert any("mapped relative to [512300.0, 5412300.0, 0.0]" in line for line in said), said
+    assert s2["scans"] == 2 and s2["fig1_min_score"] == s["fig1_min_score"]
     with pytest.raises(ValueError, match="coarsen"):
         ex.run_experiments([(pts, T)], 1.0, tmp_path, coarsen=1)
     with pytest.raises(ValueError, match="resolution"):

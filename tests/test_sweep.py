@@ -45,6 +45,19 @@ def test_run_sweep_maps_with_the_config_given(rng):
     assert counts[40] < counts[MapConfig().min_points]
 
 
+def test_run_sweep_times_georeferenced_scans_near_the_origin(rng):
+    """Poses in UTM: the sweep maps them shifted as the mapping loop would (same map)."""
+    d = rng.normal(size=(3000, 3))
+    pts = d / np.linalg.norm(d, axis=1, keepdims=True) * 6.0
+    T = np.eye(4)
+    T[:3, 3] = [512_345.0, 5_412_345.0, 31.0]
+    (row,) = sweep.run_sweep([(pts, T)], [0.5], floor=False, warmup=0)
+    with NdtOmMap(0.5) as m:
+        T[:3, 3] -= [512_300.0, 5_412_300.0, 0.0]
+        m.insert_scan(pts, T)
+        assert row.gaussians == len(m) > 0 and row.known_cells == m.known_cell_count()
+
+
 def test_run_sweep_rejects_bad_input():
     with pytest.raises(ValueError, match="at least one scan"):
         sweep.run_sweep([], [0.5])

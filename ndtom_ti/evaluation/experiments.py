@@ -84,6 +84,23 @@ Progress = Callable[[str], None]
 
 
 # ============================================================================ helpers
+def _near_origin(scans: list[Scan], resolution: float) -> tuple[list[Scan], np.ndarray | None]:
+    """The scans with poses shifted as the mapping loop shifts georeferenced ones
+    (pipeline.frame_origin): every mapper of the run sees the same shifted scans."""
+    from ..kernels.layout import Layout
+    from ..pipeline import far_origin
+
+    origin = far_origin(scans[0].T_world_sensor, np.asarray(Layout().cells, np.float64) * resolution)
+    if origin is None:
+        return scans, None
+    out = []
+    for sc in scans:
+        T = np.array(sc.T_world_sensor, np.float64)
+        T[:3, 3] -= origin
+        out.append(replace(sc, T_world_sensor=T))
+    return out, origin
+
+
 def _world_hits(points: np.ndarray, T: np.ndarray, cfg: MapConfig) -> np.ndarray:
     """World-frame endpoints the maps insert as hits (finite, within [min_range,
     max_range]), transformed exactly as ``ScanUpdate.prepare`` does."""
@@ -527,6 +544,9 @@ def run_experiments(
     )
     if not data.scans:
         raise ValueError(f"no scans to map in {data.description}")
+    data.scans, origin = _near_origin(data.scans, resolution)
+    if origin is not None:
+        say(f"poses far from their frame's origin: mapped relative to {origin.tolist()} m (frame_origin)")
 
     run = _Run(resolution, cfg, er_eps_min)
     try:

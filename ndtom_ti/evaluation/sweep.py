@@ -40,6 +40,24 @@ class SweepRow:
     ratio_to_ndtom: float = math.nan  # this mapper's median / NDT-OM's median
 
 
+def _near_origin(scans: list, finest: float) -> list:
+    """The scans with poses shifted as the mapping loop shifts georeferenced ones
+    (pipeline.frame_origin, at the finest resolution's grid): timing is the same anywhere,
+    and neither NDT-OM's grid nor OctoMap's keys reach kilometres from the origin."""
+    from ..kernels.layout import Layout
+    from ..pipeline import far_origin
+
+    origin = far_origin(scans[0][1], np.asarray(Layout().cells, np.float64) * finest)
+    if origin is None:
+        return scans
+    out = []
+    for pts, T in scans:
+        T = T.copy()
+        T[:3, 3] -= origin
+        out.append((pts, T))
+    return out
+
+
 def _sync() -> None:
     import taichi as ti
 
@@ -119,6 +137,7 @@ def run_sweep(
 
         require("pyoctomap", "the OctoMap baseline")
     scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in map(scan_parts, scans)]
+    scans = _near_origin(scans, min(check_resolution(r) for r in resolutions))
     say = progress or (lambda s: None)
     rows: list[SweepRow] = []
     for res in [check_resolution(r) for r in resolutions]:
