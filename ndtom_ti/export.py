@@ -46,6 +46,7 @@ from typing import IO, Any
 import numpy as np
 
 from .atomic import atomic_write
+from .frames import as_frame_origin
 
 __all__ = [
     "COV_TERMS",
@@ -506,13 +507,9 @@ class Exported:
 
 def frame_origin_note(metadata: dict) -> str | None:
     """A header comment for a map made in a shifted frame (``frame_origin`` in its metadata,
-    pipeline.frame_origin): where the file's (0, 0, 0) lies in the recording's frame."""
-    v = metadata.get("frame_origin") if isinstance(metadata, dict) else None
-    try:
-        xyz = np.asarray(v, np.float64)
-    except (TypeError, ValueError):
-        return None
-    if v is None or xyz.shape != (3,) or not np.isfinite(xyz).all():
+    frames.py): where the file's (0, 0, 0) lies in the recording's frame."""
+    xyz = as_frame_origin(metadata.get("frame_origin") if isinstance(metadata, dict) else None)
+    if xyz is None:
         return None
     return f"frame_origin {xyz[0]:.3f} {xyz[1]:.3f} {xyz[2]:.3f}: add it to these coordinates for the recording's frame"
 

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .config import MapConfig, check_resolution
+from .frames import as_frame_origin, far_origin, shifted
 from .io.selection import ScanSelection
 from .map import NdtOmMap, ScanReport
 from .runtime import MapMemoryError
@@ -313,38 +314,22 @@ def config_with_ranges(
 
 
 # ---------------------------------------------------------------------------- the loop
-FRAME_ORIGIN_STEP = 100.0  # m: a shifted frame's origin is rounded to this, to read well
-
-
 def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
     """Where the map's frame starts in the poses' frame, for a run whose first pose is
     ``T_world_sensor``: the one in the map's metadata (``frame_origin``: a map resumed, or
     made to continue another), else, for a map that holds no scan, that pose's position
-    rounded to ``FRAME_ORIGIN_STEP`` when it lies outside the middle half of the map's grid
-    on an axis (poses in UTM or another georeferenced frame, kilometres from its origin,
+    rounded to 100 m when it lies outside the middle half of the map's grid on an axis (poses in UTM or another georeferenced frame, kilometres from its origin,
     where the grid ends); else None (the poses as they are)."""
     kept = m.metadata.get("frame_origin") if isinstance(getattr(m, "metadata", None), dict) else None
     if kept is not None:
-        try:
-            origin = np.asarray(kept, np.float64)
-        except (TypeError, ValueError):
-            origin = np.full(1, np.nan)
-        if origin.shape != (3,) or not np.isfinite(origin).all():
+        origin = as_frame_origin(kept)
+        if origin is None:
             raise ValueError(f"the map's metadata has frame_origin {kept!r}, not three finite numbers (metres)")
         return origin
     layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
     if layout is None or getattr(m, "scans_inserted", 0):
         return None
     return far_origin(T_world_sensor, np.asarray(layout.cells, np.float64) * float(m.resolution))
-
-
-def far_origin(T_world_sensor: Any, span: Any) -> np.ndarray | None:
-    """The pose's position rounded to ``FRAME_ORIGIN_STEP`` when it lies outside the middle
-    half of a grid ``span`` metres across (per axis, centred on the origin); else None."""
-    p = np.asarray(T_world_sensor, np.float64)[:3, 3]
-    if not np.isfinite(p).all() or (np.abs(p) <= np.asarray(span, np.float64) / 4.0).all():
-        return None
-    return np.round(p / FRAME_ORIGIN_STEP) * FRAME_ORIGIN_STEP
 
 
 class Observer:
@@ -431,8 +416,7 @@ def run_scans(
                         summary.frame_origin = origin.tolist()
                         m.metadata["frame_origin"] = summary.frame_origin
                 if origin is not None:
-                    T = T.copy()
-                    T[:3, 3] -= origin
+                    T = shifted(T, origin)
                 try:
                     rep = obs.insert(m, points, T)
                 except MapMemoryError as exc:

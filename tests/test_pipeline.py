@@ -189,7 +189,8 @@ def test_map_scans_accepts_pairs_and_objects() -> None:
 def test_poses_far_from_their_frames_origin_shift_the_maps_frame() -> None:
     """Only a first pose outside the middle half of the grid shifts the frame (rounded to
     100 m, recorded); near-origin poses and a map that already holds scans are left alone."""
-    from ndtom_ti.pipeline import FRAME_ORIGIN_STEP, frame_origin
+    from ndtom_ti.frames import FRAME_ORIGIN_STEP, as_frame_origin
+    from ndtom_ti.pipeline import frame_origin
 
     def at(x, y, z):
         T = np.eye(4)
@@ -203,6 +204,9 @@ def test_poses_far_from_their_frames_origin_shift_the_maps_frame() -> None:
         np.testing.assert_array_equal(frame_origin(m, at(512_345.0, 5_412_349.9, 31.0)), [512_300.0, 5_412_300.0, 0.0])
         assert frame_origin(m, at(np.nan, 0.0, 0.0)) is None  # a bad pose: insert_scan says so
         assert FRAME_ORIGIN_STEP == 100.0
+        for bad in (None, "east", b"xyz", [1.0, 2.0], [[1.0, 2.0, 3.0]], [1.0, float("inf"), 0.0], {"x": 1}):
+            assert as_frame_origin(bad) is None, bad
+        np.testing.assert_array_equal(as_frame_origin((1, 2.5, -3)), [1.0, 2.5, -3.0])
         pts = np.random.default_rng(3).normal([5.0, 0.0, 0.0], 0.01, (200, 3))
         near, summary = map_scans([(pts, at(0.0, 0.0, 1.0))], 0.2)  # a local frame: no shift
         assert summary.frame_origin is None and "frame_origin" not in near.metadata

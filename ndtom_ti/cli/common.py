@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import math
 import os
 import signal
 import stat
@@ -24,6 +23,7 @@ from rich.text import Text
 from ..atomic import temp_prefix
 from ..config import check_resolution
 from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
+from ..frames import as_frame_origin
 from ..io import RecordingError
 from ..mapfile import MapFileError
 from ..runtime import MapMemoryError
@@ -240,10 +240,10 @@ def fmt_count(n: int) -> str:
 
 def frame_origin_text(origin: list) -> str:
     """A map's frame_origin (metadata), in words."""
-    ok = isinstance(origin, (list, tuple)) and len(origin) == 3
-    if not ok or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in origin):
+    xyz = as_frame_origin(origin)
+    if xyz is None:
         return f"{origin!r} (not three numbers: the file's metadata is damaged)"
-    xyz = ", ".join(f"{v:,.0f}" for v in origin)
+    xyz = ", ".join(f"{v:,.0f}" for v in xyz)
     return f"({xyz}) m of the poses' frame is the map's (0, 0, 0): its coordinates and exports are relative to it"
 
 

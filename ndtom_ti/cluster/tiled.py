@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -14,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..config import MapConfig, check_resolution, config_of
+from ..frames import as_frame_origin
 from ..kernels.layout import tile_owners
 from ..runtime import MapMemoryError
 from ..scan_update import ScanReport
@@ -139,12 +139,12 @@ class TiledMap:
         check_job(self.folder, doc, self.job)
         self.scans_inserted = int(doc["scans"])
         self.points_inserted = int(doc.get("points", 0))
-        origin = doc.get("frame_origin")
-        if origin is not None:  # the resumed scans are shifted as the stopped run's were
-            ok = isinstance(origin, list) and len(origin) == 3
-            if not ok or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in origin):
-                raise ValueError(f"{self.folder}'s manifest has a bad frame_origin {origin!r}: three numbers expected")
-            self.metadata["frame_origin"] = [float(v) for v in origin]
+        kept = doc.get("frame_origin")
+        if kept is not None:  # the resumed scans are shifted as the stopped run's were
+            origin = as_frame_origin(kept)
+            if origin is None:
+                raise ValueError(f"{self.folder}'s manifest has a bad frame_origin {kept!r}: three numbers expected")
+            self.metadata["frame_origin"] = origin.tolist()
         self._starts = self._starts_of(doc["tiles"], doc["tile_ids"])
 
     def _probe(self) -> None:

@@ -62,6 +62,7 @@ import numpy as np
 
 from ..cellkeys import isin_rows
 from ..config import MapConfig, check_resolution
+from ..frames import far_origin, shifted
 from ..scan import Scan
 from .er_baseline import UPDATE_RULE, ErrorRefinementMap
 from .metrics import batch_ndt, l2_similarity, mean_l2_score, regularize_cov
@@ -86,19 +87,13 @@ Progress = Callable[[str], None]
 # ============================================================================ helpers
 def _near_origin(scans: list[Scan], resolution: float) -> tuple[list[Scan], np.ndarray | None]:
     """The scans with poses shifted as the mapping loop shifts georeferenced ones
-    (pipeline.frame_origin): every mapper of the run sees the same shifted scans."""
+    (frames.py): every mapper of the run sees the same shifted scans."""
     from ..kernels.layout import Layout
-    from ..pipeline import far_origin
 
     origin = far_origin(scans[0].T_world_sensor, np.asarray(Layout().cells, np.float64) * resolution)
     if origin is None:
         return scans, None
-    out = []
-    for sc in scans:
-        T = np.array(sc.T_world_sensor, np.float64)
-        T[:3, 3] -= origin
-        out.append(replace(sc, T_world_sensor=T))
-    return out, origin
+    return [replace(sc, T_world_sensor=shifted(sc.T_world_sensor, origin)) for sc in scans], origin
 
 
 def _world_hits(points: np.ndarray, T: np.ndarray, cfg: MapConfig) -> np.ndarray:

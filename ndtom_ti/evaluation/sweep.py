@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import runtime
 from ..config import MapConfig, check_resolution
+from ..frames import far_origin, shifted
 from ..map import NdtOmMap
 from ..scan import scan_parts
 from ..scaninput import as_pose
@@ -42,20 +43,12 @@ class SweepRow:
 
 def _near_origin(scans: list, finest: float) -> list:
     """The scans with poses shifted as the mapping loop shifts georeferenced ones
-    (pipeline.frame_origin, at the finest resolution's grid): timing is the same anywhere,
+    (frames.py, at the finest resolution's grid): timing is the same anywhere,
     and neither NDT-OM's grid nor OctoMap's keys reach kilometres from the origin."""
     from ..kernels.layout import Layout
-    from ..pipeline import far_origin
 
     origin = far_origin(scans[0][1], np.asarray(Layout().cells, np.float64) * finest)
-    if origin is None:
-        return scans
-    out = []
-    for pts, T in scans:
-        T = T.copy()
-        T[:3, 3] -= origin
-        out.append((pts, T))
-    return out
+    return scans if origin is None else [(pts, shifted(T, origin)) for pts, T in scans]
 
 
 def _sync() -> None:
