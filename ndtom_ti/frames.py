@@ -17,11 +17,12 @@ import numpy as np
 FRAME_ORIGIN_STEP = 100.0  # m: a shifted frame's origin is rounded to this, to read well
 
 
-def far_origin(T_world_sensor: Any, span: Any) -> np.ndarray | None:
+def far_origin(T_world_sensor: Any, cells: Any, resolution: float) -> np.ndarray | None:
     """The pose's position rounded to ``FRAME_ORIGIN_STEP`` when it lies outside the middle
-    half of a grid ``span`` metres across (per axis, centred on the origin); else None."""
+    half of a grid of ``cells`` (per axis, centred on the origin) at ``resolution``; else None."""
     p = np.asarray(T_world_sensor, np.float64)[:3, 3]
-    if not np.isfinite(p).all() or (np.abs(p) <= np.asarray(span, np.float64) / 4.0).all():
+    quarter = np.asarray(cells, np.float64) * float(resolution) / 4.0
+    if not np.isfinite(p).all() or (np.abs(p) <= quarter).all():
         return None
     return np.round(p / FRAME_ORIGIN_STEP) * FRAME_ORIGIN_STEP
 

@@ -318,8 +318,9 @@ def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
     """Where the map's frame starts in the poses' frame, for a run whose first pose is
     ``T_world_sensor``: the one in the map's metadata (``frame_origin``: a map resumed, or
     made to continue another), else, for a map that holds no scan, that pose's position
-    rounded to 100 m when it lies outside the middle half of the map's grid on an axis (poses in UTM or another georeferenced frame, kilometres from its origin,
-    where the grid ends); else None (the poses as they are)."""
+    rounded to 100 m when it lies outside the middle half of the map's grid on an axis
+    (poses in UTM or another georeferenced frame, kilometres from its origin, where the
+    grid ends); else None (the poses as they are)."""
     kept = m.metadata.get("frame_origin") if isinstance(getattr(m, "metadata", None), dict) else None
     if kept is not None:
         origin = as_frame_origin(kept)
@@ -329,7 +330,7 @@ def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
     layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
     if layout is None or getattr(m, "scans_inserted", 0):
         return None
-    return far_origin(T_world_sensor, np.asarray(layout.cells, np.float64) * float(m.resolution))
+    return far_origin(T_world_sensor, layout.cells, m.resolution)
 
 
 class Observer:

@@ -176,10 +176,11 @@ def test_checkpoints_make_a_tiled_map_and_resume(sim, reference, tmp_path):
 def test_a_resumed_run_keeps_the_shift_of_georeferenced_poses(sim, tmp_path):
     """Poses kilometres from their frame's origin: the mapping loop shifts them by the first
     one's position (rounded); the checkpoint keeps that shift and a resumed run applies it."""
+    from ndtom_ti.frames import shifted
     from ndtom_ti.pipeline import MappingSummary, run_scans
 
     utm = np.array([512_345.0, 5_412_345.0, 251.0])
-    far = [(pts, np.concatenate([T[:3], [[0, 0, 0, 1]]]) + np.pad(utm[:, None], ((0, 1), (3, 0)))) for pts, T in sim]
+    far = [(pts, shifted(T, -utm)) for pts, T in sim]
     folder = tmp_path / "tiles"
     half = len(sim) // 2
     kw = {"workers": 2, "tile_size": 8.0, "engine": "local", "probe": False, "folder": folder}
@@ -195,12 +196,7 @@ def test_a_resumed_run_keeps_the_shift_of_georeferenced_poses(sim, tmp_path):
         run_scans(tm, far[half:], summary)
         assert summary.scans_used == len(sim) - half and summary.frame_origin == origin  # the kept one
         got = tm.snapshot()
-    shifted = []
-    for pts, T in far:
-        T = T.copy()
-        T[:3, 3] -= origin
-        shifted.append((pts, T))
-    assert_same_map(one_process(shifted, "ndt"), got)
+    assert_same_map(one_process([(pts, shifted(T, np.array(origin))) for pts, T in far], "ndt"), got)
     assert got.metadata["frame_origin"] == origin
 
 

@@ -443,7 +443,7 @@ def poses_file(tmp_path: Path, far_from: int | None, offset=(20_000.0, 0.0, 0.0)
     for k, t in enumerate(pb.STAMPS):
         T = pb.T_map_lidar(k)
         if far_from is not None and k >= far_from:
-            T[:3, 3] += offset  # 20 km: outside the grid at 0.25 m (+-4 km)
+            T[:3, 3] += offset  # by default 20 km: outside the grid at 0.25 m (+-4 km)
         q = rot_to_quat(T[:3, :3])
         lines.append(f"{t / 1e9:.9f} {T[0, 3]} {T[1, 3]} {T[2, 3]} {q[0]} {q[1]} {q[2]} {q[3]}")
     path = tmp_path / "poses.txt"
@@ -490,7 +490,7 @@ def test_poses_far_from_their_frames_origin_are_mapped_in_a_shifted_frame(tmp_pa
     assert r.exit_code == 0 and "frame origin" in r.output and "5,412,300" in r.output, r.output
 
 
-def test_pose_outside_the_grid_at_the_first_scan_is_bad_input(tmp_path, plane_bag):
+def test_pose_outside_the_grid_at_the_first_scan_is_bad_input():
     # A map that goes on from one already in a frame near the origin keeps that frame.
     from ndtom_ti.pipeline import MappingSummary, run_scans
 

@@ -90,7 +90,7 @@ def _near_origin(scans: list[Scan], resolution: float) -> tuple[list[Scan], np.n
     (frames.py): every mapper of the run sees the same shifted scans."""
     from ..kernels.layout import Layout
 
-    origin = far_origin(scans[0].T_world_sensor, np.asarray(Layout().cells, np.float64) * resolution)
+    origin = far_origin(scans[0].T_world_sensor, Layout().cells, resolution)
     if origin is None:
         return scans, None
     return [replace(sc, T_world_sensor=shifted(sc.T_world_sensor, origin)) for sc in scans], origin

@@ -47,7 +47,7 @@ def _near_origin(scans: list, finest: float) -> list:
     and neither NDT-OM's grid nor OctoMap's keys reach kilometres from the origin."""
     from ..kernels.layout import Layout
 
-    origin = far_origin(scans[0][1], np.asarray(Layout().cells, np.float64) * finest)
+    origin = far_origin(scans[0][1], Layout().cells, finest)
     return scans if origin is None else [(pts, shifted(T, origin)) for pts, T in scans]
 
 
