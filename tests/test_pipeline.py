@@ -320,3 +320,30 @@ def test_summary_gives_the_first_scan_apart():
     assert d["ms_first_scan"] == 2500.0 and d["ms_per_scan_median"] == 20.0
     s.scan_seconds = [0.5]  # one scan only: it is the median too
     assert s.ms_per_scan_median == pytest.approx(500.0)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_registered_clouds_map_as_the_sensor_frame_ones(tmp_path: Path, fmt: str) -> None:
+    """Clouds already in the world frame (a lidar odometry's registered clouds) with the
+    lidar's poses on a topic whose frame is the clouds' own: the points are used as they
+    are and each ray starts at the lidar, so the map is the one of the same scans in the
+    lidar's frame. Rays from the world frame's origin (under the floor) would carve free
+    cells below it."""
+    plain, s0 = map_recording(pb.write_plane_bag(tmp_path, fmt, name="plain"), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, fmt, name="reg", registered=True)
+    with ndtom_ti.io.open_recording(bag) as rec:
+        assert "registered clouds" in (rec.info().pose_source or "")
+    reg, s = map_recording(bag, pb.RES)
+    assert s0.pose_source == "tf: map -> base -> lidar" and s.frame_id == "map" and s.fixed_frame == "map"
+    assert s.pose_source.startswith("pose topic /odom (nav_msgs/msg/Odometry map -> lidar)")
+    assert "registered clouds" in s.pose_source and s.scans_used == pb.N_CLOUDS
+    pb.check_plane_map(reg)
+    a, b = plain.known_cells(), reg.known_cells()
+    # the points went through float32 in another frame: a point on a cell's face may change cells
+    assert abs(len(a["index"]) - len(b["index"])) <= 0.001 * len(a["index"])
+    assert abs(len(plain) - len(reg)) <= 2
+    below = b["index"][:, 2] * pb.RES < pb.PLANE_Z - pb.RES
+    assert not below.any()  # nothing known under the floor: no ray came from below it
+    inv = plain.logodds_at(b["index"])
+    same = np.abs(inv - b["logodds"]) < 1e-3
+    assert same.mean() > 0.995

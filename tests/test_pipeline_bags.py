@@ -59,6 +59,18 @@ def sensor_points(k: int, rng: np.random.Generator) -> np.ndarray:
     return (w - T[:3, 3]) @ T[:3, :3]  # R^T (w - t)
 
 
+def quat_mul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
+    """Hamilton product of quaternions (x, y, z, w): the rotation b, then a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
 def write_plane_bag(
     root: Path,
     fmt: str = "ros1",
@@ -69,10 +81,25 @@ def write_plane_bag(
     second_topic: bool = False,
     bad_fields: bool = False,
     n_clouds: int = N_CLOUDS,
+    registered: bool = False,
 ) -> Path:
-    """Write the scene; returns the bag path (a .bag file or a ROS2 folder)."""
+    """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
+    the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
+    the lidar's poses on /odom (map -> lidar)."""
     rng = np.random.default_rng(42)
     e: list = []
+    if registered:
+        for k in range(n_clouds):
+            T, t = T_map_lidar(k), STAMPS[k]
+            q = quat_mul(fx.quat_axis_angle((0, 0, 1), 0.05 * k), BASE_MOUNT[1])
+            e.append(
+                (
+                    "/odom",
+                    "nav_msgs/msg/Odometry",
+                    t,
+                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.odometry(t, "map", "lidar", tr, q),
+                )
+            )
     if with_tf:
         e.append(
             (
@@ -98,14 +125,18 @@ def write_plane_bag(
     if early_cloud:
         clouds.append((T0 - 500 * MS, sensor_points(0, rng)))
     clouds += [(STAMPS[k], sensor_points(k, rng)) for k in range(n_clouds)]
-    for t, pts in clouds:
+    frame = "map" if registered else "lidar"
+    for i, (t, pts) in enumerate(clouds):
+        if registered:
+            T = T_map_lidar(max(i - 1, 0) if early_cloud else i)  # (the early cloud is cloud 0's)
+            pts = pts @ T[:3, :3].T + T[:3, 3]
         packed = fx.pack_cloud(pts)
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]
-        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, "lidar", p)))
+        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, frame, p)))
         if second_topic:
             e.append(
-                ("/points_front", "sensor_msgs/msg/PointCloud2", t + 2, lambda m, t=t, p=packed: m.cloud(t, "lidar", p))
+                ("/points_front", "sensor_msgs/msg/PointCloud2", t + 2, lambda m, t=t, p=packed: m.cloud(t, frame, p))
             )
     e.sort(key=lambda x: x[2])
     return fx.write_bag(fx.bag_path(root, fmt, name), fmt, e)
@@ -134,6 +165,11 @@ def check_plane_map(m: Any) -> None:
     assert (flat & floor).sum() > 0.8 * floor.sum() and (flat & wall).sum() > 0.8 * wall.sum()
     assert np.abs(nrm[flat & floor, 2]).min() > 0.99
     assert np.abs(nrm[flat & wall, 0]).min() > 0.99
+
+
+def test_builder_quaternions_compose_as_the_matrices() -> None:
+    q = quat_mul(fx.quat_axis_angle((0, 0, 1), 0.15), BASE_MOUNT[1])
+    np.testing.assert_allclose(fx.T_tq(((0, 0, 0), q))[:3, :3], T_map_lidar(3)[:3, :3], atol=1e-12)
 
 
 def test_builder_points_lie_on_the_scene() -> None:

@@ -22,7 +22,7 @@ from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_poin
 from .posefile import load_pose_file
 from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
-from .transforms import PoseTrack
+from .transforms import PoseTrack, invert
 
 __all__ = [
     'PoseSourceInfo',
@@ -114,6 +114,10 @@ class _PoseChoice:
     description: str  # what was chosen, or why it cannot be used
     fixed_frame: str = ''
     range_ns: tuple[int, int] | None = None
+    # Registered clouds (points already in the pose's parent frame): T_sensor_cloud, which
+    # takes a cloud's points to the sensor frame the pose gives; None when the cloud frame
+    # is the sensor's own.
+    to_sensor: PoseFn | None = None
 
     @property
     def usable(self) -> bool:
@@ -158,6 +162,15 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
         return T
 
     return fn
+
+
+def _inverse_fn(fn: PoseFn) -> PoseFn:
+    """The inverse of a rigid transform provider."""
+
+    def inv(stamp: int, frame: str, index: int) -> np.ndarray:
+        return invert(fn(stamp, frame, index))
+
+    return inv
 
 
 # ---------------------------------------------------------------------------- path handling
@@ -666,8 +679,18 @@ class _PoseSources:
             )
         tf = self._rec.tf()
         post: PoseFn | None = None
+        to_sensor: PoseFn | None = None
         desc = label
-        if not child or child == frame:
+        if frame == parent:
+            # The clouds are given in the frame the poses are (registered, as a lidar odometry
+            # publishes them): their points stay where they are, and the pose says where
+            # the rays start. Without this, rays would start at that frame's origin.
+            desc += (
+                f' (the clouds are in {frame!r}, the frame of these poses: registered clouds, '
+                f'used as they are, each ray from the position of {child or "the pose"!r})'
+            )
+            to_sensor = _inverse_fn(_track_fn(track, tol))
+        elif not child or child == frame:
             if not child:
                 desc += f' (the message names no child frame: taken as the pose of {frame!r})'
         elif child in tf and frame in tf and tf.root_of(child) == tf.root_of(frame):
@@ -691,7 +714,9 @@ class _PoseSources:
                 )
             desc = f'tf {tf.chain_str(fixed, parent)} + ' + desc
             pre = _tf_fn(tf, fixed, parent, tol)
-        return _PoseChoice(_track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns))
+        return _PoseChoice(
+            _track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns), to_sensor
+        )
 
     def choose(
         self,
@@ -806,6 +831,7 @@ class ScanStream:
         self.pose_source = choice.description
         self.pose_range_ns = choice.range_ns
         self._pose = choice.fn
+        self._to_sensor = choice.to_sensor
         self._infos = camera_infos
         self._every = selection.every
         self._every_distance = selection.every_distance
@@ -874,6 +900,9 @@ class ScanStream:
                 continue
             if self.kind == 'pointcloud2':
                 pts = decode_pointcloud2(msg)
+                if self._to_sensor is not None:
+                    S = self._to_sensor(stamp, frame, index)
+                    pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
             else:
                 pts = depth_image_to_points(msg, self._camera_info(stamp), self._stride)
             last_pos = T[:3, 3].copy()
