@@ -175,7 +175,7 @@ def prepare(f: Storage, _cfg=None) -> Bound:
         r2: f64_1d,  # [3] min_range^2, max_range^2, max_range (free rays past it if > 0)
         out_world: f64_2d,  # [N, 3]
         out_cells: i32_2d,  # [N, 3]
-        status: i8_1d,  # [N] 0 hit, 1 free ray, 2 not finite, 3 out of range, 4 outside the grid
+        status: i8_1d,  # [N] 0 hit, 1 free ray, 2 not finite, 3 out of range, 4 outside the grid, 5 at the sensor
         ocell: i32_1d,  # [3] the sensor's cell
         slot: ti.i32,  # the settled boxes (trace.settled_growth), of this map's cells:
         l_min: ti.f32,
@@ -195,7 +195,11 @@ def prepare(f: Storage, _cfg=None) -> Bound:
             if e[0] != ti.u64(0x7FF) and e[1] != ti.u64(0x7FF) and e[2] != ti.u64(0x7FF):
                 st = ti.i8(3)
                 d2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
-                if d2 >= r2[0] and d2 <= r2[1]:
+                if d2 == 0.0:
+                    # (0, 0, 0): many drivers' mark of a beam with no return (organised
+                    # clouds, Livox); as a hit it would put a Gaussian where the sensor is.
+                    st = ti.i8(5)
+                elif d2 >= r2[0] and d2 <= r2[1]:
                     st = ti.i8(0)
                 elif d2 > r2[1] and r2[2] > 0.0:
                     p = p * (r2[2] / ti.sqrt(d2))  # carve free space up to max_range

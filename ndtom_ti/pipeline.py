@@ -113,7 +113,7 @@ class MappingSummary:
     points_in: int = 0
     points_used: int = 0  # endpoints inserted as hits
     free_rays: int = 0
-    dropped: dict = field(default_factory=lambda: {"nonfinite": 0, "range": 0, "outside_grid": 0})
+    dropped: dict = field(default_factory=lambda: {"nonfinite": 0, "range": 0, "outside_grid": 0, "no_return": 0})
     gaussians: int = 0
     known_cells: int = 0
     memory_bytes: int = 0  # this map
@@ -144,6 +144,7 @@ class MappingSummary:
         self.dropped["nonfinite"] += rep.dropped_nonfinite
         self.dropped["range"] += rep.dropped_range
         self.dropped["outside_grid"] += rep.dropped_outside_grid
+        self.dropped["no_return"] += rep.dropped_no_return
         self.scan_seconds.append(rep.seconds)
 
     @property

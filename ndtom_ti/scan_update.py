@@ -59,6 +59,7 @@ class ScanReport:
     dropped_nonfinite: int = 0
     dropped_range: int = 0  # closer than min_range, or past max_range with mode "drop"
     dropped_outside_grid: int = 0
+    dropped_no_return: int = 0  # at the sensor itself, (0, 0, 0): drivers' mark of a beam with no return
     cells_hit: int = 0
     cells_passed: int = 0  # distinct cells rays passed without an endpoint: free-space updates
     ray_cell_visits: int = 0
@@ -451,7 +452,7 @@ class ScanUpdate:
                 reach=reach,
                 sbox=sbox,
             )
-        cnt = np.bincount(status, minlength=5) if n else np.zeros(5, np.int64)
+        cnt = np.bincount(status, minlength=6) if n else np.zeros(6, np.int64)
         n_hit, n_free = int(cnt[0]), int(cnt[1])
         if n_hit + n_free < n:
             hit = status == 0
@@ -465,6 +466,7 @@ class ScanUpdate:
             order = np.argsort(status, kind="stable")
             world, cells = world[order], cells[order]
         rep.dropped_nonfinite, rep.dropped_range, rep.dropped_outside_grid = int(cnt[2]), int(cnt[3]), int(cnt[4])
+        rep.dropped_no_return = int(cnt[5])
         rep.points_used = n_hit
         rep.free_rays = n_free
         box = cell_box(cells) if len(cells) else None

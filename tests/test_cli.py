@@ -38,6 +38,7 @@ def bags(tmp_path_factory) -> dict[str, Path]:
         "two": pb.write_plane_bag(root, "sqlite3", name="two", second_topic=True),
         "notf": pb.write_plane_bag(root, "ros1", name="notf", with_tf=False),
         "fields": pb.write_plane_bag(root, "ros1", name="fields", bad_fields=True),
+        "zeros": pb.write_plane_bag(root, "mcap", name="zeros", no_return=300),
     }
 
 
@@ -618,3 +619,18 @@ def test_the_bar_says_when_kernels_compile(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stdout[-3000:]
     assert "compiling kernels, once per process" in p.stdout, p.stdout[-3000:]
     assert "Warning" not in p.stdout, p.stdout[-3000:]
+
+
+def test_no_return_points_are_counted_not_mapped(bags, tmp_path: Path) -> None:
+    """(0, 0, 0) points (a driver's beams with no return) are left out and counted: as hits
+    they put an occupied Gaussian where the sensor was at every scan."""
+    out = tmp_path / "zeros.ndtom"
+    r = run("map", bags["zeros"], "-r", pb.RES, "-o", out, "--no-progress")
+    assert r.exit_code == 0, r.output
+    assert "1,500 at (0, 0, 0) (no return)" in r.output, r.output
+    m = NdtOmMap.load(out)
+    assert m.metadata["summary"]["dropped"]["no_return"] == 300 * pb.N_CLOUDS
+    g = m.gaussians(min_points=1)
+    for k in range(pb.N_CLOUDS):
+        assert np.linalg.norm(g["mean"] - pb.T_map_lidar(k)[:3, 3], axis=1).min() > 1.0
+    pb.check_plane_map(m)

@@ -204,7 +204,6 @@ def test_dda_visits_exactly_the_reference_cells_per_ray(rng):
         ([0.5, 1.5, 0.5], [1.5, 0.5, 0.5]),  # +x -y through a corner
         ([1.5, 0.5, 0.5], [0.5, 1.5, 0.5]),  # -x +y through a corner
         ([-1.3, -2.7, -0.2], [-4.4, -0.3, -3.3]),  # negative coordinates
-        ([0.7, 0.7, 0.7], [0.7, 0.7, 0.7]),  # zero length
         ([0.7, 0.7, 0.7], [0.71, 0.69, 0.72]),  # inside one cell
         ([0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]),  # origin on a face, going down
     ]
@@ -221,6 +220,9 @@ def test_dda_visits_exactly_the_reference_cells_per_ray(rng):
         expect = {c: le for c in passes}
         expect[tuple(cells[-1].tolist())] = lo
         assert_logodds_equal(got, expect)
+    # Zero length: (0, 0, 0) in the sensor frame is a beam with no return, not a hit.
+    _, got, _ = single_scan_logodds(r, np.array([0.7, 0.7, 0.7]), [[0.7, 0.7, 0.7]])
+    assert got == {}
 
 
 def test_dda_free_rays_count_their_last_cell():

@@ -212,6 +212,18 @@ def test_nonfinite_out_of_range_and_outside_grid_points_are_counted(rng):
     pts[10:13] = [100.0, 0.0, 0.0]  # past max_range
     rep = m.insert_scan(pts, np.eye(4))
     assert (rep.dropped_nonfinite, rep.dropped_range, rep.points_used) == (8, 5, 87)
+    # (0, 0, 0): a beam with no return (organised clouds, Livox), not a hit at the sensor;
+    # with or without a min_range, and under any pose
+    for cfg in (MapConfig(), MapConfig(min_range=0.5)):
+        z = NdtOmMap(0.5, config=cfg)
+        pts = np.concatenate([rng.normal(size=(50, 3)) + [5, 0, 0], np.zeros((20, 3))])
+        T = np.eye(4)
+        T[:3, 3] = [1.0, 2.0, 0.3]
+        rep = z.insert_scan(pts, T)
+        assert (rep.dropped_no_return, rep.dropped_range, rep.points_used) == (20, 0, 50)
+        g = z.gaussians(min_points=1)
+        assert np.linalg.norm(g["mean"] - T[:3, 3], axis=1).min() > 2.0
+        assert z.occupancy(T[:3, 3]) < 0.5  # the sensor's own cell is not occupied
     far = NdtOmMap(0.001)  # grid of +-16 m at 1 mm
     rep = far.insert_scan(np.array([[1.0, 0, 0], [20.0, 0, 0], [-17.0, 0, 0]]), np.eye(4))
     assert (rep.dropped_outside_grid, rep.points_used) == (2, 1)

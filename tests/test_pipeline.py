@@ -297,6 +297,7 @@ def test_points_per_second_leaves_the_first_scan_out() -> None:
         dropped_nonfinite=0,
         dropped_range=0,
         dropped_outside_grid=0,
+        dropped_no_return=0,
         seconds=0.5,
     )
     s.add(rep)

@@ -82,10 +82,12 @@ def write_plane_bag(
     bad_fields: bool = False,
     n_clouds: int = N_CLOUDS,
     registered: bool = False,
+    no_return: int = 0,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
-    the lidar's poses on /odom (map -> lidar)."""
+    the lidar's poses on /odom (map -> lidar). ``no_return``: that many (0, 0, 0) points
+    in each cloud, as drivers of organised clouds mark beams with no return."""
     rng = np.random.default_rng(42)
     e: list = []
     if registered:
@@ -130,6 +132,8 @@ def write_plane_bag(
         if registered:
             T = T_map_lidar(max(i - 1, 0) if early_cloud else i)  # (the early cloud is cloud 0's)
             pts = pts @ T[:3, :3].T + T[:3, 3]
+        if no_return:
+            pts = np.concatenate([pts[: len(pts) // 2], np.zeros((no_return, 3)), pts[len(pts) // 2 :]])
         packed = fx.pack_cloud(pts)
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]

@@ -193,7 +193,8 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     t.add_row(
         "points dropped",
         f"{fmt_count(d['nonfinite'])} not finite, {fmt_count(d['range'])} out of range, "
-        f"{fmt_count(d['outside_grid'])} outside the grid",
+        f"{fmt_count(d['outside_grid'])} outside the grid"
+        + (f", {fmt_count(d['no_return'])} at (0, 0, 0) (no return)" if d.get("no_return") else ""),
     )
     t.add_row("Gaussians", fmt_count(summary.gaussians))
     t.add_row("known cells", fmt_count(summary.known_cells))
