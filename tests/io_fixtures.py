@@ -29,11 +29,35 @@ T0 = 1_700_000_000 * 10**9  # base stamp of the generated bags (ns)
 MS = 1_000_000
 
 
+# Livox's driver messages (livox_ros_driver and livox_ros_driver2 define the same two)
+LIVOX_POINT = '''uint32 offset_time
+float32 x
+float32 y
+float32 z
+uint8 reflectivity
+uint8 tag
+uint8 line
+'''
+LIVOX_MSG = '''std_msgs/Header header
+uint64 timebase
+uint32 point_num
+uint8 lidar_id
+uint8[3] rsvd
+{pkg}/CustomPoint[] points
+'''
+LIVOX_PACKAGES = ('livox_ros_driver', 'livox_ros_driver2')
+
+
 def _typestores() -> tuple[Any, Any]:
     ts1 = get_typestore(Stores.ROS1_NOETIC)
     if 'tf2_msgs/msg/TFMessage' not in ts1.types:  # noetic store lacks tf2_msgs
         ts1.register(get_types_from_msg('geometry_msgs/TransformStamped[] transforms', 'tf2_msgs/msg/TFMessage'))
-    return ts1, get_typestore(Stores.ROS2_HUMBLE)
+    ts2 = get_typestore(Stores.ROS2_HUMBLE)
+    for ts in (ts1, ts2):
+        for pkg in LIVOX_PACKAGES:
+            ts.register(get_types_from_msg(LIVOX_POINT, f'{pkg}/msg/CustomPoint'))
+            ts.register(get_types_from_msg(LIVOX_MSG.format(pkg=pkg), f'{pkg}/msg/CustomMsg'))
+    return ts1, ts2
 
 
 TS1, TS2 = _typestores()
@@ -125,6 +149,21 @@ class Msgs:
             row_step=packed.row_step,
             data=np.frombuffer(packed.data, dtype=np.uint8),
             is_dense=False,
+        )
+
+    def livox(self, stamp: int, frame: str, points: np.ndarray, pkg: str = 'livox_ros_driver') -> Any:
+        P = self.T[f'{pkg}/msg/CustomPoint']
+        pts = [
+            P(offset_time=i * 10, x=float(x), y=float(y), z=float(z), reflectivity=7, tag=16, line=i % 4)
+            for i, (x, y, z) in enumerate(np.asarray(points, np.float32).tolist())
+        ]
+        return self.T[f'{pkg}/msg/CustomMsg'](
+            header=self.header(stamp, frame),
+            timebase=stamp,
+            point_num=len(pts),
+            lidar_id=1,
+            rsvd=np.zeros(3, np.uint8),
+            points=pts,
         )
 
     def image(

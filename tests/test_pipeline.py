@@ -348,3 +348,22 @@ def test_registered_clouds_map_as_the_sensor_frame_ones(tmp_path: Path, fmt: str
     inv = plain.logodds_at(b["index"])
     same = np.abs(inv - b["logodds"]) < 1e-3
     assert same.mean() > 0.995
+
+
+@pytest.mark.parametrize(
+    ("fmt", "pkg"), [("ros1", "livox_ros_driver"), ("mcap", "livox_ros_driver2"), ("sqlite3", "livox_ros_driver")]
+)
+def test_livox_custom_messages_map_as_point_clouds(tmp_path: Path, fmt: str, pkg: str) -> None:
+    """Livox's CustomMsg (the driver's own message, read from its bytes) gives the map that the
+    same float32 points give as PointCloud2."""
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, fmt, name="plain"), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, fmt, name="livox", livox=pkg, no_return=7)
+    with ndtom_ti.io.open_recording(bag) as rec:
+        assert rec.info().mappable_topics == ["/points"]
+    m, s = map_recording(bag, pb.RES)
+    assert s.cloud_topic == "/points" and s.scans_used == pb.N_CLOUDS and s.pose_source == "tf: map -> base -> lidar"
+    assert s.dropped["no_return"] == 7 * pb.N_CLOUDS
+    pb.check_plane_map(m)
+    a, b = plain.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])

@@ -83,11 +83,13 @@ def write_plane_bag(
     n_clouds: int = N_CLOUDS,
     registered: bool = False,
     no_return: int = 0,
+    livox: str | None = None,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
     the lidar's poses on /odom (map -> lidar). ``no_return``: that many (0, 0, 0) points
-    in each cloud, as drivers of organised clouds mark beams with no return."""
+    in each cloud, as drivers of organised clouds mark beams with no return. ``livox``: the
+    clouds as that Livox driver package's CustomMsg instead of PointCloud2."""
     rng = np.random.default_rng(42)
     e: list = []
     if registered:
@@ -134,6 +136,16 @@ def write_plane_bag(
             pts = pts @ T[:3, :3].T + T[:3, 3]
         if no_return:
             pts = np.concatenate([pts[: len(pts) // 2], np.zeros((no_return, 3)), pts[len(pts) // 2 :]])
+        if livox:
+            e.append(
+                (
+                    "/points",
+                    f"{livox}/msg/CustomMsg",
+                    t + 1,
+                    lambda m, t=t, p=pts, pkg=livox: m.livox(t, frame, p, pkg),
+                )
+            )
+            continue
         packed = fx.pack_cloud(pts)
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]

@@ -18,6 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
+from .livox import LIVOX_TYPES, decode_livox_raw, livox_points
 from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points
 from .posefile import load_pose_file
 from .selection import ScanSelection
@@ -358,16 +359,22 @@ class Recording:
         return first is not None and str(first[1].encoding).upper() in DEPTH_ENCODINGS
 
     def mappable_topics(self) -> list[tuple[str, str]]:
-        """(topic, kind) with kind 'pointcloud2' or 'depth_image'; point clouds first."""
+        """(topic, kind) with kind 'pointcloud2', 'livox' (Livox's CustomMsg) or 'depth_image';
+        point clouds first."""
         pcs = [(t, 'pointcloud2') for t in self._of_type(POINTCLOUD2) if self._topics[t][1] > 0]
+        livox = [(t, 'livox') for t in self._of_type(*LIVOX_TYPES) if self._topics[t][1] > 0]
         depth = [(t, 'depth_image') for t in self._of_type(IMAGE) if self._is_depth_topic(t)]
-        return pcs + depth
+        return pcs + livox + depth
 
     def _resolve_cloud_topic(self, cloud_topic: str | None) -> tuple[str, str]:
         mappable = self.mappable_topics()
         listing = ', '.join(f'{t} ({k})' for t, k in mappable) or '(none)'
         if cloud_topic is None:
-            for kind, what in (('pointcloud2', 'PointCloud2'), ('depth_image', 'depth image')):
+            for kind, what in (
+                ('pointcloud2', 'PointCloud2'),
+                ('livox', 'Livox CustomMsg'),
+                ('depth_image', 'depth image'),
+            ):
                 cands = [t for t, k in mappable if k == kind]
                 if len(cands) == 1:
                     return cands[0], kind
@@ -378,8 +385,8 @@ class Recording:
                     )
             present = ', '.join(f'{n} ({t})' for n, (t, _, _) in self._topics.items()) or '(none: the bag is empty)'
             raise RecordingError(
-                f'{self.path} has no topic to map: no sensor_msgs/PointCloud2 messages and no depth image '
-                f'(32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}'
+                f'{self.path} has no topic to map: no sensor_msgs/PointCloud2 or Livox CustomMsg messages '
+                f'and no depth image (32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}'
             )
         name = cloud_topic
         if name not in self._topics and '/' + name.lstrip('/') in self._topics:
@@ -394,6 +401,8 @@ class Recording:
         msgtype = self._topics[name][0]
         if msgtype == POINTCLOUD2:
             return name, 'pointcloud2'
+        if msgtype in LIVOX_TYPES:
+            return name, 'livox'
         if msgtype == IMAGE:
             if self._camera_info_topic(name) is None:
                 raise RecordingError(
@@ -402,8 +411,8 @@ class Recording:
                 )
             return name, 'depth_image'
         raise RecordingError(
-            f'{name} has type {msgtype}; a cloud topic must be sensor_msgs/PointCloud2 or a depth '
-            f'sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
+            f'{name} has type {msgtype}; a cloud topic must be sensor_msgs/PointCloud2, a Livox '
+            f'CustomMsg or a depth sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
         )
 
     # -- public API
@@ -825,7 +834,7 @@ class ScanStream:
     ) -> None:
         self._rec = rec
         self.cloud_topic = topic
-        self.kind = kind  # 'pointcloud2' | 'depth_image'
+        self.kind = kind  # 'pointcloud2' | 'livox' | 'depth_image'
         self.frame_id = frame_id  # frame of the first cloud
         self.fixed_frame = choice.fixed_frame
         self.pose_source = choice.description
@@ -880,10 +889,18 @@ class ScanStream:
             if index % self._every:
                 self._skip('every')
                 continue
-            msg = rec._deserialize(raw, msgtype, self.cloud_topic)
-            stamp = stamp_ns(msg.header.stamp)
-            frame = normalize_frame(msg.header.frame_id)
-            if msg.height * msg.width == 0:
+            pts = None
+            fast = decode_livox_raw(raw, rec.format == 'ros1') if self.kind == 'livox' else None
+            if fast is not None:
+                stamp, frame, pts = fast
+                frame = normalize_frame(frame)
+                empty = len(pts) == 0
+            else:
+                msg = rec._deserialize(raw, msgtype, self.cloud_topic)
+                stamp = stamp_ns(msg.header.stamp)
+                frame = normalize_frame(msg.header.frame_id)
+                empty = len(msg.points) == 0 if self.kind == 'livox' else msg.height * msg.width == 0
+            if empty:
                 self._skip('empty cloud', f'cloud #{index} at {_s(stamp)} has no points')
                 continue
             try:
@@ -898,13 +915,14 @@ class ScanStream:
             ):
                 self._skip('every_distance')
                 continue
-            if self.kind == 'pointcloud2':
-                pts = decode_pointcloud2(msg)
+            if self.kind == 'depth_image':
+                pts = depth_image_to_points(msg, self._camera_info(stamp), self._stride)
+            else:
+                if pts is None:
+                    pts = decode_pointcloud2(msg) if self.kind == 'pointcloud2' else livox_points(msg)
                 if self._to_sensor is not None:
                     S = self._to_sensor(stamp, frame, index)
                     pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
-            else:
-                pts = depth_image_to_points(msg, self._camera_info(stamp), self._stride)
             last_pos = T[:3, 3].copy()
             self.kept += 1
             yield Scan(points=pts, T_world_sensor=T, stamp_ns=stamp, frame_id=frame, index=index)
