@@ -426,6 +426,24 @@ def test_livox_bytes_decode_as_the_deserialised_message(tmp_path: Path, fmt: str
         stream = rec.scans(cloud_topic='/livox/livox_ros_driver', sensor_frame_only=True)
         slow = [s.points for s in stream]
     assert stream.skipped == {'empty cloud': 1} and len(fast) == len(slow) == 3
+    # a bag without the driver's type definitions (rosbag2 before version 8 keeps none): the
+    # bytes are enough to list the topic and map it
+    monkeypatch.undo()
+
+    def no_types(self, raw, msgtype, topic):
+        if msgtype in lv.LIVOX_TYPES:
+            raise AssertionError('deserialised')
+        return orig(self, raw, msgtype, topic)
+
+    from ndtom_ti.io.recording import Recording
+
+    orig = Recording._deserialize
+    monkeypatch.setattr(Recording, '_deserialize', no_types)
+    with open_recording(bag) as rec:
+        info = rec.info()
+        assert info.cloud_frames['/livox/livox_ros_driver2'] == 'ab'
+        got = [s.points for s in rec.scans(cloud_topic='/livox/livox_ros_driver2', sensor_frame_only=True)]
+    assert [len(p) for p in got] == [1, 17, 5, 9]
     for a, b, want in zip(fast, slow, clouds[2::2], strict=True):
         np.testing.assert_array_equal(a, want)
         np.testing.assert_array_equal(b, want)

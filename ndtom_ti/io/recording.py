@@ -8,7 +8,7 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from types import TracebackType
+from types import SimpleNamespace, TracebackType
 from typing import Any
 
 import numpy as np
@@ -320,7 +320,15 @@ class Recording:
         if topic not in self._first:
             self._first[topic] = None
             for t, msgtype, raw in self._messages(topic):
-                self._first[topic] = (t, self._deserialize(raw, msgtype, topic))
+                fast = decode_livox_raw(raw, self.format == 'ros1') if msgtype in LIVOX_TYPES else None
+                if fast is not None:
+                    # its header from the bytes: a bag may lack the driver's type definitions
+                    sec, nsec = divmod(fast[0], 10**9)
+                    stamp = SimpleNamespace(sec=sec, nanosec=nsec)
+                    msg = SimpleNamespace(header=SimpleNamespace(stamp=stamp, frame_id=fast[1]))
+                    self._first[topic] = (t, msg)
+                else:
+                    self._first[topic] = (t, self._deserialize(raw, msgtype, topic))
                 break
         return self._first[topic]
 
