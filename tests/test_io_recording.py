@@ -300,8 +300,48 @@ def test_bad_paths(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"is not a ROS bag .*starts with b'hello'"):
         open_recording(folder / 'notes.txt')
     (folder / 'a.bag').write_bytes(b'')
-    with pytest.raises(RecordingError, match=r'It holds ROS1 bags: pass one of them \(a.bag\)'):
-        open_recording(folder)
+    with pytest.raises(RecordingError, match=r"a.bag is not a ROS bag .*starts with b''"):
+        open_recording(folder)  # a folder of ROS1 bags: each must be one
+
+
+@pytest.mark.parametrize('split', ['time', 'topics'])
+def test_a_folder_of_ros1_bags_is_one_recording(tmp_path: Path, split: str) -> None:
+    """A recording split in time (rosbag record --split: run_0.bag, run_1.bag ...) or by topic
+    (TF in one bag, clouds in another) reads as the single bag it was cut from."""
+    entries = fx.scene_entries('ros1')
+    whole = _write(tmp_path, 'ros1', entries, name='whole')
+    folder = tmp_path / 'parts'
+    folder.mkdir()
+    if split == 'time':  # three parts; names that sort wrongly as text
+        cuts = [fx.T0 - 100 * MS, fx.T0 + 250 * MS]
+        parts = [
+            [e for e in entries if e[2] < cuts[0]],
+            [e for e in entries if cuts[0] <= e[2] < cuts[1]],
+            [e for e in entries if e[2] >= cuts[1]],
+        ]
+        names = ['run_9', 'run_10', 'run_11']
+    else:
+        parts = [[e for e in entries if e[0].startswith('/tf')], [e for e in entries if not e[0].startswith('/tf')]]
+        names = ['tf', 'sensors']
+    for name, part in zip(names, parts, strict=True):
+        assert part
+        fx.write_bag(folder / f'{name}.bag', 'ros1', part)
+    with open_recording(whole) as rec:
+        want = [(s.index, s.stamp_ns, s.T_world_sensor, s.points) for s in rec.scans()]
+        topics = rec.info().topics
+    with open_recording(folder) as rec:
+        info = rec.info()
+        got = [(s.index, s.stamp_ns, s.T_world_sensor, s.points) for s in rec.scans()]
+    assert info.topics == topics and info.pose_source == 'tf: map -> base -> mount -> sensor'
+    note = [n for n in info.notes if 'ROS1 bags' in n]
+    assert note and note[0].startswith(f'{len(names)} ROS1 bags in parts, read as one recording in time order')
+    if split == 'time':
+        assert 'run_9.bag, run_10.bag, run_11.bag' in note[0]
+    assert len(got) == len(want) == 4
+    for (i, t, T, p), (i2, t2, T2, p2) in zip(got, want, strict=True):
+        assert (i, t) == (i2, t2)
+        np.testing.assert_array_equal(T, T2)
+        np.testing.assert_array_equal(p, p2)
 
 
 def test_truncated_bags(tmp_path: Path) -> None:

@@ -294,7 +294,9 @@ def map_(
     bag: Annotated[
         Path,
         typer.Argument(
-            metavar="BAG", help="A ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap).", show_default=False
+            metavar="BAG",
+            help="A ROS1 .bag file, a folder of them (one recording, split), or a ROS2 bag folder (sqlite3 or mcap).",
+            show_default=False,
         ),
     ],
     resolution: Annotated[float, typer.Option("-r", "--resolution", help="Cell size in metres.", show_default=False)],

@@ -175,8 +175,10 @@ def _inverse_fn(fn: PoseFn) -> PoseFn:
 
 
 # ---------------------------------------------------------------------------- path handling
-def _resolve_path(path: Path) -> tuple[Path, str, str]:
-    """(path for AnyReader, 'ros1'|'ros2', storage) or RecordingError saying what the path is."""
+def _resolve_path(path: Path) -> tuple[list[Path], str, str]:
+    """(paths for AnyReader, 'ros1'|'ros2', storage) or RecordingError saying what the path is.
+    A folder of ROS1 bags (a recording split by ``rosbag record --split``, or topics recorded
+    into several bags) is read as one recording, its messages in time order."""
     if not path.exists():
         raise RecordingError(
             f'{path} does not exist. Give a ROS1 .bag file or a ROS2 bag folder (the folder that holds metadata.yaml).'
@@ -191,12 +193,14 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
         meta = path / 'metadata.yaml'
         if not meta.is_file():
             inside = sorted(p.name for p in path.iterdir())
-            bags = [n for n in inside if n.endswith('.bag')]
+            bags = [path / n for n in inside if n.endswith('.bag') and (path / n).is_file()]
+            if bags:
+                for b in bags:
+                    _ros1_file(b)
+                return _natural(bags), 'ros1', 'ros1'
             hint = (
-                f' It holds ROS1 bags: pass one of them ({", ".join(bags[:5])}).'
-                if bags
-                else ' Pass a ROS1 .bag file or a ROS2 bag folder (the folder that holds metadata.yaml and the '
-                '.db3/.mcap files).'
+                ' Pass a ROS1 .bag file, a folder of them, or a ROS2 bag folder (the folder that holds '
+                'metadata.yaml and the .db3/.mcap files).'
             )
             listing = ', '.join(inside[:10]) + (' ...' if len(inside) > 10 else '') if inside else 'it is empty'
             raise RecordingError(
@@ -204,7 +208,17 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
             )
         m = re.search(r'storage_identifier:\s*(\S+)', meta.read_text(errors='replace'))
         storage = m.group(1).strip('\'"') if m else 'sqlite3'
-        return path, 'ros2', storage
+        return [path], 'ros2', storage
+    return [_ros1_file(path)], 'ros1', 'ros1'
+
+
+def _natural(paths: list[Path]) -> list[Path]:
+    """Names in the order people count them (run_2 before run_10)."""
+    return sorted(paths, key=lambda p: [int(x) if x.isdigit() else x for x in re.split(r'(\d+)', p.name)])
+
+
+def _ros1_file(path: Path) -> Path:
+    """``path`` if it is a ROS1 bag of format 2.0, else RecordingError saying what it is."""
     if not path.is_file():  # opening a FIFO would wait for a writer
         raise RecordingError(
             f'{path} is neither a regular file nor a folder (a pipe, device or socket). Give a '
@@ -215,7 +229,7 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
     if head == _ROS1_MAGIC:
         if path.suffix != '.bag':  # rosbags picks the format by the suffix
             raise RecordingError(f'{path} is a ROS1 bag but is not named *.bag; rename it to end in .bag')
-        return path, 'ros1', 'ros1'
+        return path
     if head.startswith(b'#ROSBAG V1'):
         raise RecordingError(
             f'{path} is a ROS1 bag of format version 1.x; convert it with `rosbag fix` (format 2.0 is supported)'
@@ -232,7 +246,8 @@ def _resolve_path(path: Path) -> tuple[Path, str, str]:
 
 
 def open_recording(path: str | Path) -> Recording:
-    """Open a ROS1 .bag file or a ROS2 bag folder (sqlite3 or mcap storage)."""
+    """Open a ROS1 .bag file, a folder of ROS1 bags (one recording split into several: read
+    in time order), or a ROS2 bag folder (sqlite3 or mcap storage)."""
     return Recording(path)
 
 
@@ -242,10 +257,10 @@ class Recording:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        reader_path, self.format, self.storage = _resolve_path(self.path)
+        self.files, self.format, self.storage = _resolve_path(self.path)
         default_ts = get_typestore(Stores.ROS2_HUMBLE) if self.format == 'ros2' else None
         try:
-            self._reader = AnyReader([reader_path], default_typestore=default_ts)
+            self._reader = AnyReader(self.files, default_typestore=default_ts)
             self._reader.open()
         except Exception as err:  # rosbags raises several types for damaged files
             raise RecordingError(self._damaged(err)) from err
@@ -429,6 +444,12 @@ class Recording:
         mappable = self.mappable_topics()
         cloud_frames: dict[str, str] = {}
         notes = list(tf.notes)
+        if len(self.files) > 1:
+            notes.append(
+                f'{len(self.files)} ROS1 bags in {self.path.name}, read as one recording in time order: '
+                + ', '.join(f.name for f in self.files[:4])
+                + (f' ... {self.files[-1].name}' if len(self.files) > 4 else '')
+            )
         for topic, _ in mappable:
             first = self._first_message(topic)
             if first is None:
