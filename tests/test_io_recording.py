@@ -487,3 +487,29 @@ def test_livox_bytes_decode_as_the_deserialised_message(tmp_path: Path, fmt: str
     for a, b, want in zip(fast, slow, clouds[2::2], strict=True):
         np.testing.assert_array_equal(a, want)
         np.testing.assert_array_equal(b, want)
+
+
+@pytest.mark.parametrize('fmt', ['ros1', 'mcap'])
+def test_clouds_stamped_zero_use_the_record_time(tmp_path: Path, fmt: str) -> None:
+    """A driver that leaves header stamps at 0: the clouds are matched to poses by the bag's
+    record time, and info says so (they were refused: 'the times do not overlap')."""
+    entries = [e for e in fx.scene_entries(fmt, with_depth=False) if e[0] != '/cloud']
+    for t, (pts, kw) in zip(fx.CLOUD_TIMES, fx.scene_clouds(), strict=True):
+        entries.append(
+            (
+                '/cloud',
+                'sensor_msgs/msg/PointCloud2',
+                t,
+                lambda m, p=pts, kw=kw: m.cloud(0, 'sensor', fx.pack_cloud(p, **kw)),
+            )
+        )
+    entries.sort(key=lambda e: e[2])
+    with open_recording(_write(tmp_path, fmt, entries)) as rec:
+        info = rec.info()
+        assert '/cloud: header stamps are 0 (unset): poses are matched by the bag record times' in info.notes
+        assert info.pose_error is None
+        scans = list(rec.scans())
+    assert [s.index for s in scans] == [1, 2, 3, 4]
+    for s in scans:
+        assert s.stamp_ns == fx.CLOUD_TIMES[s.index]
+        np.testing.assert_allclose(s.T_world_sensor, fx.T_map_sensor(s.stamp_ns), atol=1e-6)

@@ -165,6 +165,11 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
     return fn
 
 
+def _cloud_stamp(header_ns: int, record_ns: int) -> int:
+    """A cloud's time: its header stamp, or where a driver left it 0 (unset) the bag's record time."""
+    return header_ns if header_ns != 0 else record_ns
+
+
 def _inverse_fn(fn: PoseFn) -> PoseFn:
     """The inverse of a rigid transform provider."""
 
@@ -456,7 +461,9 @@ class Recording:
                 continue
             t, msg = first
             cloud_frames[topic] = normalize_frame(msg.header.frame_id)
-            off = stamp_ns(msg.header.stamp) - t
+            if stamp_ns(msg.header.stamp) == 0:
+                notes.append(f'{topic}: header stamps are 0 (unset): poses are matched by the bag record times')
+            off = _cloud_stamp(stamp_ns(msg.header.stamp), t) - t
             if abs(off) > 10**9:
                 notes.append(
                     f'{topic}: header stamps differ from the bag record times by {off / 1e9:.3f} s '
@@ -505,7 +512,7 @@ class Recording:
             assert first is not None
             choice = self._poses.choose(
                 cloud_frames[default_topic],
-                stamp_ns(first[1].header.stamp),
+                _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
                 fixed_frame=None,
                 pose_topic=None,
                 poses_file=None,
@@ -580,7 +587,7 @@ class Recording:
         tol = round(extrapolation_s * 1e9)
         choice = self._poses.choose(
             frame,
-            stamp_ns(first[1].header.stamp),
+            _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
             fixed_frame=sel.fixed_frame,
             pose_topic=sel.pose_topic,
             poses_file=sel.poses_file,
@@ -922,11 +929,12 @@ class ScanStream:
             fast = decode_livox_raw(raw, rec.format == 'ros1') if self.kind == 'livox' else None
             if fast is not None:
                 stamp, frame, pts = fast
+                stamp = _cloud_stamp(stamp, t)
                 frame = normalize_frame(frame)
                 empty = len(pts) == 0
             else:
                 msg = rec._deserialize(raw, msgtype, self.cloud_topic)
-                stamp = stamp_ns(msg.header.stamp)
+                stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
                 frame = normalize_frame(msg.header.frame_id)
                 empty = len(msg.points) == 0 if self.kind == 'livox' else msg.height * msg.width == 0
             if empty:
