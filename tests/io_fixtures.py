@@ -151,6 +151,22 @@ class Msgs:
             is_dense=False,
         )
 
+    def laserscan(
+        self, stamp: int, frame: str, ranges: np.ndarray, a0: float, da: float, rmin: float, rmax: float
+    ) -> Any:
+        return self.T['sensor_msgs/msg/LaserScan'](
+            header=self.header(stamp, frame),
+            angle_min=a0,
+            angle_max=a0 + da * (len(ranges) - 1),
+            angle_increment=da,
+            time_increment=0.0,
+            scan_time=0.1,
+            range_min=rmin,
+            range_max=rmax,
+            ranges=np.asarray(ranges, np.float32),
+            intensities=np.zeros(len(ranges), np.float32),
+        )
+
     def livox(self, stamp: int, frame: str, points: np.ndarray, pkg: str = 'livox_ros_driver') -> Any:
         P = self.T[f'{pkg}/msg/CustomPoint']
         pts = [

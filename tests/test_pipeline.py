@@ -367,3 +367,64 @@ def test_livox_custom_messages_map_as_point_clouds(tmp_path: Path, fmt: str, pkg
     a, b = plain.known_cells(), m.known_cells()
     np.testing.assert_array_equal(a["index"], b["index"])
     np.testing.assert_array_equal(a["logodds"], b["logodds"])
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_laserscan_of_a_2d_lidar_maps_the_walls(tmp_path: Path, fmt: str) -> None:
+    """A 2D lidar (sensor_msgs/LaserScan) 0.3 m above a moving base in a 10 x 8 m room: its
+    beams become points in the scan plane; readings with no return (inf, NaN, 0, under
+    range_min, past range_max) are dropped and counted, as depth images' holes are."""
+    import io_fixtures as fx
+
+    half = np.array([5.0, 4.0])
+    n, a0 = 720, -np.pi
+    da = 2 * np.pi / n
+    e: list = [
+        (
+            "/tf_static",
+            "tf2_msgs/msg/TFMessage",
+            fx.T0 - 10 * fx.MS,
+            lambda m: m.tf([(fx.T0, "base", "laser", (0.1, 0.0, 0.3), (0.0, 0.0, 0.0, 1.0))]),
+        )
+    ]
+    for k in range(6):
+        t = fx.T0 + k * 100 * fx.MS
+        xy, yaw = np.array([-1.0 + 0.3 * k, 0.5 - 0.1 * k]), 0.1 * k
+        q = fx.quat_axis_angle((0, 0, 1), yaw)
+        e.append(
+            ("/tf", "tf2_msgs/msg/TFMessage", t, lambda m, t=t, xy=xy, q=q: m.tf([(t, "odom", "base", (*xy, 0.0), q)]))
+        )
+        origin = xy + [0.1 * np.cos(yaw), 0.1 * np.sin(yaw)]
+        ang = yaw + a0 + da * np.arange(n)
+        d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        with np.errstate(divide="ignore"):
+            tx = np.where(d[:, 0] != 0, (np.sign(d[:, 0]) * half[0] - origin[0]) / d[:, 0], np.inf)
+            ty = np.where(d[:, 1] != 0, (np.sign(d[:, 1]) * half[1] - origin[1]) / d[:, 1], np.inf)
+        r = np.minimum(tx, ty)
+        r[::50] = np.inf  # no return
+        r[1::50] = np.nan
+        r[2::50] = 0.0
+        r[3::50] = 0.05  # under range_min
+        r[4::50] = 40.0  # past range_max
+        e.append(
+            (
+                "/scan",
+                "sensor_msgs/msg/LaserScan",
+                t + 1,
+                lambda m, t=t, r=r: m.laserscan(t, "laser", r, a0, da, 0.1, 30.0),
+            )
+        )
+    e.sort(key=lambda x: x[2])
+    bag = fx.write_bag(fx.bag_path(tmp_path, fmt, "scan2d"), fmt, e)
+    with ndtom_ti.io.open_recording(bag) as rec:
+        assert rec.info().mappable_topics == ["/scan"]
+    m, s = map_recording(bag, 0.1)
+    assert s.cloud_topic == "/scan" and s.scans_used == 6 and s.pose_source == "tf: odom -> base -> laser"
+    bad = 5 * len(range(0, n, 50))
+    assert s.points_in == 6 * n and s.dropped["nonfinite"] == 6 * bad and s.points_used == 6 * (n - bad)
+    g = m.gaussians()
+    mu = g["mean"]
+    assert len(mu) > 200
+    on_wall = (np.abs(np.abs(mu[:, 0]) - half[0]) < 0.02) | (np.abs(np.abs(mu[:, 1]) - half[1]) < 0.02)
+    assert on_wall.all() and np.abs(mu[:, 2] - 0.3).max() < 1e-6
+    assert m.occupancy(np.array([0.0, 0.0, 0.3])) < 0.5  # the room's inside is free

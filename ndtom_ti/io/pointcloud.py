@@ -156,3 +156,31 @@ def depth_image_to_points(msg: Any, camera_info: Any, stride: int = 1) -> np.nda
     out[..., 1] = (v[:, None] - cy) / fy * z
     out[..., 2] = z
     return out.reshape(-1, 3)
+
+
+def laserscan_to_points(msg: Any) -> np.ndarray:
+    """A sensor_msgs/LaserScan (a 2D lidar's sweep) as (N, 3) float32 points in its frame,
+    in its x-y plane: beam i at angle ``angle_min + i angle_increment``. Readings outside
+    ``[range_min, range_max]`` or not finite mean no return (the message's convention): they
+    give NaN rows, which the mapper drops and counts, as depth images' holes."""
+    r = np.asarray(msg.ranges, dtype=np.float64).reshape(-1)
+    if not r.size:
+        return np.empty((0, 3), dtype=np.float32)
+    a0, da = float(msg.angle_min), float(msg.angle_increment)
+    lo, hi = float(msg.range_min), float(msg.range_max)
+    if not (np.isfinite(a0) and np.isfinite(da)):
+        raise RecordingError(
+            f'LaserScan angle_min {a0} / angle_increment {da} are not finite: its beams have no direction'
+        )
+    ang = a0 + da * np.arange(r.size, dtype=np.float64)
+    bad = ~np.isfinite(r) | (r <= 0)
+    if np.isfinite(lo):
+        bad |= r < lo
+    if np.isfinite(hi) and hi > 0:
+        bad |= r > hi
+    r = np.where(bad, np.nan, r)
+    out = np.empty((r.size, 3), dtype=np.float32)
+    out[:, 0] = r * np.cos(ang)
+    out[:, 1] = r * np.sin(ang)
+    out[:, 2] = np.where(bad, np.nan, 0.0)
+    return out

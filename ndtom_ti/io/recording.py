@@ -19,7 +19,7 @@ from rosbags.typesys import Stores, get_typestore
 from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
 from .livox import LIVOX_TYPES, decode_livox_raw, livox_points
-from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points
+from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points, laserscan_to_points
 from .posefile import load_pose_file
 from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
@@ -36,6 +36,7 @@ __all__ = [
 ]
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+LASERSCAN = 'sensor_msgs/msg/LaserScan'
 IMAGE = 'sensor_msgs/msg/Image'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 TF_TYPES = ('tf2_msgs/msg/TFMessage', 'tf/msg/tfMessage')
@@ -387,12 +388,13 @@ class Recording:
         return first is not None and str(first[1].encoding).upper() in DEPTH_ENCODINGS
 
     def mappable_topics(self) -> list[tuple[str, str]]:
-        """(topic, kind) with kind 'pointcloud2', 'livox' (Livox's CustomMsg) or 'depth_image';
-        point clouds first."""
+        """(topic, kind) with kind 'pointcloud2', 'livox' (Livox's CustomMsg), 'depth_image' or
+        'laserscan' (a 2D lidar), in that order."""
         pcs = [(t, 'pointcloud2') for t in self._of_type(POINTCLOUD2) if self._topics[t][1] > 0]
         livox = [(t, 'livox') for t in self._of_type(*LIVOX_TYPES) if self._topics[t][1] > 0]
         depth = [(t, 'depth_image') for t in self._of_type(IMAGE) if self._is_depth_topic(t)]
-        return pcs + livox + depth
+        scans = [(t, 'laserscan') for t in self._of_type(LASERSCAN) if self._topics[t][1] > 0]
+        return pcs + livox + depth + scans
 
     def _resolve_cloud_topic(self, cloud_topic: str | None) -> tuple[str, str]:
         mappable = self.mappable_topics()
@@ -402,6 +404,7 @@ class Recording:
                 ('pointcloud2', 'PointCloud2'),
                 ('livox', 'Livox CustomMsg'),
                 ('depth_image', 'depth image'),
+                ('laserscan', 'LaserScan'),
             ):
                 cands = [t for t, k in mappable if k == kind]
                 if len(cands) == 1:
@@ -413,8 +416,8 @@ class Recording:
                     )
             present = ', '.join(f'{n} ({t})' for n, (t, _, _) in self._topics.items()) or '(none: the bag is empty)'
             raise RecordingError(
-                f'{self.path} has no topic to map: no sensor_msgs/PointCloud2 or Livox CustomMsg messages '
-                f'and no depth image (32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}'
+                f'{self.path} has no topic to map: no sensor_msgs/PointCloud2, Livox CustomMsg or LaserScan '
+                f'messages and no depth image (32FC1/16UC1) with a CameraInfo topic beside it. Topics present: {present}'
             )
         name = cloud_topic
         if name not in self._topics and '/' + name.lstrip('/') in self._topics:
@@ -431,6 +434,8 @@ class Recording:
             return name, 'pointcloud2'
         if msgtype in LIVOX_TYPES:
             return name, 'livox'
+        if msgtype == LASERSCAN:
+            return name, 'laserscan'
         if msgtype == IMAGE:
             if self._camera_info_topic(name) is None:
                 raise RecordingError(
@@ -440,7 +445,7 @@ class Recording:
             return name, 'depth_image'
         raise RecordingError(
             f'{name} has type {msgtype}; a cloud topic must be sensor_msgs/PointCloud2, a Livox '
-            f'CustomMsg or a depth sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
+            f'CustomMsg, a LaserScan or a depth sensor_msgs/Image with CameraInfo. Mappable topics: {listing}'
         )
 
     # -- public API
@@ -870,7 +875,7 @@ class ScanStream:
     ) -> None:
         self._rec = rec
         self.cloud_topic = topic
-        self.kind = kind  # 'pointcloud2' | 'livox' | 'depth_image'
+        self.kind = kind  # 'pointcloud2' | 'livox' | 'depth_image' | 'laserscan'
         self.frame_id = frame_id  # frame of the first cloud
         self.fixed_frame = choice.fixed_frame
         self.pose_source = choice.description
@@ -936,7 +941,12 @@ class ScanStream:
                 msg = rec._deserialize(raw, msgtype, self.cloud_topic)
                 stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
                 frame = normalize_frame(msg.header.frame_id)
-                empty = len(msg.points) == 0 if self.kind == 'livox' else msg.height * msg.width == 0
+                if self.kind == 'livox':
+                    empty = len(msg.points) == 0
+                elif self.kind == 'laserscan':
+                    empty = len(msg.ranges) == 0
+                else:
+                    empty = msg.height * msg.width == 0
             if empty:
                 self._skip('empty cloud', f'cloud #{index} at {_s(stamp)} has no points')
                 continue
@@ -956,7 +966,12 @@ class ScanStream:
                 pts = depth_image_to_points(msg, self._camera_info(stamp), self._stride)
             else:
                 if pts is None:
-                    pts = decode_pointcloud2(msg) if self.kind == 'pointcloud2' else livox_points(msg)
+                    decode = {
+                        'pointcloud2': decode_pointcloud2,
+                        'livox': livox_points,
+                        'laserscan': laserscan_to_points,
+                    }
+                    pts = decode[self.kind](msg)
                 if self._to_sensor is not None:
                     S = self._to_sensor(stamp, frame, index)
                     pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
