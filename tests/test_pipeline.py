@@ -428,3 +428,31 @@ def test_laserscan_of_a_2d_lidar_maps_the_walls(tmp_path: Path, fmt: str) -> Non
     on_wall = (np.abs(np.abs(mu[:, 0]) - half[0]) < 0.02) | (np.abs(np.abs(mu[:, 1]) - half[1]) < 0.02)
     assert on_wall.all() and np.abs(mu[:, 2] - 0.3).max() < 1e-6
     assert m.occupancy(np.array([0.0, 0.0, 0.3])) < 0.5  # the room's inside is free
+
+
+def test_registered_clouds_with_their_motion_in_tf_only(tmp_path: Path) -> None:
+    """Registered clouds (in 'map') whose sensor motion only TF records: refused with the way
+    out named (the moving frames), then mapped from the lidar's frame with ray_origin_frame
+    (--ray-origin-frame) as the sensor-frame clouds are."""
+    bag = pb.write_plane_bag(tmp_path, name="reg_tf", registered=True, odom=False)
+    with pytest.raises(RecordingError) as err:
+        map_recording(bag, pb.RES)
+    assert (
+        "give the moving frame the rays start from as --ray-origin-frame (ray_origin_frame), one of: base, lidar"
+        in str(err.value)
+    )
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain"), pb.RES)
+    m, s = map_recording(bag, pb.RES, ray_origin_frame="lidar")
+    assert s.pose_source == "tf: map -> base -> lidar; rays from 'lidar', the clouds in 'map' (tf lidar -> base -> map)"
+    assert m.metadata["options"]["ray_origin_frame"] == "lidar"
+    pb.check_plane_map(m)
+    a, b = plain.known_cells(), m.known_cells()
+    assert abs(len(a["index"]) - len(b["index"])) <= 0.001 * len(a["index"])
+    assert (np.abs(plain.logodds_at(b["index"]) - b["logodds"]) < 1e-3).mean() > 0.995
+    for bad, text in (
+        ({"ray_origin_frame": "nowhere"}, "ray origin frame 'nowhere' is not in the TF tree"),
+        ({"ray_origin_frame": "map"}, "is the fixed frame: it does not move"),
+        ({"ray_origin_frame": "lidar", "pose_topic": "/odom"}, "give only one pose source"),
+    ):
+        with pytest.raises(RecordingError, match=text):
+            map_recording(bag, pb.RES, **bad)

@@ -82,17 +82,18 @@ def write_plane_bag(
     bad_fields: bool = False,
     n_clouds: int = N_CLOUDS,
     registered: bool = False,
+    odom: bool = True,
     no_return: int = 0,
     livox: str | None = None,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
-    the lidar's poses on /odom (map -> lidar). ``no_return``: that many (0, 0, 0) points
+    the lidar's poses on /odom (map -> lidar) unless not ``odom``. ``no_return``: that many (0, 0, 0) points
     in each cloud, as drivers of organised clouds mark beams with no return. ``livox``: the
     clouds as that Livox driver package's CustomMsg instead of PointCloud2."""
     rng = np.random.default_rng(42)
     e: list = []
-    if registered:
+    if registered and odom:
         for k in range(n_clouds):
             T, t = T_map_lidar(k), STAMPS[k]
             q = quat_mul(fx.quat_axis_angle((0, 0, 1), 0.05 * k), BASE_MOUNT[1])

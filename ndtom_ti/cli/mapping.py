@@ -334,6 +334,14 @@ def map_(
     sensor_frame: Annotated[
         bool, typer.Option("--sensor-frame", help="No poses: map every scan in the sensor frame (identity poses).")
     ] = False,
+    ray_origin_frame: Annotated[
+        str | None,
+        typer.Option(
+            help="Rays start at this TF frame's origin instead of the cloud frame's: clouds published in a "
+            "vehicle or world frame (registered clouds whose odometry is in TF only).",
+            show_default=False,
+        ),
+    ] = None,
     every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
     every_distance: Annotated[
         float | None,
@@ -473,7 +481,14 @@ def map_(
     with user_errors():
         resolution = resolution_option(resolution)
         given = [
-            n for n, v in (("--poses", poses), ("--pose-topic", pose_topic), ("--sensor-frame", sensor_frame)) if v
+            n
+            for n, v in (
+                ("--poses", poses),
+                ("--pose-topic", pose_topic),
+                ("--sensor-frame", sensor_frame),
+                ("--ray-origin-frame", ray_origin_frame),
+            )
+            if v
         ]
         if len(given) > 1:
             raise ValueError(f"give one pose source, not {' and '.join(given)}")
@@ -517,6 +532,7 @@ def map_(
             pose_topic=pose_topic,
             poses_file=poses,
             sensor_frame_only=sensor_frame,
+            ray_origin_frame=ray_origin_frame,
             every=every,
             every_distance=every_distance,
             t_start=start,

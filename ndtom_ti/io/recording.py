@@ -599,6 +599,7 @@ class Recording:
             sensor_frame_only=sel.sensor_frame_only,
             tol=tol,
             what=topic,
+            ray_origin_frame=sel.ray_origin_frame,
         )
         assert choice.fn is not None
         infos: list[tuple[int, Any]] = []
@@ -702,8 +703,17 @@ class _PoseSources:
         except RecordingError as err:
             return _PoseChoice(None, f'TF: {err}')
         if fixed == frame and not fixed_frame:
+            moving = [
+                f for f in tf.frames() if f != frame and tf.root_of(f) == frame and not tf.chain_is_static(frame, f)
+            ]
+            hint = (
+                f'; if its clouds are registered (already in {frame!r}), give the moving frame the rays start '
+                f'from as --ray-origin-frame (ray_origin_frame), one of: {", ".join(moving)}'
+                if moving
+                else ''
+            )
             return _PoseChoice(
-                None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not give its motion'
+                None, f'TF: the cloud frame {frame!r} is the root of its TF tree, so TF does not give its motion{hint}'
             )
         if static and not fixed_frame:
             return _PoseChoice(None, f'TF: the chain {chain} is static only (the sensor mounting, not its motion)')
@@ -711,6 +721,36 @@ class _PoseSources:
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
             return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
         return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''), fixed, rng)
+
+    def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
+        """Poses from TF with the rays starting at frame ``origin`` rather than at the cloud
+        frame: the points are taken into ``origin``'s frame (TF at each cloud's stamp)."""
+        tf = self._rec.tf()
+        for f, what in ((origin, 'ray origin frame'), (frame, 'cloud frame')):
+            if f not in tf:
+                raise RecordingError(
+                    f'the {what} {f!r} is not in the TF tree (frames that exist: {", ".join(tf.frames()) or "none"})'
+                )
+        if tf.root_of(origin) != tf.root_of(frame):
+            raise RecordingError(f'TF does not connect the ray origin frame {origin!r} to the cloud frame {frame!r}')
+        fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(origin)
+        if fixed not in tf or tf.root_of(fixed) != tf.root_of(origin):
+            raise RecordingError(f'TF does not connect the fixed frame {fixed!r} to the ray origin frame {origin!r}')
+        if fixed == origin:
+            raise RecordingError(
+                f'the ray origin frame {origin!r} is the fixed frame: it does not move. Name the frame of the '
+                'sensor (or of the vehicle carrying it) whose motion TF records.'
+            )
+        desc = f'tf: {tf.chain_str(fixed, origin)}; rays from {origin!r}, the clouds in {frame!r}'
+        if frame != origin:
+            desc += f' (tf {tf.chain_str(origin, frame)})'
+        return _PoseChoice(
+            _tf_fn(tf, fixed, origin, tol),
+            desc,
+            fixed,
+            tf.dynamic_range_ns(fixed, origin),
+            _tf_fn(tf, origin, None, tol),
+        )
 
     def _topic_choice(
         self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int, explicit: bool
@@ -779,6 +819,7 @@ class _PoseSources:
         sensor_frame_only: bool,
         tol: int,
         what: str,
+        ray_origin_frame: str | None = None,
     ) -> _PoseChoice:
         given = [
             n
@@ -786,11 +827,14 @@ class _PoseSources:
                 ('pose_topic', pose_topic),
                 ('poses_file', poses_file),
                 ('sensor_frame_only', sensor_frame_only),
+                ('ray_origin_frame', ray_origin_frame),
             )
             if v
         ]
         if len(given) > 1:
             raise RecordingError(f'give only one pose source; got {" and ".join(given)}')
+        if ray_origin_frame:
+            return self._origin_choice(frame, normalize_frame(ray_origin_frame), fixed_frame, tol)
         if sensor_frame_only:
             return _PoseChoice(_identity, f'sensor frame {frame!r} (identity poses)', frame)
         if poses_file is not None:

@@ -20,7 +20,9 @@ class ScanSelection:
 
     ``cloud_topic``: the topic (None: the one point-cloud or depth topic); pose source:
     ``fixed_frame`` (the TF chain's root), ``pose_topic``, ``poses_file`` (TUM/KITTI path
-    or a PoseTrack) or ``sensor_frame_only`` (identity poses); ``every`` keeps cloud
+    or a PoseTrack) or ``sensor_frame_only`` (identity poses); ``ray_origin_frame``: rays start
+    at that TF frame's origin, not the cloud frame's (clouds published in a vehicle or world
+    frame, e.g. registered clouds with their odometry in TF only); ``every`` keeps cloud
     indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
     (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
     stops after that many kept scans.
@@ -31,6 +33,7 @@ class ScanSelection:
     pose_topic: str | None = None
     poses_file: str | Path | PoseTrack | None = None
     sensor_frame_only: bool = False
+    ray_origin_frame: str | None = None
     every: int = 1
     every_distance: float | None = None
     t_start: float | None = None
@@ -47,6 +50,7 @@ class ScanSelection:
             "pose_topic": self.pose_topic,
             "poses_file": str(Path(poses).resolve()) if poses is not None else None,  # type: ignore[arg-type]
             "sensor_frame_only": self.sensor_frame_only,
+            **({"ray_origin_frame": self.ray_origin_frame} if self.ray_origin_frame else {}),
             "every": self.every,
             "every_distance": self.every_distance,
             "start": self.t_start,
