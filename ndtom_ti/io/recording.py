@@ -116,9 +116,8 @@ class _PoseChoice:
     description: str  # what was chosen, or why it cannot be used
     fixed_frame: str = ''
     range_ns: tuple[int, int] | None = None
-    # Registered clouds (points already in the pose's parent frame): T_sensor_cloud, which
-    # takes a cloud's points to the sensor frame the pose gives; None when the cloud frame
-    # is the sensor's own.
+    # T_sensor_cloud: takes a cloud's points into the frame the rays start from, where that
+    # is not the cloud's own (registered clouds, ray_origin_frame); None when it is.
     to_sensor: PoseFn | None = None
 
     @property
