@@ -199,6 +199,8 @@ def _resolve_path(path: Path) -> tuple[list[Path], str, str]:
         if not meta.is_file():
             inside = sorted(p.name for p in path.iterdir())
             bags = [path / n for n in inside if n.endswith('.bag') and (path / n).is_file()]
+            # `rosbag reindex` keeps the bag it repaired as NAME.orig.bag: its messages twice
+            bags = [b for b in bags if not (b.name.endswith('.orig.bag') and b.with_name(b.name[:-9] + '.bag') in bags)]
             if bags:
                 for b in bags:
                     _ros1_file(b)
