@@ -515,3 +515,19 @@ def test_clouds_stamped_zero_use_the_record_time(tmp_path: Path, fmt: str) -> No
     for s in scans:
         assert s.stamp_ns == fx.CLOUD_TIMES[s.index]
         np.testing.assert_allclose(s.T_world_sensor, fx.T_map_sensor(s.stamp_ns), atol=1e-6)
+
+
+def test_a_lone_part_of_a_split_recording_says_so(tmp_path: Path) -> None:
+    entries = fx.scene_entries('ros1', with_depth=False)
+    for k in range(3):
+        fx.write_bag(tmp_path / f'run_{k}.bag', 'ros1', entries)
+    with open_recording(tmp_path / 'run_1.bag') as rec:
+        note = 'run_1.bag looks like one part of a split recording (2 more beside it: run_0.bag, run_2.bag)'
+        assert any(n.startswith(note) for n in rec.info().notes)
+        stream = rec.scans()
+        list(stream)
+        assert stream.notes[0].startswith(note) and f'pass the folder {tmp_path}' in stream.notes[0]
+    alone = tmp_path / 'alone'
+    alone.mkdir()
+    with open_recording(_write(alone, 'ros1', entries)) as rec:
+        assert not any('split recording' in n for n in rec.info().notes)

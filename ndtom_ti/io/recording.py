@@ -224,6 +224,24 @@ def _natural(paths: list[Path]) -> list[Path]:
     return sorted(paths, key=lambda p: [int(x) if x.isdigit() else x for x in re.split(r'(\d+)', p.name)])
 
 
+def _split_notes(files: list[Path]) -> list[str]:
+    """A note when a lone ROS1 bag looks like one part of a split recording (NAME_3.bag with
+    NAME_0.bag ... beside it): mapping it maps that part only."""
+    if len(files) != 1 or not (m := re.fullmatch(r'(.+)_(\d+)\.bag', files[0].name)):
+        return []
+    pat = re.compile(re.escape(m.group(1)) + r'_\d+\.bag')
+    others = [p for p in files[0].parent.iterdir() if p != files[0] and pat.fullmatch(p.name)]
+    if not others:
+        return []
+    listing = ', '.join(p.name for p in _natural(others)[:3]) + (' ...' if len(others) > 3 else '')
+    note = (
+        f'{files[0].name} looks like one part of a split recording ({len(others)} more beside it: {listing}); '
+        f'this reads it alone. To map every part, pass the folder {files[0].parent} (its .bag files are read '
+        'as one recording)'
+    )
+    return [note]
+
+
 def _ros1_file(path: Path) -> Path:
     """``path`` if it is a ROS1 bag of format 2.0, else RecordingError saying what it is."""
     if not path.is_file():  # opening a FIFO would wait for a writer
@@ -265,6 +283,7 @@ class Recording:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.files, self.format, self.storage = _resolve_path(self.path)
+        self.file_notes = _split_notes(self.files) if self.format == 'ros1' else []
         default_ts = get_typestore(Stores.ROS2_HUMBLE) if self.format == 'ros2' else None
         try:
             self._reader = AnyReader(self.files, default_typestore=default_ts)
@@ -454,7 +473,7 @@ class Recording:
         tf = self.tf()
         mappable = self.mappable_topics()
         cloud_frames: dict[str, str] = {}
-        notes = list(tf.notes)
+        notes = list(tf.notes) + self.file_notes
         if len(self.files) > 1:
             notes.append(
                 f'{len(self.files)} ROS1 bags in {self.path.name}, read as one recording in time order: '
@@ -901,9 +920,10 @@ class ScanStream:
     considered, ``kept`` yielded, and ``skipped`` counts the rest by reason
     ('outside time window', 'every', 'no pose at stamp', 'empty cloud',
     'every_distance'), so total_seen == kept + sum(skipped.values()) once the
-    topic was read to the end (max_scans stops early). ``notes`` holds the first
-    detailed message for each skip reason (e.g. the time gap to the first
-    transform). Iterating again starts over.
+    topic was read to the end (max_scans stops early). ``notes`` holds notes on the
+    recording's files (a lone part of a split recording), then the first detailed
+    message for each skip reason (e.g. the time gap to the first transform).
+    Iterating again starts over.
     """
 
     def __init__(
@@ -960,7 +980,7 @@ class ScanStream:
     def __iter__(self) -> Iterator[Scan]:
         self.skipped = Counter()
         self.total_seen = self.kept = 0
-        self.notes = []
+        self.notes = list(self._rec.file_notes)
         assert self._pose is not None
         rec = self._rec
         last_pos: np.ndarray | None = None
