@@ -452,7 +452,27 @@ def test_registered_clouds_with_their_motion_in_tf_only(tmp_path: Path) -> None:
     for bad, text in (
         ({"ray_origin_frame": "nowhere"}, "ray origin frame 'nowhere' is not in the TF tree"),
         ({"ray_origin_frame": "map"}, "is the fixed frame: it does not move"),
-        ({"ray_origin_frame": "lidar", "pose_topic": "/odom"}, "give only one pose source"),
+        ({"ray_origin_frame": "lidar", "sensor_frame_only": True}, "goes with poses from TF or a pose topic"),
     ):
         with pytest.raises(RecordingError, match=text):
             map_recording(bag, pb.RES, **bad)
+
+
+def test_registered_clouds_with_the_odometry_of_the_vehicle(tmp_path: Path) -> None:
+    """Registered clouds beside the odometry of the vehicle ('base'), with the lidar's mount in
+    TF: by default the rays start at the vehicle's origin (0.5 m under the lidar); with
+    ray_origin_frame='lidar' at the lidar, and the map is the sensor-frame one."""
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain"), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, name="reg_base", registered=True, odom_child="base")
+    m0, s0 = map_recording(bag, pb.RES)
+    assert "each ray from the position of 'base'" in s0.pose_source
+    m, s = map_recording(bag, pb.RES, pose_topic="/odom", ray_origin_frame="lidar")
+    assert s.pose_source == (
+        "pose topic /odom (nav_msgs/msg/Odometry map -> base) + tf base -> lidar "
+        "(registered clouds in 'map', rays from 'lidar')"
+    )
+    pb.check_plane_map(m)
+    a, b, c = plain.known_cells(), m.known_cells(), m0.known_cells()
+    assert abs(len(a["index"]) - len(b["index"])) <= 0.001 * len(a["index"])
+    assert (np.abs(plain.logodds_at(b["index"]) - b["logodds"]) < 1e-3).mean() > 0.995
+    assert (np.abs(plain.logodds_at(c["index"]) - c["logodds"]) < 1e-3).mean() < 0.99  # rays from elsewhere

@@ -83,26 +83,27 @@ def write_plane_bag(
     n_clouds: int = N_CLOUDS,
     registered: bool = False,
     odom: bool = True,
+    odom_child: str = "lidar",
     no_return: int = 0,
     livox: str | None = None,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
-    the lidar's poses on /odom (map -> lidar) unless not ``odom``. ``no_return``: that many (0, 0, 0) points
+    the poses of ``odom_child`` ('lidar' or 'base') on /odom unless not ``odom``. ``no_return``: that many (0, 0, 0) points
     in each cloud, as drivers of organised clouds mark beams with no return. ``livox``: the
     clouds as that Livox driver package's CustomMsg instead of PointCloud2."""
     rng = np.random.default_rng(42)
     e: list = []
     if registered and odom:
         for k in range(n_clouds):
-            T, t = T_map_lidar(k), STAMPS[k]
-            q = quat_mul(fx.quat_axis_angle((0, 0, 1), 0.05 * k), BASE_MOUNT[1])
+            t, qz = STAMPS[k], fx.quat_axis_angle((0, 0, 1), 0.05 * k)
+            T, q = (T_map_lidar(k), quat_mul(qz, BASE_MOUNT[1])) if odom_child == "lidar" else (T_map_base(k), qz)
             e.append(
                 (
                     "/odom",
                     "nav_msgs/msg/Odometry",
                     t,
-                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.odometry(t, "map", "lidar", tr, q),
+                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.odometry(t, "map", odom_child, tr, q),
                 )
             )
     if with_tf:

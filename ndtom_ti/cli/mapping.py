@@ -338,7 +338,7 @@ def map_(
         str | None,
         typer.Option(
             help="Rays start at this TF frame's origin instead of the cloud frame's: clouds published in a "
-            "vehicle or world frame (registered clouds whose odometry is in TF only).",
+            "vehicle or world frame (registered clouds); poses from TF, or from --pose-topic and TF from its frame.",
             show_default=False,
         ),
     ] = None,
@@ -486,12 +486,13 @@ def map_(
                 ("--poses", poses),
                 ("--pose-topic", pose_topic),
                 ("--sensor-frame", sensor_frame),
-                ("--ray-origin-frame", ray_origin_frame),
             )
             if v
         ]
         if len(given) > 1:
             raise ValueError(f"give one pose source, not {' and '.join(given)}")
+        if ray_origin_frame and (poses or sensor_frame):
+            raise ValueError(f"--ray-origin-frame goes with poses from TF or --pose-topic, not with {given[0]}")
         if every > 1 and every_distance is not None:
             raise ValueError("give --every or --every-distance, not both")
         if start is not None and end is not None and end < start:

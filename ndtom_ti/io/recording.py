@@ -773,7 +773,14 @@ class _PoseSources:
         )
 
     def _topic_choice(
-        self, topic: str, frame: str, fixed_frame: str | None, first_stamp: int, tol: int, explicit: bool
+        self,
+        topic: str,
+        frame: str,
+        fixed_frame: str | None,
+        first_stamp: int,
+        tol: int,
+        explicit: bool,
+        origin: str | None = None,
     ) -> _PoseChoice:
         msgtype = self._rec._topics[topic][0]
         track, parent, child, _ = self.track(topic)
@@ -791,7 +798,25 @@ class _PoseSources:
         post: PoseFn | None = None
         to_sensor: PoseFn | None = None
         desc = label
-        if frame == parent:
+        if origin is not None:
+            # Rays from frame `origin`: the pose topic's body frame, or a frame TF fixes to it.
+            body = child or origin
+            if body != origin:
+                if not (body in tf and origin in tf and tf.root_of(body) == tf.root_of(origin)):
+                    raise RecordingError(
+                        f'{label}: TF does not connect its frame {body!r} to the ray origin {origin!r}'
+                    )
+                post = _tf_fn(tf, body, origin, tol)
+                desc += f' + tf {tf.chain_str(body, origin)}'
+            if frame == parent:
+                desc += f' (registered clouds in {frame!r}, rays from {origin!r})'
+                to_sensor = _inverse_fn(_track_fn(track, tol, None, post))
+            elif frame != origin:
+                if not (frame in tf and origin in tf and tf.root_of(frame) == tf.root_of(origin)):
+                    raise RecordingError(f'TF does not connect the cloud frame {frame!r} to the ray origin {origin!r}')
+                desc += f' (rays from {origin!r}, the clouds in {frame!r}: tf {tf.chain_str(origin, frame)})'
+                to_sensor = _tf_fn(tf, origin, None, tol)
+        elif frame == parent:
             # The clouds are given in the frame the poses are (registered, as a lidar odometry
             # publishes them): their points stay where they are, and the pose says where
             # the rays start. Without this, rays would start at that frame's origin.
@@ -847,14 +872,16 @@ class _PoseSources:
                 ('pose_topic', pose_topic),
                 ('poses_file', poses_file),
                 ('sensor_frame_only', sensor_frame_only),
-                ('ray_origin_frame', ray_origin_frame),
             )
             if v
         ]
         if len(given) > 1:
             raise RecordingError(f'give only one pose source; got {" and ".join(given)}')
-        if ray_origin_frame:
-            return self._origin_choice(frame, normalize_frame(ray_origin_frame), fixed_frame, tol)
+        origin = normalize_frame(ray_origin_frame) if ray_origin_frame else None
+        if origin and given and not pose_topic:
+            raise RecordingError(f'ray_origin_frame goes with poses from TF or a pose topic, not with {given[0]}')
+        if origin and not pose_topic:
+            return self._origin_choice(frame, origin, fixed_frame, tol)
         if sensor_frame_only:
             return _PoseChoice(_identity, f'sensor frame {frame!r} (identity poses)', frame)
         if poses_file is not None:
@@ -879,7 +906,7 @@ class _PoseSources:
                     + f' Pose topics ({", ".join(t.split("/")[-1] for t in POSE_TYPES)}) in the recording: '
                     + (', '.join(f'{t} ({self._rec._topics[t][0]})' for t in cands) or '(none)')
                 )
-            choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True)
+            choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True, origin=origin)
             if not choice.usable:
                 raise RecordingError(f'{choice.description}. {_SUGGEST}')
             return choice
