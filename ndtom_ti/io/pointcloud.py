@@ -162,7 +162,7 @@ def laserscan_to_points(msg: Any) -> np.ndarray:
     """A sensor_msgs/LaserScan (a 2D lidar's sweep) as (N, 3) float32 points in its frame,
     in its x-y plane: beam i at angle ``angle_min + i angle_increment``. Readings outside
     ``[range_min, range_max]`` or not finite mean no return (the message's convention): they
-    give NaN rows, which the mapper drops and counts, as depth images' holes."""
+    give (0, 0, 0), the mapper's mark of a beam with no return (dropped and counted)."""
     r = np.asarray(msg.ranges, dtype=np.float64).reshape(-1)
     if not r.size:
         return np.empty((0, 3), dtype=np.float32)
@@ -178,9 +178,8 @@ def laserscan_to_points(msg: Any) -> np.ndarray:
         bad |= r < lo
     if np.isfinite(hi) and hi > 0:
         bad |= r > hi
-    r = np.where(bad, np.nan, r)
-    out = np.empty((r.size, 3), dtype=np.float32)
+    r = np.where(bad, 0.0, r)
+    out = np.zeros((r.size, 3), dtype=np.float32)
     out[:, 0] = r * np.cos(ang)
     out[:, 1] = r * np.sin(ang)
-    out[:, 2] = np.where(bad, np.nan, 0.0)
     return out
