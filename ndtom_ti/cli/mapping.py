@@ -319,7 +319,11 @@ def map_(
         ),
     ] = False,
     cloud_topic: Annotated[
-        str | None, typer.Option(help="PointCloud2 (or depth image) topic; needed only when the recording has several.")
+        str | None,
+        typer.Option(
+            help="The topic to map (PointCloud2, Livox CustomMsg, depth image or LaserScan); needed only "
+            "when the recording has several."
+        ),
     ] = None,
     fixed_frame: Annotated[
         str | None, typer.Option(help="Frame of the map; default: the root of the cloud frame's TF tree.")
