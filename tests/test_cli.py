@@ -634,3 +634,14 @@ def test_no_return_points_are_counted_not_mapped(bags, tmp_path: Path) -> None:
     for k in range(pb.N_CLOUDS):
         assert np.linalg.norm(g["mean"] - pb.T_map_lidar(k)[:3, 3], axis=1).min() > 1.0
     pb.check_plane_map(m)
+
+
+def test_two_cloud_topics_into_one_map(tmp_path: Path) -> None:
+    bag, _ = pb.write_two_lidar_bag(tmp_path)
+    r = run("map", bag, "-r", pb.RES, "-o", tmp_path / "two.ndtom", "--no-progress")
+    assert_user_error(r, "2 PointCloud2 topics: /points, /points2")
+    r = run(
+        "map", bag, "-r", pb.RES, "--cloud-topic", "/points,/points2", "-o", tmp_path / "two.ndtom", "--no-progress"
+    )
+    assert r.exit_code == 0, r.output
+    assert "8 of 8 clouds read" in r.output and "/points,/points2" in r.output

@@ -477,3 +477,26 @@ def test_registered_clouds_with_the_odometry_of_the_vehicle(tmp_path: Path) -> N
     assert abs(len(a["index"]) - len(b["index"])) <= 0.001 * len(a["index"])
     assert (np.abs(plain.logodds_at(b["index"]) - b["logodds"]) < 1e-3).mean() > 0.995
     assert (np.abs(plain.logodds_at(c["index"]) - c["logodds"]) < 1e-3).mean() < 0.99  # rays from elsewhere
+
+
+def test_two_lidars_into_one_map(tmp_path: Path) -> None:
+    """Two lidars on the vehicle (/points in 'lidar', /points2 in 'lidar2', another mount):
+    cloud_topic="/points,/points2" maps both, their clouds in time order, each from its own
+    pose, as inserting them by hand does."""
+    bag, want = pb.write_two_lidar_bag(tmp_path)
+    m, s = map_recording(bag, pb.RES, cloud_topic="/points,/points2")
+    assert s.cloud_topic == "/points,/points2" and s.scans_used == 8 and s.clouds_seen == 8
+    assert s.pose_source == "/points: tf: map -> base -> lidar; /points2: tf: map -> base -> lidar2"
+    assert m.metadata["options"]["cloud_topic"] == "/points,/points2"
+    ref = NdtOmMap(pb.RES)
+    for p, T in want:
+        ref.insert_scan(p, T)
+    a, b = ref.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_allclose(a["logodds"], b["logodds"], atol=1e-5)
+    with pytest.raises(ValueError, match="names a topic twice"):
+        map_recording(bag, pb.RES, cloud_topic="/points,points")
+    with pytest.raises(RecordingError, match="'/nothing' is not in"):
+        map_recording(bag, pb.RES, cloud_topic="/points,/nothing")
+    _, s2 = map_recording(bag, pb.RES, cloud_topic="/points,/points2", every=2)
+    assert s2.scans_used == 4  # every second cloud of each topic

@@ -160,6 +160,46 @@ def write_plane_bag(
     return fx.write_bag(fx.bag_path(root, fmt, name), fmt, e)
 
 
+MOUNT2 = ((-0.3, 0.2, 0.8), fx.quat_axis_angle((1, 0, 0), 0.3))  # base -> lidar2
+
+
+def write_two_lidar_bag(root: Path, n_clouds: int = 4) -> tuple[Path, list[tuple[np.ndarray, np.ndarray]]]:
+    """The scene seen by two lidars ('lidar' on /points, 'lidar2' on /points2, each a third of
+    the points); returns the ROS1 bag and [(points, T_map_sensor)] in time order."""
+    rng = np.random.default_rng(3)
+    e: list = [
+        (
+            "/tf_static",
+            "tf2_msgs/msg/TFMessage",
+            T0 - 900 * MS,
+            lambda m: m.tf([(T0, "base", "lidar", *BASE_MOUNT), (T0, "base", "lidar2", *MOUNT2)]),
+        )
+    ]
+    want = []
+    for k in range(n_clouds):
+        t = STAMPS[k]
+        qz = fx.quat_axis_angle((0, 0, 1), 0.05 * k) if k else (0.0, 0.0, 0.0, 1.0)
+        tr = T_map_base(k)[:3, 3].copy()
+        e.append(("/tf", "tf2_msgs/msg/TFMessage", t, lambda m, t=t, tr=tr, q=qz: m.tf([(t, "map", "base", tr, q)])))
+        for topic, frame, T, dt in (
+            ("/points", "lidar", T_map_lidar(k), 1),
+            ("/points2", "lidar2", T_map_base(k) @ fx.T_tq(MOUNT2), 2),
+        ):
+            w = world_points(k, rng)[::3]
+            p = ((w - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+            e.append(
+                (
+                    topic,
+                    "sensor_msgs/msg/PointCloud2",
+                    t + dt,
+                    lambda m, t=t, f=frame, p=p: m.cloud(t, f, fx.pack_cloud(p)),
+                )
+            )
+            want.append((p, T))
+    e.sort(key=lambda x: x[2])
+    return fx.write_bag(root / "two.bag", "ros1", e), want
+
+
 def eig_normals(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(eigenvalues ascending (K, 3), unit normal = eigenvector of the smallest (K, 3))."""
     w, v = np.linalg.eigh(cov)

@@ -322,7 +322,7 @@ def map_(
         str | None,
         typer.Option(
             help="The topic to map (PointCloud2, Livox CustomMsg, depth image or LaserScan); needed only "
-            "when the recording has several."
+            "when the recording has several. Several sensors into one map: /front,/rear."
         ),
     ] = None,
     fixed_frame: Annotated[

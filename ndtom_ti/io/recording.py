@@ -349,6 +349,23 @@ class Recording:
         except Exception as err:
             raise RecordingError(f'reading {topic} failed: ' + self._damaged(err)) from err
 
+    def _messages_of(self, topics: list[str], stop: int | None = None) -> Iterator[tuple[str, int, str, bytes]]:
+        """(topic, record time, msgtype, raw) of several topics, in time order."""
+        if len(topics) == 1:
+            for t, mt, raw in self._messages(topics[0], stop):
+                yield topics[0], t, mt, raw
+            return
+        if self._closed:
+            raise RecordingError(f'{self.path} is closed')
+        conns = [c for tp in topics for c in self._topics[tp][2]]
+        try:
+            for conn, t, raw in self._reader.messages(connections=conns, stop=stop):
+                yield conn.topic, t, conn.msgtype, raw
+        except RecordingError:
+            raise
+        except Exception as err:
+            raise RecordingError(f'reading {", ".join(topics)} failed: ' + self._damaged(err)) from err
+
     def _deserialize(self, raw: bytes, msgtype: str, topic: str) -> Any:
         try:
             return self._reader.deserialize(raw, msgtype)
@@ -604,12 +621,40 @@ class Recording:
             raise ValueError(f't_end ({t_end}) is before t_start ({t_start})')
         if depth_stride < 1:
             raise ValueError(f'depth_stride must be >= 1, got {depth_stride}')
-        topic, kind = self._resolve_cloud_topic(sel.cloud_topic)
+        names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
+        if len(names) > 1 and any(not n for n in names):
+            raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
+        parts = [self._stream_part(n, sel, round(extrapolation_s * 1e9)) for n in names]
+        topics = [p.topic for p in parts]
+        if len(set(topics)) < len(topics):
+            raise ValueError(f'cloud_topic {sel.cloud_topic!r} names a topic twice')
+        if len(parts) > 1:
+            fixed = {p.choice.fixed_frame for p in parts}
+            if len(fixed) > 1:
+                raise RecordingError(
+                    'the cloud topics get their poses in different frames ('
+                    + ', '.join(f'{p.topic}: {p.choice.fixed_frame!r}' for p in parts)
+                    + '); give one with fixed_frame (--fixed-frame)'
+                )
+            if (
+                isinstance(sel.poses_file, PoseTrack)
+                and sel.poses_file.by_index
+                or (
+                    sel.poses_file is not None
+                    and not isinstance(sel.poses_file, PoseTrack)
+                    and load_pose_file(sel.poses_file).by_index
+                )
+            ):
+                raise RecordingError('a poses file without stamps gives the poses of one topic by cloud index')
+        return ScanStream(self, parts, selection=sel, depth_stride=depth_stride)
+
+    def _stream_part(self, name: str | None, sel: ScanSelection, tol: int) -> _StreamPart:
+        """One cloud topic of a stream: its kind, frame, pose source and camera infos."""
+        topic, kind = self._resolve_cloud_topic(name)
         first = self._first_message(topic)
         if first is None:
             raise RecordingError(f'{topic} has no messages')
         frame = normalize_frame(first[1].header.frame_id)
-        tol = round(extrapolation_s * 1e9)
         choice = self._poses.choose(
             frame,
             _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
@@ -635,16 +680,7 @@ class Recording:
             )
             if not infos:
                 raise RecordingError(f'{info_topic} has no messages, so {topic} cannot be turned into points')
-        return ScanStream(
-            self,
-            topic,
-            kind,
-            choice,
-            frame,
-            infos,
-            selection=sel,
-            depth_stride=depth_stride,
-        )
+        return _StreamPart(topic, kind, choice, frame, infos)
 
 
 # ---------------------------------------------------------------------------- pose sources
@@ -940,8 +976,20 @@ class _PoseSources:
         )
 
 
+@dataclass
+class _StreamPart:
+    """One cloud topic of a ScanStream."""
+
+    topic: str
+    kind: str  # 'pointcloud2' | 'livox' | 'depth_image' | 'laserscan'
+    choice: _PoseChoice
+    frame_id: str  # frame of its first cloud
+    infos: list[tuple[int, Any]]  # (stamp, CameraInfo) of a depth image topic
+
+
 class ScanStream:
-    """Lazily read scans of one topic (iterate it; it has no length).
+    """Lazily read scans of one topic, or of several in time order (iterate it; it has no
+    length).
 
     After (or during) iteration: ``total_seen`` clouds of the topic were
     considered, ``kept`` yielded, and ``skipped`` counts the rest by reason
@@ -956,25 +1004,22 @@ class ScanStream:
     def __init__(
         self,
         rec: Recording,
-        topic: str,
-        kind: str,
-        choice: _PoseChoice,
-        frame_id: str,
-        camera_infos: list[tuple[int, Any]],
+        parts: list[_StreamPart],
         *,
         selection: ScanSelection,
         depth_stride: int,
     ) -> None:
         self._rec = rec
-        self.cloud_topic = topic
-        self.kind = kind  # 'pointcloud2' | 'livox' | 'depth_image' | 'laserscan'
-        self.frame_id = frame_id  # frame of the first cloud
-        self.fixed_frame = choice.fixed_frame
-        self.pose_source = choice.description
-        self.pose_range_ns = choice.range_ns
-        self._pose = choice.fn
-        self._to_sensor = choice.to_sensor
-        self._infos = camera_infos
+        self._parts = {p.topic: p for p in parts}
+        first = parts[0]
+        self.cloud_topic = ','.join(p.topic for p in parts)
+        self.kind = first.kind  # 'pointcloud2' | 'livox' | 'depth_image' | 'laserscan' (the first topic's)
+        self.frame_id = first.frame_id  # frame of the first topic's first cloud
+        self.fixed_frame = first.choice.fixed_frame
+        self.pose_source = '; '.join(
+            dict.fromkeys((f'{p.topic}: ' if len(parts) > 1 else '') + p.choice.description for p in parts)
+        )
+        self.pose_range_ns = first.choice.range_ns
         self._every = selection.every
         self._every_distance = selection.every_distance
         t_start, t_end = selection.t_start, selection.t_end
@@ -993,28 +1038,35 @@ class ScanStream:
             f'total_seen={self.total_seen}, skipped={dict(self.skipped)})'
         )
 
+    def _which(self, topic: str, index: int) -> str:
+        return f'cloud #{index}' + (f' of {topic}' if len(self._parts) > 1 else '')
+
     def _skip(self, reason: str, detail: str | None = None) -> None:
         if detail and reason not in self.skipped:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
-    def _camera_info(self, stamp: int) -> Any:
-        stamps = [s for s, _ in self._infos]
+    @staticmethod
+    def _camera_info(infos: list[tuple[int, Any]], stamp: int) -> Any:
+        stamps = [s for s, _ in infos]
         i = int(np.searchsorted(stamps, stamp))
         best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp))
-        return self._infos[best][1]
+        return infos[best][1]
 
     def __iter__(self) -> Iterator[Scan]:
         self.skipped = Counter()
         self.total_seen = self.kept = 0
         self.notes = list(self._rec.file_notes)
-        assert self._pose is not None
         rec = self._rec
-        last_pos: np.ndarray | None = None
+        last_pos: dict[str, np.ndarray] = {}  # each topic's sensor at its last kept cloud
         stop = None if self._hi is None else self._hi + 1  # reader stop is exclusive
-        index = -1
-        for t, msgtype, raw in rec._messages(self.cloud_topic, stop=stop):
-            index += 1
+        indices = dict.fromkeys(self._parts, -1)  # a cloud's index within its topic
+        for topic, t, msgtype, raw in rec._messages_of(list(self._parts), stop=stop):
+            part = self._parts[topic]
+            kind, pose_fn, to_sensor = part.kind, part.choice.fn, part.choice.to_sensor
+            assert pose_fn is not None
+            indices[topic] += 1
+            index = indices[topic]
             self.total_seen += 1
             if self._lo is not None and t < self._lo:
                 self._skip('outside time window')
@@ -1023,39 +1075,39 @@ class ScanStream:
                 self._skip('every')
                 continue
             pts = None
-            fast = decode_livox_raw(raw, rec.format == 'ros1') if self.kind == 'livox' else None
+            fast = decode_livox_raw(raw, rec.format == 'ros1') if kind == 'livox' else None
             if fast is not None:
                 stamp, frame, pts = fast
                 stamp = _cloud_stamp(stamp, t)
                 frame = normalize_frame(frame)
                 empty = len(pts) == 0
             else:
-                msg = rec._deserialize(raw, msgtype, self.cloud_topic)
+                msg = rec._deserialize(raw, msgtype, topic)
                 stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
                 frame = normalize_frame(msg.header.frame_id)
-                if self.kind == 'livox':
+                if kind == 'livox':
                     empty = len(msg.points) == 0
-                elif self.kind == 'laserscan':
+                elif kind == 'laserscan':
                     empty = len(msg.ranges) == 0
                 else:
                     empty = msg.height * msg.width == 0
             if empty:
-                self._skip('empty cloud', f'cloud #{index} at {_s(stamp)} has no points')
+                self._skip('empty cloud', f'{self._which(topic, index)} at {_s(stamp)} has no points')
                 continue
             try:
-                T = self._pose(stamp, frame, index)
+                T = pose_fn(stamp, frame, index)
             except TransformTimeError as err:
-                self._skip('no pose at stamp', f'cloud #{index}: {err}')
+                self._skip('no pose at stamp', f'{self._which(topic, index)}: {err}')
                 continue
             if (
                 self._every_distance
-                and last_pos is not None
-                and float(np.linalg.norm(T[:3, 3] - last_pos)) < self._every_distance
+                and topic in last_pos
+                and float(np.linalg.norm(T[:3, 3] - last_pos[topic])) < self._every_distance
             ):
                 self._skip('every_distance')
                 continue
-            if self.kind == 'depth_image':
-                pts = depth_image_to_points(msg, self._camera_info(stamp), self._stride)
+            if kind == 'depth_image':
+                pts = depth_image_to_points(msg, self._camera_info(part.infos, stamp), self._stride)
             else:
                 if pts is None:
                     decode = {
@@ -1063,17 +1115,17 @@ class ScanStream:
                         'livox': livox_points,
                         'laserscan': laserscan_to_points,
                     }
-                    pts = decode[self.kind](msg)
-                if self._to_sensor is not None:
-                    S = self._to_sensor(stamp, frame, index)
+                    pts = decode[kind](msg)
+                if to_sensor is not None:
+                    S = to_sensor(stamp, frame, index)
                     pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
-            last_pos = T[:3, 3].copy()
+            last_pos[topic] = T[:3, 3].copy()
             self.kept += 1
             yield Scan(points=pts, T_world_sensor=T, stamp_ns=stamp, frame_id=frame, index=index)
             if self._max is not None and self.kept >= self._max:
                 return
         # clouds after t_end were not read (the reader stopped there); count them
-        rest = rec._topics[self.cloud_topic][1] - self.total_seen
+        rest = sum(rec._topics[tp][1] for tp in self._parts) - self.total_seen
         if rest > 0 and self._hi is not None:
             self.skipped['outside time window'] += rest
             self.total_seen += rest

@@ -18,7 +18,8 @@ from .transforms import PoseTrack
 class ScanSelection:
     """The clouds of one topic to map, and their poses (see :meth:`Recording.scans`).
 
-    ``cloud_topic``: the topic (None: the one point-cloud or depth topic); pose source:
+    ``cloud_topic``: the topic (None: the one point-cloud or depth topic), or several
+    separated by commas (several sensors into one map, their clouds in time order); pose source:
     ``fixed_frame`` (the TF chain's root), ``pose_topic``, ``poses_file`` (TUM/KITTI path
     or a PoseTrack) or ``sensor_frame_only`` (identity poses); ``ray_origin_frame``: rays start
     at that TF frame's origin, not the cloud frame's (clouds published in a vehicle or world
@@ -61,7 +62,8 @@ class ScanSelection:
     def expected_scans(self, rec: Any, topic: str) -> int | None:
         """About how many scans of ``topic`` in recording ``rec`` this selection keeps (for a
         progress bar; None: unknown)."""
-        count = next((c for n, _, c in rec.topics() if n == topic), None)
+        counts = {n: c for n, _, c in rec.topics()}
+        count = sum(counts.get(t, 0) for t in topic.split(','))
         if not count:
             return None
         if self.t_start is not None or self.t_end is not None:
