@@ -500,3 +500,9 @@ def test_two_lidars_into_one_map(tmp_path: Path) -> None:
         map_recording(bag, pb.RES, cloud_topic="/points,/nothing")
     _, s2 = map_recording(bag, pb.RES, cloud_topic="/points,/points2", every=2)
     assert s2.scans_used == 4  # every second cloud of each topic
+    kitti = tmp_path / "poses.txt"  # KITTI rows: poses by cloud index, which fit one topic
+    kitti.write_text("".join(" ".join(f"{v:.6f}" for v in T[:3].ravel()) + "\n" for _, T in want[::2]))
+    with pytest.raises(RecordingError, match="gives the poses of one topic by cloud index"):
+        map_recording(bag, pb.RES, cloud_topic="/points,/points2", poses_file=kitti)
+    _, s3 = map_recording(bag, pb.RES, cloud_topic="/points", poses_file=kitti)
+    assert s3.scans_used == 4
