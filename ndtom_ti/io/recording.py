@@ -636,15 +636,8 @@ class Recording:
                     + ', '.join(f'{p.topic}: {p.choice.fixed_frame!r}' for p in parts)
                     + '); give one with fixed_frame (--fixed-frame)'
                 )
-            if (
-                isinstance(sel.poses_file, PoseTrack)
-                and sel.poses_file.by_index
-                or (
-                    sel.poses_file is not None
-                    and not isinstance(sel.poses_file, PoseTrack)
-                    and load_pose_file(sel.poses_file).by_index
-                )
-            ):
+            poses = sel.poses_file
+            if poses is not None and (poses if isinstance(poses, PoseTrack) else load_pose_file(poses)).by_index:
                 raise RecordingError('a poses file without stamps gives the poses of one topic by cloud index')
         return ScanStream(self, parts, selection=sel, depth_stride=depth_stride)
 
