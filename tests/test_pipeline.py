@@ -486,6 +486,7 @@ def test_two_lidars_into_one_map(tmp_path: Path) -> None:
     bag, want = pb.write_two_lidar_bag(tmp_path)
     m, s = map_recording(bag, pb.RES, cloud_topic="/points,/points2")
     assert s.cloud_topic == "/points,/points2" and s.scans_used == 8 and s.clouds_seen == 8
+    assert s.frame_id == "lidar,lidar2"
     assert s.pose_source == "/points: tf: map -> base -> lidar; /points2: tf: map -> base -> lidar2"
     assert m.metadata["options"]["cloud_topic"] == "/points,/points2"
     ref = NdtOmMap(pb.RES)

@@ -1007,7 +1007,7 @@ class ScanStream:
         first = parts[0]
         self.cloud_topic = ','.join(p.topic for p in parts)
         self.kind = first.kind  # 'pointcloud2' | 'livox' | 'depth_image' | 'laserscan' (the first topic's)
-        self.frame_id = first.frame_id  # frame of the first topic's first cloud
+        self.frame_id = ','.join(dict.fromkeys(p.frame_id for p in parts))  # of each topic's first cloud
         self.fixed_frame = first.choice.fixed_frame
         self.pose_source = '; '.join(
             dict.fromkeys((f'{p.topic}: ' if len(parts) > 1 else '') + p.choice.description for p in parts)
