@@ -780,10 +780,10 @@ class _PoseSources:
                 raise RecordingError(
                     f'the {what} {f!r} is not in the TF tree (frames that exist: {", ".join(tf.frames()) or "none"})'
                 )
-        if tf.root_of(origin) != tf.root_of(frame):
+        if not tf.connects(origin, frame):
             raise RecordingError(f'TF does not connect the ray origin frame {origin!r} to the cloud frame {frame!r}')
         fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(origin)
-        if fixed not in tf or tf.root_of(fixed) != tf.root_of(origin):
+        if not tf.connects(fixed, origin):
             raise RecordingError(f'TF does not connect the fixed frame {fixed!r} to the ray origin frame {origin!r}')
         if fixed == origin:
             raise RecordingError(
@@ -831,7 +831,7 @@ class _PoseSources:
             # Rays from frame `origin`: the pose topic's body frame, or a frame TF fixes to it.
             body = child or origin
             if body != origin:
-                if not (body in tf and origin in tf and tf.root_of(body) == tf.root_of(origin)):
+                if not tf.connects(body, origin):
                     raise RecordingError(
                         f'{label}: TF does not connect its frame {body!r} to the ray origin {origin!r}'
                     )
@@ -841,7 +841,7 @@ class _PoseSources:
                 desc += f' (registered clouds in {frame!r}, rays from {origin!r})'
                 to_sensor = _inverse_fn(_track_fn(track, tol, None, post))
             elif frame != origin:
-                if not (frame in tf and origin in tf and tf.root_of(frame) == tf.root_of(origin)):
+                if not tf.connects(frame, origin):
                     raise RecordingError(f'TF does not connect the cloud frame {frame!r} to the ray origin {origin!r}')
                 desc += f' (rays from {origin!r}, the clouds in {frame!r}: tf {tf.chain_str(origin, frame)})'
                 to_sensor = _tf_fn(tf, origin, None, tol)
@@ -857,7 +857,7 @@ class _PoseSources:
         elif not child or child == frame:
             if not child:
                 desc += f' (the message names no child frame: taken as the pose of {frame!r})'
-        elif child in tf and frame in tf and tf.root_of(child) == tf.root_of(frame):
+        elif tf.connects(child, frame):
             how = 'tf_static' if tf.chain_is_static(child, frame) else 'tf'
             desc += f' + {how} {tf.chain_str(child, frame)}'
             post = _tf_fn(tf, child, None, tol)
@@ -871,7 +871,7 @@ class _PoseSources:
         fixed = parent
         if fixed_frame and normalize_frame(fixed_frame) != parent:
             fixed = normalize_frame(fixed_frame)
-            if not (fixed in tf and parent in tf and tf.root_of(fixed) == tf.root_of(parent)):
+            if not tf.connects(fixed, parent):
                 return _PoseChoice(
                     None,
                     f'{label}: it gives poses in {parent!r}, and TF does not connect that to the fixed frame {fixed!r}',

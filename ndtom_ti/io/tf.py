@@ -140,6 +140,10 @@ class TfBuffer:
             frame = self._parent[frame]
         return frame
 
+    def connects(self, a: str, b: str) -> bool:
+        """True when both frames are in the tree and a chain of transforms links them."""
+        return a in self and b in self and self.root_of(a) == self.root_of(b)
+
     def is_static(self, child: str) -> bool:
         return normalize_frame(child) in self._static
 
