@@ -104,6 +104,14 @@ class RecordingInfo:
     notes: list[str] = field(default_factory=list)
 
 
+# A cloud message's points, by the kind of its topic (depth images need their CameraInfo)
+_DECODERS: dict[str, Callable[[Any], np.ndarray]] = {
+    'pointcloud2': decode_pointcloud2,
+    'livox': livox_points,
+    'laserscan': laserscan_to_points,
+}
+
+
 # ---------------------------------------------------------------------------- pose providers
 # A provider maps (stamp, cloud frame, cloud index) to T_fixed_cloud or raises
 # TransformTimeError (the cloud is skipped and counted).
@@ -336,28 +344,17 @@ class Recording:
 
     def _messages(self, topic: str, stop: int | None = None) -> Iterator[tuple[int, str, bytes]]:
         """(record time, msgtype, raw) of one topic; reader errors become RecordingError."""
-        if self._closed:
-            raise RecordingError(f'{self.path} is closed')
-        conns: list[Connection] = self._topics[topic][2]
-        if not conns:
-            return
-        try:
-            for conn, t, raw in self._reader.messages(connections=conns, stop=stop):
-                yield t, conn.msgtype, raw
-        except RecordingError:
-            raise
-        except Exception as err:
-            raise RecordingError(f'reading {topic} failed: ' + self._damaged(err)) from err
+        for _, t, mt, raw in self._messages_of([topic], stop):
+            yield t, mt, raw
 
     def _messages_of(self, topics: list[str], stop: int | None = None) -> Iterator[tuple[str, int, str, bytes]]:
-        """(topic, record time, msgtype, raw) of several topics, in time order."""
-        if len(topics) == 1:
-            for t, mt, raw in self._messages(topics[0], stop):
-                yield topics[0], t, mt, raw
-            return
+        """(topic, record time, msgtype, raw) of one or more topics, in time order; reader
+        errors become RecordingError."""
         if self._closed:
             raise RecordingError(f'{self.path} is closed')
-        conns = [c for tp in topics for c in self._topics[tp][2]]
+        conns: list[Connection] = [c for tp in topics for c in self._topics[tp][2]]
+        if not conns:  # (no connections would mean every message to the reader)
+            return
         try:
             for conn, t, raw in self._reader.messages(connections=conns, stop=stop):
                 yield conn.topic, t, conn.msgtype, raw
@@ -1103,12 +1100,7 @@ class ScanStream:
                 pts = depth_image_to_points(msg, self._camera_info(part.infos, stamp), self._stride)
             else:
                 if pts is None:
-                    decode = {
-                        'pointcloud2': decode_pointcloud2,
-                        'livox': livox_points,
-                        'laserscan': laserscan_to_points,
-                    }
-                    pts = decode[kind](msg)
+                    pts = _DECODERS[kind](msg)
                 if to_sensor is not None:
                     S = to_sensor(stamp, frame, index)
                     pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
