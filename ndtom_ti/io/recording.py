@@ -621,6 +621,8 @@ class Recording:
         names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
         if len(names) > 1 and any(not n for n in names):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
+        if len(names) > 1 and sel.poses_file is not None and not isinstance(sel.poses_file, PoseTrack):
+            sel = replace(sel, poses_file=load_pose_file(sel.poses_file))  # read once for every topic
         parts = [self._stream_part(n, sel, round(extrapolation_s * 1e9)) for n in names]
         topics = [p.topic for p in parts]
         if len(set(topics)) < len(topics):
@@ -633,8 +635,7 @@ class Recording:
                     + ', '.join(f'{p.topic}: {p.choice.fixed_frame!r}' for p in parts)
                     + '); give one with fixed_frame (--fixed-frame)'
                 )
-            poses = sel.poses_file
-            if poses is not None and (poses if isinstance(poses, PoseTrack) else load_pose_file(poses)).by_index:
+            if isinstance(sel.poses_file, PoseTrack) and sel.poses_file.by_index:
                 raise RecordingError('a poses file without stamps gives the poses of one topic by cloud index')
         return ScanStream(self, parts, selection=sel, depth_stride=depth_stride)
 
