@@ -507,3 +507,38 @@ def test_two_lidars_into_one_map(tmp_path: Path) -> None:
         map_recording(bag, pb.RES, cloud_topic="/points,/points2", poses_file=kitti)
     _, s3 = map_recording(bag, pb.RES, cloud_topic="/points", poses_file=kitti)
     assert s3.scans_used == 4
+
+
+def test_two_cloud_topics_posed_in_different_frames_are_refused(tmp_path: Path) -> None:
+    import io_fixtures as fx
+
+    e: list = []
+    for k in range(3):
+        t = pb.STAMPS[k]
+        e.append(
+            (
+                "/tf",
+                "tf2_msgs/msg/TFMessage",
+                t,
+                lambda m, t=t, k=k: m.tf([(t, "map", "lidar", (0.1 * k, 0, 1), (0, 0, 0, 1))]),
+            )
+        )
+        e.append(
+            (
+                "/tf",
+                "tf2_msgs/msg/TFMessage",
+                t,
+                lambda m, t=t, k=k: m.tf([(t, "odom", "lidar2", (0.1 * k, 0, 1), (0, 0, 0, 1))]),
+            )
+        )
+        for topic, frame in (("/points", "lidar"), ("/points2", "lidar2")):
+            p = fx.pack_cloud(np.array([[5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]))
+            e.append((topic, "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, f=frame, p=p: m.cloud(t, f, p)))
+    e.sort(key=lambda x: x[2])
+    bag = fx.write_bag(tmp_path / "apart.bag", "ros1", e)
+    with pytest.raises(
+        RecordingError, match=r"get their poses in different frames \(/points: 'map', /points2: 'odom'\)"
+    ):
+        map_recording(bag, pb.RES, cloud_topic="/points,/points2")
+    _, s = map_recording(bag, pb.RES, cloud_topic="/points2")
+    assert s.scans_used == 3 and s.fixed_frame == "odom"
