@@ -477,6 +477,8 @@ def test_registered_clouds_with_the_odometry_of_the_vehicle(tmp_path: Path) -> N
     assert abs(len(a["index"]) - len(b["index"])) <= 0.001 * len(a["index"])
     assert (np.abs(plain.logodds_at(b["index"]) - b["logodds"]) < 1e-3).mean() > 0.995
     assert (np.abs(plain.logodds_at(c["index"]) - c["logodds"]) < 1e-3).mean() < 0.99  # rays from elsewhere
+    with pytest.raises(RecordingError, match="TF does not connect its frame 'base' to the ray origin 'nowhere'"):
+        map_recording(bag, pb.RES, pose_topic="/odom", ray_origin_frame="nowhere")
 
 
 def test_two_lidars_into_one_map(tmp_path: Path) -> None:
