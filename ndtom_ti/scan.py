@@ -18,7 +18,7 @@ __all__ = ["Scan", "scan_parts"]
 
 @dataclass
 class Scan:
-    points: np.ndarray  # (N, 3) float32 in the sensor frame, NaNs kept
+    points: np.ndarray  # (N, 3) float32 (float64 from FLOAT64 clouds) in the sensor frame, NaNs kept
     T_world_sensor: np.ndarray  # (4, 4) float64: sensor frame -> world
     stamp_ns: int = 0  # header stamp of the cloud (recordings), or a made-up clock
     frame_id: str = ""  # the sensor frame's name, where the source has one

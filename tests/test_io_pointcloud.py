@@ -25,15 +25,22 @@ def test_scene_layouts_decode_exactly(i: int) -> None:
     pts, kw = fx.scene_clouds()[i]
     for m in (M1, M2):
         out = decode_pointcloud2(m.cloud(fx.T0, 'sensor', fx.pack_cloud(pts, **kw)))
-        assert out.dtype == np.float32 and out.shape == pts.shape
-        np.testing.assert_allclose(out, pts.astype(np.float32), atol=1e-6, equal_nan=True)
+        wide = any(c == 'f8' for _, c in (kw.get('layout') or {'x': (0, 'f4')}).values())
+        assert out.dtype == (np.float64 if wide else np.float32) and out.shape == pts.shape
+        np.testing.assert_allclose(out, pts.astype(out.dtype), atol=1e-6, equal_nan=True)
         assert np.array_equal(np.isnan(out), np.isnan(pts))
 
 
-def test_float64_keeps_values_to_float32_precision() -> None:
-    pts = np.array([[1e-3, 123.456789012, -98765.4321]])
+def test_float64_fields_keep_their_digits() -> None:
+    """Registered clouds in UTM or ECEF coordinates: float32 would round a point 5000 km out
+    to 0.5 m (the map's rays and Gaussians would be made of those steps)."""
+    pts = np.array([[1e-3, 123.456789012, -98765.4321], [512345.678901, 5412345.123456, 301.2345678]])
     out = decode_pointcloud2(_cloud(pts, layout={'x': (0, 'f8'), 'y': (8, 'f8'), 'z': (16, 'f8')}, point_step=24))
-    assert out.tolist() == pts.astype(np.float32).tolist()
+    assert out.dtype == np.float64 and out.tolist() == pts.tolist()
+    mixed = decode_pointcloud2(_cloud(pts, layout={'x': (0, 'f8'), 'y': (8, 'f4'), 'z': (12, 'f4')}, point_step=16))
+    assert mixed.dtype == np.float64 and mixed[:, 0].tolist() == pts[:, 0].tolist()
+    empty = decode_pointcloud2(_cloud(pts[:0], layout={'x': (0, 'f8'), 'y': (8, 'f8'), 'z': (16, 'f8')}, point_step=24))
+    assert empty.shape == (0, 3) and empty.dtype == np.float64
 
 
 def test_big_endian_float64_with_padding_and_extra_fields() -> None:
@@ -49,7 +56,7 @@ def test_big_endian_float64_with_padding_and_extra_fields() -> None:
         extra_values={'intensity': np.arange(4), 'ring': np.arange(4)},
     )
     assert msg.row_step == 2 * 32 + 3
-    np.testing.assert_array_equal(decode_pointcloud2(msg), pts.astype(np.float32))
+    np.testing.assert_array_equal(decode_pointcloud2(msg), pts)
 
 
 def test_organised_cloud_keeps_nans_in_row_major_order() -> None:

@@ -350,6 +350,41 @@ def test_registered_clouds_map_as_the_sensor_frame_ones(tmp_path: Path, fmt: str
     assert same.mean() > 0.995
 
 
+def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
+    """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
+    (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""
+    rng = np.random.default_rng(42)
+    fx = pb.fx
+    e: list = []
+    for k in range(pb.N_CLOUDS):
+        t, T = pb.STAMPS[k], pb.T_map_lidar(k)
+        q = pb.quat_mul(fx.quat_axis_angle((0, 0, 1), 0.05 * k), pb.BASE_MOUNT[1])
+        tr = T[:3, 3] + offset
+        e.append(("/odom", "nav_msgs/msg/Odometry", t, lambda m, t=t, tr=tr, q=q: m.odometry(t, "map", "lidar", tr, q)))
+        w = pb.sensor_points(k, rng) @ T[:3, :3].T + T[:3, 3] + offset
+        packed = fx.pack_cloud(w, layout={"x": (0, "f8"), "y": (8, "f8"), "z": (16, "f8")}, point_step=24)
+        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, "map", p)))
+    e.sort(key=lambda x: x[2])
+    return fx.write_bag(root / f"{name}.bag", "ros1", e)
+
+
+def test_registered_float64_clouds_far_from_the_origin_keep_their_digits(tmp_path: Path) -> None:
+    """Registered FLOAT64 clouds in UTM coordinates (500 km east, 5400 km north) give the map
+    of the same clouds near the origin, moved: float32 points would be 0.5 m steps there."""
+    off = np.array([512300.0, 5412300.0, 0.0])
+    near, _ = map_recording(_registered_f64_bag(tmp_path, "near", np.zeros(3)), pb.RES)
+    far, s = map_recording(_registered_f64_bag(tmp_path, "far", off), pb.RES)
+    assert s.frame_origin == off.tolist()  # the map's own frame: the first pose, to 100 m
+    pb.check_plane_map(near)
+    gn, gf = near.gaussians(), far.gaussians()
+    assert len(gn["mean"]) == len(gf["mean"]) > 100
+    on = np.lexsort(gn["index"].T)
+    of = np.lexsort(gf["index"].T)
+    np.testing.assert_array_equal(gn["index"][on], gf["index"][of])
+    np.testing.assert_allclose(gf["mean"][of], gn["mean"][on], atol=1e-6)
+    np.testing.assert_allclose(gf["cov"][of], gn["cov"][on], atol=1e-8)
+
+
 @pytest.mark.parametrize(
     ("fmt", "pkg"), [("ros1", "livox_ros_driver"), ("mcap", "livox_ros_driver2"), ("sqlite3", "livox_ros_driver")]
 )

@@ -1,4 +1,4 @@
-"""Decoding of sensor_msgs/PointCloud2 and depth images into (N, 3) float32 xyz."""
+"""Decoding of sensor_msgs/PointCloud2 and depth images into (N, 3) xyz arrays."""
 
 from __future__ import annotations
 
@@ -37,7 +37,9 @@ def _describe_fields(fields: Any) -> str:
 
 
 def decode_pointcloud2(msg: Any) -> np.ndarray:
-    """x, y, z of a sensor_msgs/PointCloud2 as an (N, 3) float32 array in the message's frame.
+    """x, y, z of a sensor_msgs/PointCloud2 as an (N, 3) array in the message's frame:
+    float64 when a coordinate is FLOAT64 (registered clouds in UTM or ECEF coordinates need
+    its digits: float32 steps are 0.5 m at 5000 km), else float32.
 
     Handles any layout: FLOAT32 or FLOAT64 x/y/z at any offsets, any point_step,
     padded rows (row_step > width * point_step), extra fields, big-endian data and
@@ -56,6 +58,8 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
     step = int(msg.point_step)
     order = '>' if msg.is_bigendian else '<'
     formats, offsets = [], []
+    wide = any(fields[n].datatype == 8 for n in 'xyz')
+    out_dtype = np.float64 if wide else np.float32
     for n in 'xyz':
         f = fields[n]
         if f.datatype not in (7, 8):
@@ -73,7 +77,7 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
         offsets.append(int(f.offset))
     h, w = int(msg.height), int(msg.width)
     if h * w == 0:
-        return np.empty((0, 3), dtype=np.float32)
+        return np.empty((0, 3), dtype=out_dtype)
     row_step = int(msg.row_step) or w * step  # some writers leave row_step 0 for unorganised clouds
     if row_step < w * step:
         raise RecordingError(f'PointCloud2 row_step {row_step} is smaller than width {w} x point_step {step}')
@@ -87,7 +91,7 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
     dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': formats, 'offsets': offsets, 'itemsize': step})
     # strided view over the raw bytes: no copy, row padding skipped by the row stride
     pts = np.ndarray(shape=(h, w), dtype=dtype, buffer=data, strides=(row_step, step))
-    out = np.empty((h * w, 3), dtype=np.float32)
+    out = np.empty((h * w, 3), dtype=out_dtype)
     out[:, 0] = pts['x'].reshape(-1)
     out[:, 1] = pts['y'].reshape(-1)
     out[:, 2] = pts['z'].reshape(-1)
