@@ -491,6 +491,62 @@ def test_ctrl_c_saves_what_was_mapped(bags, tmp_path: Path, monkeypatch) -> None
     del m
 
 
+def test_a_run_stopped_early_keeps_the_map_it_would_replace(bags, tmp_path: Path, monkeypatch) -> None:
+    """Run again into a finished map's file and press Ctrl-C: the scans mapped so far go beside
+    it (NAME.partial.ndtom), and the finished map stays as it was."""
+    out = tmp_path / "keep.ndtom"
+    assert run("map", bags["ros1"], "-r", pb.RES, "-o", out).exit_code == 0
+    before = out.read_bytes()
+    orig = NdtOmMap.insert_scan
+    calls = {"n": 0}
+
+    def insert(self, points, T):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return orig(self, points, T)
+
+    monkeypatch.setattr(NdtOmMap, "insert_scan", insert)
+    r = run("map", bags["ros1"], "-r", pb.RES, "-o", out)
+    assert r.exit_code == 130, r.output
+    partial = tmp_path / "keep.partial.ndtom"
+    assert f"saved the 2 scans mapped so far to {partial}" in r.output, r.output
+    assert f"{out}, the map there before this run, is unchanged" in r.output
+    assert out.read_bytes() == before and NdtOmMap.load(out).metadata["complete"] is True
+    m = NdtOmMap.load(partial)
+    assert m.scans_inserted == 2 and m.metadata["complete"] is False
+    del m
+    monkeypatch.setattr(NdtOmMap, "insert_scan", orig)
+    assert run("map", bags["ros1"], "-r", pb.RES, "-o", out).exit_code == 0  # a finished run replaces it
+    assert NdtOmMap.load(out).metadata["complete"] is True
+
+
+def test_the_map_file_does_not_replace_other_files(bags, tmp_path: Path) -> None:
+    """-o naming another recording, a file of another kind, or another format's suffix is
+    refused before any work: the map would destroy the file, or not be what the name says."""
+    other = tmp_path / "other.bag"
+    other.write_bytes(bags["ros1"].read_bytes())
+    r = run("map", bags["ros1"], "-r", pb.RES, "-o", other)
+    assert_user_error(r, "is not an ndtom map file (it is a ROS1 bag)", "choose another path with -o")
+    assert other.read_bytes() == bags["ros1"].read_bytes()
+    notes = tmp_path / "notes.txt"
+    notes.write_text("calibration notes\n")
+    assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", notes), "it is a file of another kind")
+    assert notes.read_text() == "calibration notes\n"
+    assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", tmp_path / "new.bag"), "is named as a recording")
+    for name in ("cloud.ply", "map.bt", "grid.PGM"):
+        target = tmp_path / name
+        r = run("map", bags["ros1"], "-r", pb.RES, "-o", target)
+        assert_user_error(r, "maps are written in ndtom's own format", "ndtom export")
+        assert not target.exists()
+    disguised = tmp_path / "rec.ndtom"  # a recording, whatever its name
+    disguised.write_bytes(bags["ros1"].read_bytes())
+    assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", disguised), "(it is a ROS1 bag)")
+    empty = tmp_path / "empty.ndtom"
+    empty.touch()  # an empty file (as `touch` leaves) is no loss
+    assert run("map", bags["ros1"], "-r", pb.RES, "-o", empty).exit_code == 0
+
+
 @pytest.mark.parametrize("fail_at", [3, 1])
 def test_memory_budget_saves_what_was_mapped_and_exits_1(bags, tmp_path: Path, monkeypatch, fail_at) -> None:
     orig = NdtOmMap.insert_scan

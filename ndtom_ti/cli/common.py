@@ -185,6 +185,54 @@ def check_writable(path: Path, what: str = "output") -> Path:
     return path
 
 
+# First bytes of files a map output must not replace, and what they are.
+_FOREIGN_HEADS = (
+    (b"#ROSBAG", "a ROS1 bag"),
+    (b"SQLite format 3", "an SQLite database (a ROS2 bag?)"),
+    (b"\x89MCAP", "an MCAP file (a ROS2 bag?)"),
+)
+_RECORDING_SUFFIXES = (".bag", ".db3", ".mcap")
+
+
+def check_map_output(path: Path, option: str = "-o") -> None:
+    """Fail (before any work) when a map file's output ``path`` names another format, which a
+    user would expect to get, or is an existing file that is not a map file: writing the map
+    there would destroy it (another recording, a point cloud). Map files are replaced, and
+    so is a damaged file named as one, unless it is a recording."""
+    from ..export import SUFFIXES
+    from ..mapfile import MAGIC
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError:
+        head = b""  # not there (or unreadable: check_writable says why)
+    suffix = path.suffix.lower()
+    if head and not head.startswith(MAGIC):
+        # (a damaged file named as a map is replaced; a recording is not, whatever its name)
+        kind = next((name for start, name in _FOREIGN_HEADS if head.startswith(start)), None)
+        if kind is not None or suffix != MAP_SUFFIX:
+            fail(
+                f"{path} exists and is not an ndtom map file (it is {kind or 'a file of another kind'}): writing "
+                "the map would destroy it",
+                f"choose another path with {option}, or remove {path} first if it is not needed",
+            )
+    as_map = path.with_suffix(MAP_SUFFIX)
+    if suffix in SUFFIXES:
+        fail(
+            f"the map file {path} is named as a {SUFFIXES[suffix]} file, but maps are written in ndtom's own format",
+            f"write the map to {as_map} and convert it: ndtom export {as_map} -o {path}",
+        )
+    if suffix in _RECORDING_SUFFIXES:
+        fail(f"the map file {path} is named as a recording ({suffix})", f"choose a {MAP_SUFFIX} path with {option}")
+
+
+def partial_path(output: Path) -> Path:
+    """Where a run that stops early (Ctrl-C, the memory budget, a bad scan) writes its map when
+    ``output`` held a map before the run: beside it, so the finished map there is kept."""
+    return output.with_name(f"{output.stem}.partial{output.suffix}")
+
+
 def _lies_in(path: Path, folder_stat: os.stat_result) -> bool:
     """Whether ``path`` (resolved) or one of its folders is the folder of ``folder_stat``
     (by device and inode: bind mounts and hard links too)."""

@@ -28,6 +28,7 @@ from .common import (
     MAP_SUFFIX,
     Arch,
     MissModel,
+    check_map_output,
     check_not_input,
     check_writable,
     console_err,
@@ -40,6 +41,7 @@ from .common import (
     make_table,
     need_extra,
     own_process,
+    partial_path,
     resolution_option,
     user_errors,
 )
@@ -224,22 +226,27 @@ def _finish_mapping(
     extra_rows: list | None = None,
     signals: Any = None,
     compact: bool = False,
+    keep_existing: bool = False,
 ) -> int:
     """Print the summary, write the map (also after Ctrl-C, SIGTERM, a memory stop or a bad
     scan; ``compact``: its Gaussians rounded), return the exit code. ``signals``: the
-    command's StopSignals; from here on a signal only waits for the map to be on disk."""
+    command's StopSignals; from here on a signal only waits for the map to be on disk.
+    ``keep_existing``: ``output`` held a map before the run; a run that stopped early
+    writes beside it (``partial_path``) and leaves that map as it was."""
     if signals is not None:
         signals.phase = "saving"
     bar.stop(summary)
     out, err = console_out(), console_err()
     wrote: Path | None = None
+    target = partial_path(output) if keep_existing and not summary.complete else output
     if summary.scans_used or summary.scans_resumed:
         m.metadata.setdefault("options", {})["arch"] = bar.arch_used
         try:
-            wrote = m.save(output, compact=compact)
+            wrote = m.save(target, compact=compact)
         except OSError as exc:
             out.print(_summary_table(summary, None))
-            fail(f"cannot write the map to {output}: {exc}", "choose another path with -o", EXIT_FAILURE)
+            fail(f"cannot write the map to {target}: {exc}", "choose another path with -o", EXIT_FAILURE)
+    kept = f"; {output}, the map there before this run, is unchanged" if wrote and target != output else ""
     out.print(_summary_table(summary, wrote))
     for row in extra_rows or []:
         out.print(row)
@@ -250,7 +257,7 @@ def _finish_mapping(
         n = summary.scans_used + summary.scans_resumed
         msg = (
             f"Interrupted: saved the {n} scan{'s' if n != 1 else ''} mapped so far to {wrote} ({name}; the map is "
-            "marked incomplete)"
+            f"marked incomplete){kept}"
             if wrote
             else f"Interrupted ({name}) before any scan was mapped; no map written"
         )
@@ -259,7 +266,7 @@ def _finish_mapping(
     if summary.stopped == "memory":
         saved = (
             f"Saved the {summary.scans_used + summary.scans_resumed} scans mapped before it to {wrote} "
-            "(marked incomplete)."
+            f"(marked incomplete){kept}."
             if wrote
             else "Nothing was mapped; no map written."
         )
@@ -271,7 +278,7 @@ def _finish_mapping(
         err.print(Text.assemble(("Error: ", "bold red"), (summary.error or "a scan could not be mapped", "red")))
         saved = (
             f"Saved the {summary.scans_used + summary.scans_resumed} scans mapped before it to {wrote} "
-            "(marked incomplete)."
+            f"(marked incomplete){kept}."
             if wrote
             else "Nothing was mapped; no map written."
         )
@@ -516,8 +523,16 @@ def map_(
             cfg, min_range=min_range, max_range=max_range, miss_model=miss_model.value if miss_model else None
         )
         out_path = output if output is not None else default_output(bag)
-        check_not_input(out_path, {"recording": bag, "pose file": poses, "config file": config})
+        inputs = {"recording": bag, "pose file": poses, "config file": config}
+        check_not_input(out_path, inputs)
         out_path = check_writable(out_path, "map file")
+        check_map_output(out_path)
+        # a map there already: a run that stops early writes beside it, keeping that one
+        keep_existing = out_path.is_file() and out_path.stat().st_size > 0
+        if keep_existing:
+            check_not_input(partial_path(out_path), inputs)
+            check_writable(partial_path(out_path), "map file")
+            check_map_output(partial_path(out_path))
         tiles = plan(
             resolution=resolution,
             workers=workers,
@@ -565,7 +580,7 @@ def map_(
                     metadata={"command": "ndtom map --view", "config_file": str(config.resolve()) if config else None},
                     progress=bar,
                     finish=lambda m, summary, signals=None: _finish_mapping(
-                        m, summary, out_path, bar, signals=signals, compact=compact
+                        m, summary, out_path, bar, signals=signals, compact=compact, keep_existing=keep_existing
                     ),
                 )
             finally:
@@ -607,7 +622,9 @@ def map_(
                     sig.phase = "saving"  # from here on a signal waits for the checkpoint and the map
                     bar.stop(summary)
                     tiles.finish(m, summary, "ndtom map")
-                code = _finish_mapping(m, summary, out_path, bar, signals=sig, compact=compact)
+                code = _finish_mapping(
+                    m, summary, out_path, bar, signals=sig, compact=compact, keep_existing=keep_existing
+                )
             finally:
                 m.close()  # its slot (or its workers) back now: the map is on disk
             if tiles is not None and code == EXIT_OK:

@@ -20,6 +20,7 @@ from rich.text import Text
 from ..tiledfile import MANIFEST, is_tiled, read_manifest
 from .common import (
     MAP_SUFFIX,
+    check_map_output,
     check_not_input,
     check_writable,
     console_err,
@@ -295,6 +296,7 @@ def merge(
         out_path = output if output is not None else default_merged(folder)
         check_not_input(out_path, {"tiled map": folder})
         out_path = check_writable(out_path, "map file")
+        check_map_output(out_path)
         snap = MapSnapshot.load(folder)
         md = dict(snap.metadata)
         md["merged_from"] = str(folder.expanduser().resolve())
