@@ -411,15 +411,15 @@ def run_scans(
                 waited += time.perf_counter() - t_wait
                 if not go:
                     break
-                points, T = scan_parts(scan)
-                if origin is end:  # decided at the first scan, kept in the map's metadata
-                    origin = frame_origin(m, T)
-                    if origin is not None:
-                        summary.frame_origin = origin.tolist()
-                        m.metadata["frame_origin"] = summary.frame_origin
-                if origin is not None:
-                    T = shifted(T, origin)
                 try:
+                    points, T = scan_parts(scan)
+                    if origin is end:  # decided at the first scan, kept in the map's metadata
+                        origin = frame_origin(m, T)
+                        if origin is not None:
+                            summary.frame_origin = origin.tolist()
+                            m.metadata["frame_origin"] = summary.frame_origin
+                    if origin is not None:
+                        T = shifted(T, origin)
                     rep = obs.insert(m, points, T)
                 except MapMemoryError as exc:
                     _stopped(summary, "memory", f"scan {summary.scans_used + 1} was refused: {exc}")

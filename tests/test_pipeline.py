@@ -186,6 +186,40 @@ def test_map_scans_accepts_pairs_and_objects() -> None:
     del m
 
 
+@pytest.mark.parametrize(
+    "bad",
+    [
+        None,
+        (1, 2, 3),
+        {"points": 1},
+        "scan",
+        ([[0.0, 0.0, 1.0], [1.0, 2.0]], np.eye(4)),
+        ("P", np.eye(3)),
+        ("P", "pose"),
+    ],
+    ids=["none", "triple", "dict", "str", "ragged points", "3x3 pose", "str pose"],
+)
+def test_map_scans_keeps_the_scans_before_a_malformed_one(bad) -> None:
+    """A malformed item after good scans stops the loop with the map of the scans before it
+    (summary.stopped 'error', a clear message); as the first item it raises a clear error."""
+    rng = np.random.default_rng(1)
+    good = [(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(3)]
+    if isinstance(bad, tuple) and len(bad) == 2 and isinstance(bad[0], str):
+        bad = (good[0][0], bad[1])
+    for T0 in (None, 512_300.0):  # near the origin, and far (the frame is shifted)
+        scans = [(p, T.copy()) for p, T in good]
+        if T0 is not None:
+            for _, T in scans:
+                T[0, 3] += T0
+        m, s = map_scans([*scans[:2], bad, scans[2]], pb.RES)
+        assert s.scans_used == 2 and s.stopped == "error" and m.scans_inserted == 2, s.error
+        assert "scan 3 could not be inserted" in s.error and "The map holds the 2 scans before it" in s.error
+        assert "Traceback" not in s.error and "IndexError" not in s.error
+        m.close()
+        with pytest.raises((TypeError, ValueError), match=r"scan|points|T_world_sensor|pair"):
+            map_scans([bad, *scans], pb.RES)
+
+
 def test_poses_far_from_their_frames_origin_shift_the_maps_frame() -> None:
     """Only a first pose outside the middle half of the grid shifts the frame (rounded to
     100 m, recorded); near-origin poses and a map that already holds scans are left alone."""
