@@ -61,7 +61,8 @@ def test_scans_decode_points_and_interpolate_tf_poses(scene_bag: Path) -> None:
     assert '0.500 s before the first' in stream.notes[0] and 'map -> base' in stream.notes[0]
     for s in scans:
         assert s.stamp_ns == fx.CLOUD_TIMES[s.index] and s.frame_id == 'sensor'
-        assert s.T_world_sensor.dtype == np.float64 and s.points.dtype == np.float32
+        f64 = any(c == 'f8' for n, (_, c) in clouds[s.index][1].get('layout', {}).items() if n in 'xyz')
+        assert s.T_world_sensor.dtype == np.float64 and s.points.dtype == (np.float64 if f64 else np.float32)
         np.testing.assert_allclose(s.T_world_sensor, fx.T_map_sensor(s.stamp_ns), atol=1e-6)
         np.testing.assert_allclose(s.points, clouds[s.index][0], atol=1e-5, equal_nan=True)
     assert np.isnan(scans[2].points).any(axis=1).sum() == 2  # organised cloud, NaNs kept
