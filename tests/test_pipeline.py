@@ -384,6 +384,28 @@ def test_registered_clouds_map_as_the_sensor_frame_ones(tmp_path: Path, fmt: str
     assert same.mean() > 0.995
 
 
+@pytest.mark.parametrize(("fmt", "registered"), [("ros1", False), ("mcap", False), ("ros1", True)])
+def test_transforms_tf2_would_drop_are_dropped_and_noted(tmp_path: Path, fmt: str, registered: bool) -> None:
+    """A zero quaternion (an unset pose) or NaN in one transform or pose message is dropped, as
+    tf2 drops it, and noted: it neither refuses the recording nor stops the run, and the map is
+    the one without it."""
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, fmt, name="plain", registered=registered), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, fmt, name="faults", registered=registered, faults=True)
+    m, s = map_recording(bag, pb.RES)
+    assert s.complete and s.scans_used == pb.N_CLOUDS
+    notes = "\n".join(s.skip_notes)
+    assert "ignored 1 transform base -> cam with a zero-length quaternion" in notes, notes
+    assert "ignored 2 transforms map -> base with a zero-length quaternion (or other faults)" in notes or registered
+    if registered:
+        assert "/odom: ignored 1 pose with a zero-length quaternion" in notes
+        assert "/odom: ignored 1 pose with NaN or Inf values" in notes
+    a, b = plain.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])
+    with ndtom_ti.io.open_recording(bag) as rec:  # `ndtom info` reads it too
+        assert any("base -> cam" in n for n in rec.info().notes)
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

@@ -86,14 +86,51 @@ def write_plane_bag(
     odom_child: str = "lidar",
     no_return: int = 0,
     livox: str | None = None,
+    faults: bool = False,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
     the poses of ``odom_child`` ('lidar' or 'base') on /odom unless not ``odom``. ``no_return``: that many (0, 0, 0) points
     in each cloud, as drivers of organised clouds mark beams with no return. ``livox``: the
-    clouds as that Livox driver package's CustomMsg instead of PointCloud2."""
+    clouds as that Livox driver package's CustomMsg instead of PointCloud2. ``faults``: transforms
+    and poses that tf2 drops (a zero quaternion, NaN) among the good ones: an unset static
+    mount of an unused frame, an unset first pose before the first cloud, a NaN pose between
+    clouds 1 and 2; the map is the one without them."""
     rng = np.random.default_rng(42)
     e: list = []
+    if faults:
+        zero, nan3 = (0.0, 0.0, 0.0, 0.0), (float("nan"), 0.0, 0.0)
+        e.append(
+            (
+                "/tf_static",
+                "tf2_msgs/msg/TFMessage",
+                T0 - 800 * MS,
+                lambda m: m.tf([(T0, "base", "cam", (0, 0, 1), zero)]),
+            )
+        )
+        for topic in ("/tf", "/odom") if registered and odom else ("/tf",):
+            for t, tr, q in (
+                (T0 - 100 * MS, (0.0, 0.0, 0.0), zero),
+                (STAMPS[1] + 100 * MS, nan3, (0.0, 0.0, 0.0, 1.0)),
+            ):
+                if topic == "/tf":
+                    e.append(
+                        (
+                            topic,
+                            "tf2_msgs/msg/TFMessage",
+                            t,
+                            lambda m, t=t, tr=tr, q=q: m.tf([(t, "map", "base", tr, q)]),
+                        )
+                    )
+                else:
+                    e.append(
+                        (
+                            topic,
+                            "nav_msgs/msg/Odometry",
+                            t,
+                            lambda m, t=t, tr=tr, q=q: m.odometry(t, "map", odom_child, tr, q),
+                        )
+                    )
     if registered and odom:
         for k in range(n_clouds):
             t, qz = STAMPS[k], fx.quat_axis_angle((0, 0, 1), 0.05 * k)

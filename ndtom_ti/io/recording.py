@@ -23,7 +23,7 @@ from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_poin
 from .posefile import load_pose_file
 from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
-from .transforms import PoseTrack, invert
+from .transforms import PoseTrack, invalid_transform, invert
 
 __all__ = [
     'PoseSourceInfo',
@@ -127,6 +127,7 @@ class _PoseChoice:
     # T_sensor_cloud: takes a cloud's points into the frame the rays start from, where that
     # is not the cloud's own (registered clouds, ray_origin_frame); None when it is.
     to_sensor: PoseFn | None = None
+    notes: tuple[str, ...] = ()  # what a run with this choice should say (poses it dropped)
 
     @property
     def usable(self) -> bool:
@@ -692,6 +693,7 @@ class _PoseSources:
             ts: list[tuple[float, float, float]] = []
             qs: list[tuple[float, float, float, float]] = []
             notes: list[str] = []
+            bad: dict[str, int] = {}
             parent: str | None = None
             child: str | None = None
             for _, mt, raw in self._rec._messages(topic):
@@ -709,9 +711,16 @@ class _PoseSources:
                     notes.append(
                         f'{topic}: frames change from {parent} -> {child} to {p} -> {c}; using {parent} -> {child}'
                     )
+                t, r = (v.x, v.y, v.z), (q.x, q.y, q.z, q.w)
+                why = invalid_transform(t, r)
+                if why is not None:  # an unset or broken pose (tf2 drops such transforms too)
+                    bad[why] = bad.get(why, 0) + 1
+                    continue
                 stamps.append(stamp_ns(m.header.stamp))
-                ts.append((v.x, v.y, v.z))
-                qs.append((q.x, q.y, q.z, q.w))
+                ts.append(t)
+                qs.append(r)
+            for why, n in bad.items():
+                notes.append(f'{topic}: ignored {n} pose{"s" if n != 1 else ""} with {why}')
             track = PoseTrack.from_tq(stamps, ts, qs, source=f'pose topic {topic}')
             self._pose_tracks[topic] = (track, parent or '', child, notes)
         return self._pose_tracks[topic]
@@ -767,7 +776,13 @@ class _PoseSources:
         rng = tf.dynamic_range_ns(fixed, frame)
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
             return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
-        return _PoseChoice(_tf_fn(tf, fixed, None, tol), f'tf: {chain}' + (' (static)' if static else ''), fixed, rng)
+        return _PoseChoice(
+            _tf_fn(tf, fixed, None, tol),
+            f'tf: {chain}' + (' (static)' if static else ''),
+            fixed,
+            rng,
+            notes=tuple(tf.ignored_notes()),
+        )
 
     def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
         """Poses from TF with the rays starting at frame ``origin`` rather than at the cloud
@@ -810,7 +825,7 @@ class _PoseSources:
         origin: str | None = None,
     ) -> _PoseChoice:
         msgtype = self._rec._topics[topic][0]
-        track, parent, child, _ = self.track(topic)
+        track, parent, child, tnotes = self.track(topic)
         label = f'pose topic {topic} ({msgtype} {parent} -> {child if child else "(no child frame)"})'
         if not len(track):
             return _PoseChoice(None, f'{label}: no messages')
@@ -877,7 +892,12 @@ class _PoseSources:
             desc = f'tf {tf.chain_str(fixed, parent)} + ' + desc
             pre = _tf_fn(tf, fixed, parent, tol)
         return _PoseChoice(
-            _track_fn(track, tol, pre, post), desc + extra, fixed, (track.first_ns, track.last_ns), to_sensor
+            _track_fn(track, tol, pre, post),
+            desc + extra,
+            fixed,
+            (track.first_ns, track.last_ns),
+            to_sensor,
+            notes=(*tnotes, *tf.ignored_notes()),
         )
 
     def choose(
@@ -1048,6 +1068,8 @@ class ScanStream:
         self.skipped = Counter()
         self.total_seen = self.kept = 0
         self.notes = list(self._rec.file_notes)
+        for part in self._parts.values():
+            self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
         last_pos: dict[str, np.ndarray] = {}  # each topic's sensor at its last kept cloud
         stop = None if self._hi is None else self._hi + 1  # reader stop is exclusive

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .errors import RecordingError, TransformTimeError
-from .transforms import PoseTrack, invert, make_transform
+from .transforms import PoseTrack, invalid_transform, invert, make_transform
 
 __all__ = ['TfBuffer', 'TfEdge', 'normalize_frame', 'stamp_ns']
 
@@ -57,6 +57,8 @@ class TfBuffer:
         self._static_count: dict[str, int] = {}
         self.notes: list[str] = []
         self._noted: set[tuple[str, str, str]] = set()
+        # (parent, child) -> (transforms dropped: NaN/Inf or a zero quaternion, why the first)
+        self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
 
     # ------------------------------------------------------------------ building
     def add(
@@ -72,6 +74,15 @@ class TfBuffer:
         parent, child = normalize_frame(parent), normalize_frame(child)
         if not parent or not child or parent == child:
             self._note(('bad', parent, child), f'ignored a transform with frames {parent!r} -> {child!r}')
+            return
+        why = invalid_transform(translation, rotation)
+        if why is not None:  # as tf2 does: the edge's other transforms still count
+            n, first = self.ignored.get((parent, child), (0, why))
+            self.ignored[(parent, child)] = (n + 1, first)
+            self._note(
+                ('invalid', parent, child),
+                f'ignored transforms {parent} -> {child} with {why} (the first at {_fmt_s(int(stamp))})',
+            )
             return
         known = self._parent.get(child)
         if known is not None and known != parent:
@@ -122,6 +133,13 @@ class TfBuffer:
         if key not in self._noted:
             self._noted.add(key)
             self.notes.append(text)
+
+    def ignored_notes(self) -> list[str]:
+        """One line per edge whose transforms were dropped (``add``), with their count."""
+        return [
+            f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
+            for (p, c), (n, why) in self.ignored.items()
+        ]
 
     # ------------------------------------------------------------------ structure
     def frames(self) -> list[str]:

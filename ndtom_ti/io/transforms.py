@@ -14,12 +14,25 @@ from .errors import RecordingError
 
 __all__ = [
     'PoseTrack',
+    'invalid_transform',
     'invert',
     'make_transform',
     'quat_to_rot',
     'rot_to_quat',
     'slerp',
 ]
+
+
+def invalid_transform(translation: Sequence[float], rotation: Sequence[float]) -> str | None:
+    """Why a recorded transform (translation, quaternion x, y, z, w) cannot be used, or None:
+    NaN or Inf values, or a quaternion of zero length (a driver's unset pose). tf2 drops
+    such transforms with a warning; so does a recording's reader."""
+    v = np.asarray([*translation, *rotation], dtype=np.float64)
+    if not np.isfinite(v).all():
+        return 'NaN or Inf values'
+    if np.linalg.norm(v[3:]) < 1e-12:
+        return 'a zero-length quaternion'
+    return None
 
 
 def quat_to_rot(q: Sequence[float] | np.ndarray) -> np.ndarray:
