@@ -406,6 +406,30 @@ def test_transforms_tf2_would_drop_are_dropped_and_noted(tmp_path: Path, fmt: st
         assert any("base -> cam" in n for n in rec.info().notes)
 
 
+@pytest.mark.parametrize("how", ["truncated", "no frame"])
+def test_a_broken_cloud_among_good_ones_is_skipped_and_counted(tmp_path: Path, how: str) -> None:
+    """One broken message mid-recording (data cut short, an empty frame_id) is skipped, counted
+    and noted; the scans after it are mapped. As the first cloud it refuses the recording, as
+    any bad first cloud does."""
+    m, s = map_recording(pb.write_plane_bag(tmp_path, name="b", broken={2: how}), pb.RES)
+    assert s.complete and s.scans_used == pb.N_CLOUDS - 1 and s.skipped == {"bad message": 1}
+    note = next(n for n in s.skip_notes if n.startswith("bad message: cloud #2"))
+    assert ("truncated" if how == "truncated" else "frame '' is not in the TF tree") in note, note
+    assert m.scans_inserted == pb.N_CLOUDS - 1
+    with pytest.raises(RecordingError, match="truncated" if how == "truncated" else "''"):
+        map_recording(pb.write_plane_bag(tmp_path, name="b0", broken={0: how}), pb.RES)
+
+
+def test_an_empty_first_cloud_without_a_frame_does_not_choose_the_poses(tmp_path: Path) -> None:
+    """A driver's empty start-up cloud with a default header (no frame, stamp 0): the poses are
+    chosen by the first cloud that names its frame, and the empty one is counted as empty."""
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain"), pb.RES)
+    m, s = map_recording(pb.write_plane_bag(tmp_path, name="e", broken={-1: "empty"}), pb.RES)
+    assert s.frame_id == "lidar" and s.pose_source == "tf: map -> base -> lidar"
+    assert s.scans_used == pb.N_CLOUDS and s.skipped == {"empty cloud": 1}
+    np.testing.assert_array_equal(plain.known_cells()["logodds"], m.known_cells()["logodds"])
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

@@ -87,6 +87,7 @@ def write_plane_bag(
     no_return: int = 0,
     livox: str | None = None,
     faults: bool = False,
+    broken: dict[int, str] | None = None,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
@@ -95,7 +96,10 @@ def write_plane_bag(
     clouds as that Livox driver package's CustomMsg instead of PointCloud2. ``faults``: transforms
     and poses that tf2 drops (a zero quaternion, NaN) among the good ones: an unset static
     mount of an unused frame, an unset first pose before the first cloud, a NaN pose between
-    clouds 1 and 2; the map is the one without them."""
+    clouds 1 and 2; the map is the one without them. ``broken``: {cloud index: 'truncated' |
+    'no frame'}: that cloud's data cut short, or its frame_id left empty; and {-1: 'empty'}: an
+    empty cloud with a default header (no frame, stamp 0) before the first, as some drivers
+    publish at start-up."""
     rng = np.random.default_rng(42)
     e: list = []
     if faults:
@@ -186,6 +190,12 @@ def write_plane_bag(
             )
             continue
         packed = fx.pack_cloud(pts)
+        how = (broken or {}).get(i)
+        if how == "truncated":
+            packed.data = packed.data[: len(packed.data) // 2]
+        if how == "no frame":
+            e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, "", p)))
+            continue
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]
         e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, frame, p)))
@@ -193,6 +203,9 @@ def write_plane_bag(
             e.append(
                 ("/points_front", "sensor_msgs/msg/PointCloud2", t + 2, lambda m, t=t, p=packed: m.cloud(t, frame, p))
             )
+    if (broken or {}).get(-1) == "empty":
+        empty = fx.pack_cloud(np.zeros((0, 3)))
+        e.append(("/points", "sensor_msgs/msg/PointCloud2", T0 - 700 * MS, lambda m: m.cloud(0, "", empty)))
     e.sort(key=lambda x: x[2])
     return fx.write_bag(fx.bag_path(root, fmt, name), fmt, e)
 

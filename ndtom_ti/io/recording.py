@@ -82,6 +82,10 @@ class PoseSourceInfo:
     constant: bool  # every pose identical (a fixed pose, not a trajectory)
 
 
+# Messages of a topic read for the first one that names its frame (Recording._first_message).
+_FRAME_LOOKAHEAD = 50
+
+
 @dataclass
 class RecordingInfo:
     path: Path
@@ -373,19 +377,26 @@ class Recording:
             ) from err
 
     def _first_message(self, topic: str) -> tuple[int, Any] | None:
+        """The topic's first message that names its frame (what its poses are chosen by): a
+        driver's first cloud may be an empty one with a default header. The first message
+        when none of the first ``_FRAME_LOOKAHEAD`` names one."""
         if topic not in self._first:
             self._first[topic] = None
-            for t, msgtype, raw in self._messages(topic):
+            for k, (t, msgtype, raw) in enumerate(self._messages(topic)):
                 fast = decode_livox_raw(raw, self.format == 'ros1') if msgtype in LIVOX_TYPES else None
                 if fast is not None:
                     # its header from the bytes: a bag may lack the driver's type definitions
                     sec, nsec = divmod(fast[0], 10**9)
                     stamp = SimpleNamespace(sec=sec, nanosec=nsec)
                     msg = SimpleNamespace(header=SimpleNamespace(stamp=stamp, frame_id=fast[1]))
-                    self._first[topic] = (t, msg)
                 else:
-                    self._first[topic] = (t, self._deserialize(raw, msgtype, topic))
-                break
+                    msg = self._deserialize(raw, msgtype, topic)
+                if self._first[topic] is None:
+                    self._first[topic] = (t, msg)
+                if normalize_frame(msg.header.frame_id) or k + 1 >= _FRAME_LOOKAHEAD:
+                    if normalize_frame(msg.header.frame_id):
+                        self._first[topic] = (t, msg)
+                    break
         return self._first[topic]
 
     def _of_type(self, *types: str) -> list[str]:
@@ -1087,46 +1098,53 @@ class ScanStream:
             if index % self._every:
                 self._skip('every')
                 continue
-            pts = None
-            fast = decode_livox_raw(raw, rec.format == 'ros1') if kind == 'livox' else None
-            if fast is not None:
-                stamp, frame, pts = fast
-                stamp = _cloud_stamp(stamp, t)
-                frame = normalize_frame(frame)
-                empty = len(pts) == 0
-            else:
-                msg = rec._deserialize(raw, msgtype, topic)
-                stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
-                frame = normalize_frame(msg.header.frame_id)
-                if kind == 'livox':
-                    empty = len(msg.points) == 0
-                elif kind == 'laserscan':
-                    empty = len(msg.ranges) == 0
-                else:
-                    empty = msg.height * msg.width == 0
-            if empty:
-                self._skip('empty cloud', f'{self._which(topic, index)} at {_s(stamp)} has no points')
-                continue
             try:
-                T = pose_fn(stamp, frame, index)
-            except TransformTimeError as err:
-                self._skip('no pose at stamp', f'{self._which(topic, index)}: {err}')
+                pts = None
+                fast = decode_livox_raw(raw, rec.format == 'ros1') if kind == 'livox' else None
+                if fast is not None:
+                    stamp, frame, pts = fast
+                    stamp = _cloud_stamp(stamp, t)
+                    frame = normalize_frame(frame)
+                    empty = len(pts) == 0
+                else:
+                    msg = rec._deserialize(raw, msgtype, topic)
+                    stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
+                    frame = normalize_frame(msg.header.frame_id)
+                    if kind == 'livox':
+                        empty = len(msg.points) == 0
+                    elif kind == 'laserscan':
+                        empty = len(msg.ranges) == 0
+                    else:
+                        empty = msg.height * msg.width == 0
+                if empty:
+                    self._skip('empty cloud', f'{self._which(topic, index)} at {_s(stamp)} has no points')
+                    continue
+                try:
+                    T = pose_fn(stamp, frame, index)
+                except TransformTimeError as err:
+                    self._skip('no pose at stamp', f'{self._which(topic, index)}: {err}')
+                    continue
+                if (
+                    self._every_distance
+                    and topic in last_pos
+                    and float(np.linalg.norm(T[:3, 3] - last_pos[topic])) < self._every_distance
+                ):
+                    self._skip('every_distance')
+                    continue
+                if kind == 'depth_image':
+                    pts = depth_image_to_points(msg, self._camera_info(part.infos, stamp), self._stride)
+                else:
+                    if pts is None:
+                        pts = _DECODERS[kind](msg)
+                    if to_sensor is not None:
+                        S = to_sensor(stamp, frame, index)
+                        pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
+            except RecordingError as err:
+                if not self.kept:  # the recording's first scan: refused, as when it is opened
+                    raise
+                # one broken message (a truncated cloud, a frame TF does not have) among good ones
+                self._skip('bad message', f'{self._which(topic, index)}: {err}')
                 continue
-            if (
-                self._every_distance
-                and topic in last_pos
-                and float(np.linalg.norm(T[:3, 3] - last_pos[topic])) < self._every_distance
-            ):
-                self._skip('every_distance')
-                continue
-            if kind == 'depth_image':
-                pts = depth_image_to_points(msg, self._camera_info(part.infos, stamp), self._stride)
-            else:
-                if pts is None:
-                    pts = _DECODERS[kind](msg)
-                if to_sensor is not None:
-                    S = to_sensor(stamp, frame, index)
-                    pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
             last_pos[topic] = T[:3, 3].copy()
             self.kept += 1
             yield Scan(points=pts, T_world_sensor=T, stamp_ns=stamp, frame_id=frame, index=index)
