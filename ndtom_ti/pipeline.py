@@ -449,6 +449,63 @@ def run_scans(
     return ran_out
 
 
+# m/s: a sensor path faster than this between two poses is a jump of the poses (check_path_fits)
+JUMP_SPEED = 150.0
+
+
+def check_path_fits(m: Any, stream: Any) -> None:
+    """Refuse, before any scan, a recording whose sensor leaves the map's grid on the way
+    (a long drive at a fine resolution): the run would stop there, after mapping for as long.
+    Says how far the path goes, where it leaves, and what fits. RecordingError."""
+    from .io import RecordingError
+
+    layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
+    sensor_path = getattr(stream, "sensor_path", None)
+    if layout is None or sensor_path is None or getattr(m, "scans_inserted", 0):
+        return
+    got = sensor_path()
+    if got is None:
+        return
+    stamps, pos = got
+    first = np.eye(4)
+    first[:3, 3] = pos[0]
+    origin = frame_origin(m, first)
+    rel = pos - origin if origin is not None else pos
+    half = np.asarray(layout.cells, np.float64) * float(m.resolution) / 2.0
+    out = np.flatnonzero(~((rel >= -half) & (rel < half)).all(axis=1))
+    if not out.size:
+        return
+    k = int(out[0])
+    t0 = getattr(stream, "start_ns", int(stamps[0]))
+    sec = (stamps - t0) / 1e9
+    span = " x ".join(f"{2 * h:g}" for h in half)
+    where = f" around {origin.tolist()}, the first pose rounded" if origin is not None else ""
+    text = (
+        f"the sensor leaves the map's grid on the way: at {float(m.resolution):g} m the grid is {span} m{where}, "
+        f"and the sensor reaches {np.round(pos[k], 1).tolist()} m {sec[k]:.1f} s into the recording "
+        f"(the path spans {np.round(pos.min(axis=0), 1).tolist()} .. {np.round(pos.max(axis=0), 1).tolist()} m). "
+    )
+    # Faster than any vehicle that carries a lidar: poses of two frames (a GNSS fix after
+    # identity poses, a relocalisation), not a drive.
+    dt = np.maximum(np.diff(sec), 1e-9)
+    fast = np.linalg.norm(np.diff(pos, axis=0), axis=1) / dt > JUMP_SPEED
+    if fast.any():
+        a = int(np.argmax(fast))
+        b = a + int(np.argmin(np.append(fast[a:], False)))  # the end of that run of fast steps
+        text += (
+            f"The poses jump by {np.linalg.norm(pos[b] - pos[a]):.0f} m between {sec[a]:.1f} and {sec[b]:.1f} s: "
+            f"check them (`ndtom info BAG`), and map the part before (--end {sec[a]:.1f}) or after "
+            f"(--start {sec[b]:.1f})"
+        )
+    else:
+        need = np.abs(rel).max(axis=0) * 2.0 / np.asarray(layout.cells, np.float64)
+        coarser = float(m.resolution) * 2.0 ** np.ceil(np.log2(max(need.max() / float(m.resolution), 1.0) * 1.0001))
+        text += f"Map it at {coarser:g} m or coarser"
+        if sec[k] - sec[0] > 1.0:
+            text += f", or the part before it (--end {np.floor(sec[k] * 10) / 10:.1f})"
+    raise RecordingError(text)
+
+
 def _after_resumed(m: Any, scans: Iterable[Any], summary: MappingSummary) -> Iterable[Any]:
     """The scans a map made from a stopped run's checkpoint does not hold yet: it holds the
     first ``m.scans_inserted`` of them (``summary.scans_resumed``), which are read and
@@ -603,6 +660,7 @@ def map_recording(
             progress(summary, None)  # before the map (and Taichi) is made: the recording is fine
         m = (make_map or NdtOmMap)(resolution, occupancy=occupancy, config=cfg, metadata=summary.metadata(run.extra))
         try:
+            check_path_fits(m, run.stream)
             run_scans(m, _after_resumed(m, run.stream, summary), summary, progress, after_loop=run.count_clouds)
             summary.count_map(m)
         except BaseException:

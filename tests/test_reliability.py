@@ -451,9 +451,50 @@ def poses_file(tmp_path: Path, far_from: int | None, offset=(20_000.0, 0.0, 0.0)
     return path
 
 
-def test_pose_outside_the_grid_mid_run_saves_the_scans_before(tmp_path, plane_bag):
+def test_a_path_that_leaves_the_grid_is_refused_before_any_scan(tmp_path, plane_bag):
+    """Timed poses say where the sensor goes: a path that leaves the grid is refused before
+    mapping (the run would stop there), saying where it leaves and what fits."""
     out = tmp_path / "m.ndtom"
     r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, 3), "-o", out)
+    assert r.exit_code == 2, r.output
+    assert "the sensor leaves the map's grid on the way: at 0.25 m the grid is 8192 x 8192 x 1024 m" in r.output
+    assert "The poses jump by 20000 m" in r.output and "--end" in r.output and not out.exists()
+    # the poses as they were up to the third cloud: the path fits
+    assert run_cli("map", plane_bag, "-r", pb.RES, "--poses", poses_file(tmp_path, None), "-o", out).exit_code == 0
+
+
+def test_a_long_drive_past_the_grid_names_the_resolution_that_fits():
+    from types import SimpleNamespace
+
+    from ndtom_ti.io import RecordingError
+    from ndtom_ti.pipeline import check_path_fits
+
+    t = np.arange(0, 500.0, 0.5)  # 20 m/s along x for 500 s: 10 km
+    path = (np.int64(7_000_000_000) + (t * 1e9).astype(np.int64), np.stack([20.0 * t, 0 * t, 0 * t + 1.5], axis=1))
+    stream = SimpleNamespace(sensor_path=lambda: path, start_ns=6_000_000_000)
+    with NdtOmMap(pb.RES) as m:  # +-4096 m: left 204.8 s after the first pose, 205.8 s into the recording
+        with pytest.raises(
+            RecordingError,
+            match=r"reaches \[4100.0, 0.0, 1.5\] m 206.0 s into .* Map it at 1 m or coarser, "
+            r"or the part before it \(--end 206.0\)",
+        ):
+            check_path_fits(m, stream)
+        check_path_fits(m, SimpleNamespace(sensor_path=lambda: (path[0][:400], path[1][:400]), start_ns=0))  # 4 km fits
+        check_path_fits(m, SimpleNamespace(sensor_path=lambda: None, start_ns=0))  # poses by index: nothing known
+
+
+def test_pose_outside_the_grid_mid_run_saves_the_scans_before(tmp_path, plane_bag):
+    # Poses by cloud index (KITTI, no times) tell nothing before the scans: the run stops there.
+    out = tmp_path / "m.ndtom"
+    lines = []
+    for k in range(pb.N_CLOUDS):
+        T = pb.T_map_lidar(k)
+        if k >= 3:
+            T[0, 3] += 20_000.0
+        lines.append(" ".join(f"{v:.12g}" for v in T[:3].ravel()))
+    kitti = tmp_path / "poses_kitti.txt"
+    kitti.write_text("\n".join(lines) + "\n")
+    r = run_cli("map", plane_bag, "-r", pb.RES, "--poses", kitti, "-o", out)
     assert r.exit_code == 1, r.output
     assert "scan 4 could not be inserted" in r.output and "outside the map grid" in r.output
     assert "Saved the 3 scans mapped before it" in r.output and "marked incomplete" in r.output

@@ -1068,6 +1068,37 @@ class ScanStream:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
+    @property
+    def start_ns(self) -> int:
+        """The recording's start (what t_start and t_end count from)."""
+        return self._rec.start_ns
+
+    def sensor_path(self, samples: int = 2000) -> tuple[np.ndarray, np.ndarray] | None:
+        """(stamps (K,) ns, positions (K, 3) m) of the sensor over the selected time, from the
+        pose source at up to ``samples`` times per topic from its first cloud on (read before
+        any scan, to check the path fits the map); None where the poses have no times (a
+        poses file by index, identity poses)."""
+        stamps, pos = [], []
+        for part in self._parts.values():
+            rng = part.choice.range_ns
+            if rng is None or part.choice.fn is None:
+                continue
+            first = self._rec._first_message(part.topic)
+            t0 = _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]) if first else rng[0]
+            lo = max(rng[0], t0, self._lo if self._lo is not None else rng[0])
+            hi = min(rng[1], self._hi if self._hi is not None else rng[1], self._rec.start_ns + self._rec.duration_ns)
+            for t in np.unique(np.linspace(lo, hi, samples).astype(np.int64)) if hi >= lo else ():
+                try:
+                    T = part.choice.fn(int(t), part.frame_id, 0)
+                except (TransformTimeError, RecordingError):
+                    continue
+                stamps.append(int(t))
+                pos.append(T[:3, 3])
+        if not pos:
+            return None
+        order = np.argsort(stamps, kind='stable')
+        return np.asarray(stamps, np.int64)[order], np.asarray(pos, np.float64)[order]
+
     @staticmethod
     def _camera_info(infos: list[tuple[int, Any]], stamp: int) -> Any:
         stamps = [s for s, _ in infos]
