@@ -521,6 +521,13 @@ def test_a_run_stopped_early_keeps_the_map_it_would_replace(bags, tmp_path: Path
     assert NdtOmMap.load(out).metadata["complete"] is True
 
 
+def test_pose_child_frame_goes_with_a_pose_topic(bags, tmp_path: Path) -> None:
+    r = run(
+        "map", bags["ros1"], "-r", pb.RES, "--sensor-frame", "--pose-child-frame", "base", "-o", tmp_path / "m.ndtom"
+    )
+    assert_user_error(r, "--pose-child-frame goes with poses from a pose topic, not with --sensor-frame")
+
+
 def test_the_map_file_does_not_replace_other_files(bags, tmp_path: Path) -> None:
     """-o naming another recording, a file of another kind, or another format's suffix is
     refused before any work: the map would destroy the file, or not be what the name says."""

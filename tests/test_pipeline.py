@@ -430,6 +430,32 @@ def test_an_empty_first_cloud_without_a_frame_does_not_choose_the_poses(tmp_path
     np.testing.assert_array_equal(plain.known_cells()["logodds"], m.known_cells()["logodds"])
 
 
+def test_a_pose_without_a_child_frame_is_the_vehicles_that_carries_the_sensor(tmp_path: Path) -> None:
+    """A PoseStamped (amcl_pose, motion capture) names no child frame; with tf_static mounting
+    the lidar on 'base', its poses are base's: the map is the one TF map -> base gives. Taken
+    as the lidar's own poses, the map would lie the mount's offset away (--pose-child-frame)."""
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain"), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, name="ps", pose_stamped=True)
+    m, s = map_recording(bag, pb.RES)
+    assert s.pose_source == (
+        "pose topic /pose (geometry_msgs/msg/PoseStamped map -> base: its messages name no child frame; the frame "
+        "tf_static mounts 'lidar' on) + tf_static base -> lidar"
+    )
+    a, b = plain.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])
+    lidar, s = map_recording(bag, pb.RES, pose_child_frame="lidar")  # the old reading: 0.5 m too low
+    assert "map -> lidar: its messages name no child frame; as given" in s.pose_source
+    with pytest.raises(AssertionError):
+        pb.check_plane_map(lidar)  # the floor and wall tilted and moved by the mount
+    pb.check_plane_map(m)
+    with pytest.raises(RecordingError, match="pose_child_frame goes with poses from a pose topic"):
+        map_recording(bag, pb.RES, pose_child_frame="base", sensor_frame_only=True)
+    odom = pb.write_plane_bag(tmp_path, name="reg", registered=True)
+    with pytest.raises(RecordingError, match="its messages name their frame 'lidar'; pose_child_frame"):
+        map_recording(odom, pb.RES, pose_topic="/odom", pose_child_frame="base")
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

@@ -88,6 +88,7 @@ def write_plane_bag(
     livox: str | None = None,
     faults: bool = False,
     broken: dict[int, str] | None = None,
+    pose_stamped: bool = False,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
@@ -99,7 +100,9 @@ def write_plane_bag(
     clouds 1 and 2; the map is the one without them. ``broken``: {cloud index: 'truncated' |
     'no frame'}: that cloud's data cut short, or its frame_id left empty; and {-1: 'empty'}: an
     empty cloud with a default header (no frame, stamp 0) before the first, as some drivers
-    publish at start-up."""
+    publish at start-up. ``pose_stamped``: the vehicle's ('base') poses on /pose as
+    PoseStamped, which names no child frame, in place of TF's map -> base (tf_static keeps the
+    mount base -> lidar)."""
     rng = np.random.default_rng(42)
     e: list = []
     if faults:
@@ -160,6 +163,16 @@ def write_plane_bag(
             T = T_map_base(k)
             q = fx.quat_axis_angle((0, 0, 1), 0.05 * k) if k else (0.0, 0.0, 0.0, 1.0)
             t = STAMPS[k]
+            if pose_stamped:
+                e.append(
+                    (
+                        "/pose",
+                        "geometry_msgs/msg/PoseStamped",
+                        t,
+                        lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.pose_stamped(t, "map", tr, q),
+                    )
+                )
+                continue
             e.append(
                 (
                     "/tf",

@@ -353,6 +353,15 @@ def map_(
             show_default=False,
         ),
     ] = None,
+    pose_child_frame: Annotated[
+        str | None,
+        typer.Option(
+            help="With --pose-topic (or a pose topic found): the frame its poses are of when its messages name "
+            "none (PoseStamped, PoseWithCovarianceStamped). Default: the frame tf_static mounts the cloud frame on "
+            "(base_link), else the cloud frame.",
+            show_default=False,
+        ),
+    ] = None,
     every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
     every_distance: Annotated[
         float | None,
@@ -504,6 +513,8 @@ def map_(
             raise ValueError(f"give one pose source, not {' and '.join(given)}")
         if ray_origin_frame and (poses or sensor_frame):
             raise ValueError(f"--ray-origin-frame goes with poses from TF or --pose-topic, not with {given[0]}")
+        if pose_child_frame and (poses or sensor_frame):
+            raise ValueError(f"--pose-child-frame goes with poses from a pose topic, not with {given[0]}")
         if every > 1 and every_distance is not None:
             raise ValueError("give --every or --every-distance, not both")
         if start is not None and end is not None and end < start:
@@ -553,6 +564,7 @@ def map_(
             poses_file=poses,
             sensor_frame_only=sensor_frame,
             ray_origin_frame=ray_origin_frame,
+            pose_child_frame=pose_child_frame,
             every=every,
             every_distance=every_distance,
             t_start=start,

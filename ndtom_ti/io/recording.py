@@ -668,6 +668,7 @@ class Recording:
             tol=tol,
             what=topic,
             ray_origin_frame=sel.ray_origin_frame,
+            pose_child_frame=sel.pose_child_frame,
         )
         assert choice.fn is not None
         infos: list[tuple[int, Any]] = []
@@ -834,6 +835,7 @@ class _PoseSources:
         tol: int,
         explicit: bool,
         origin: str | None = None,
+        pose_child_frame: str | None = None,
     ) -> _PoseChoice:
         msgtype = self._rec._topics[topic][0]
         track, parent, child, tnotes = self.track(topic)
@@ -848,6 +850,21 @@ class _PoseSources:
                 None, f'{label}: ' + self._clock_text('it', first_stamp, track.first_ns, track.last_ns) + extra
             )
         tf = self._rec.tf()
+        given = normalize_frame(pose_child_frame) if pose_child_frame else ''
+        if given and child and given != child:
+            raise RecordingError(
+                f'{label}: its messages name their frame {child!r}; pose_child_frame (--pose-child-frame) '
+                f'{given!r} is for poses whose messages name none'
+            )
+        if not child:
+            # A PoseStamped or PoseWithCovarianceStamped (amcl_pose, a motion-capture body) gives
+            # a vehicle's pose: by default the frame tf_static mounts the cloud frame on.
+            child = given or tf.mount_base(frame, parent)
+            if given or child != frame:
+                how = 'as given' if given else f'the frame tf_static mounts {frame!r} on'
+                label = f'pose topic {topic} ({msgtype} {parent} -> {child}: its messages name no child frame; {how})'
+            if child == frame:
+                child = None
         post: PoseFn | None = None
         to_sensor: PoseFn | None = None
         desc = label
@@ -879,8 +896,10 @@ class _PoseSources:
             )
             to_sensor = _inverse_fn(_track_fn(track, tol))
         elif not child or child == frame:
-            if not child:
-                desc += f' (the message names no child frame: taken as the pose of {frame!r})'
+            if not child and not given:
+                desc += (
+                    f' (the messages name no child frame, and tf_static mounts {frame!r} on none: taken as its pose)'
+                )
         elif tf.connects(child, frame):
             how = 'tf_static' if tf.chain_is_static(child, frame) else 'tf'
             desc += f' + {how} {tf.chain_str(child, frame)}'
@@ -923,6 +942,7 @@ class _PoseSources:
         tol: int,
         what: str,
         ray_origin_frame: str | None = None,
+        pose_child_frame: str | None = None,
     ) -> _PoseChoice:
         given = [
             n
@@ -938,6 +958,8 @@ class _PoseSources:
         origin = normalize_frame(ray_origin_frame) if ray_origin_frame else None
         if origin and given and not pose_topic:
             raise RecordingError(f'ray_origin_frame goes with poses from TF or a pose topic, not with {given[0]}')
+        if pose_child_frame and (poses_file is not None or sensor_frame_only):
+            raise RecordingError(f'pose_child_frame goes with poses from a pose topic, not with {given[0]}')
         if origin and not pose_topic:
             return self._origin_choice(frame, origin, fixed_frame, tol)
         if sensor_frame_only:
@@ -964,7 +986,16 @@ class _PoseSources:
                     + f' Pose topics ({", ".join(t.split("/")[-1] for t in POSE_TYPES)}) in the recording: '
                     + (', '.join(f'{t} ({self._rec._topics[t][0]})' for t in cands) or '(none)')
                 )
-            choice = self._topic_choice(name, frame, fixed_frame, first_stamp, tol, explicit=True, origin=origin)
+            choice = self._topic_choice(
+                name,
+                frame,
+                fixed_frame,
+                first_stamp,
+                tol,
+                explicit=True,
+                origin=origin,
+                pose_child_frame=pose_child_frame,
+            )
             if not choice.usable:
                 raise RecordingError(f'{choice.description}. {_SUGGEST}')
             return choice
@@ -973,7 +1004,10 @@ class _PoseSources:
         if tf_choice.usable:
             return tf_choice
         topic_choices = [
-            self._topic_choice(t, frame, fixed_frame, first_stamp, tol, explicit=False) for t in self._rec.pose_topics()
+            self._topic_choice(
+                t, frame, fixed_frame, first_stamp, tol, explicit=False, pose_child_frame=pose_child_frame
+            )
+            for t in self._rec.pose_topics()
         ]
         usable = [c for c in topic_choices if c.usable]
         if len(usable) == 1:

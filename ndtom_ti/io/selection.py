@@ -23,7 +23,10 @@ class ScanSelection:
     ``fixed_frame`` (the TF chain's root), ``pose_topic``, ``poses_file`` (TUM/KITTI path
     or a PoseTrack) or ``sensor_frame_only`` (identity poses); ``ray_origin_frame``: rays start
     at that TF frame's origin, not the cloud frame's (clouds published in a vehicle or world
-    frame, e.g. registered clouds with their odometry in TF only); ``every`` keeps cloud
+    frame, e.g. registered clouds with their odometry in TF only); ``pose_child_frame``: the frame
+    whose poses a pose topic's messages give when they name none (PoseStamped,
+    PoseWithCovarianceStamped; default: the frame tf_static mounts the cloud frame on, else the
+    cloud frame); ``every`` keeps cloud
     indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
     (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
     stops after that many kept scans.
@@ -35,6 +38,7 @@ class ScanSelection:
     poses_file: str | Path | PoseTrack | None = None
     sensor_frame_only: bool = False
     ray_origin_frame: str | None = None
+    pose_child_frame: str | None = None
     every: int = 1
     every_distance: float | None = None
     t_start: float | None = None
@@ -52,6 +56,7 @@ class ScanSelection:
             "poses_file": str(Path(poses).resolve()) if poses is not None else None,  # type: ignore[arg-type]
             "sensor_frame_only": self.sensor_frame_only,
             **({"ray_origin_frame": self.ray_origin_frame} if self.ray_origin_frame else {}),
+            **({"pose_child_frame": self.pose_child_frame} if self.pose_child_frame else {}),
             "every": self.every,
             "every_distance": self.every_distance,
             "start": self.t_start,

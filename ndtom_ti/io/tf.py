@@ -162,6 +162,15 @@ class TfBuffer:
         """True when both frames are in the tree and a chain of transforms links them."""
         return a in self and b in self and self.root_of(a) == self.root_of(b)
 
+    def mount_base(self, frame: str, stop: str = '') -> str:
+        """The frame that static transforms alone fix ``frame`` to (the vehicle a lidar is
+        mounted on): its parents up the tree while each edge is static, short of ``stop``;
+        ``frame`` itself when no static edge leads up from it."""
+        f = normalize_frame(frame)
+        while f in self._static and self._parent.get(f) not in (None, normalize_frame(stop)):
+            f = self._parent[f]
+        return f
+
     def is_static(self, child: str) -> bool:
         return normalize_frame(child) in self._static
 
