@@ -521,6 +521,23 @@ def test_a_run_stopped_early_keeps_the_map_it_would_replace(bags, tmp_path: Path
     assert NdtOmMap.load(out).metadata["complete"] is True
 
 
+def test_small_cli_inputs(bags, tmp_path: Path, monkeypatch) -> None:
+    """--start nan is refused as a time; a map of a ROS2 bag named by its metadata.yaml is named
+    after the bag folder; a ROS2 folder whose metadata.yaml is missing points to reindexing."""
+    from ndtom_ti.cli.mapping import default_output
+
+    r = run("map", bags["mcap"], "-r", pb.RES, "--start", "nan", "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "--start must be a number of seconds")
+    monkeypatch.chdir(tmp_path)
+    assert default_output(bags["mcap"] / "metadata.yaml") == tmp_path / (bags["mcap"].name + ".ndtom")
+    bare = tmp_path / "bare_ros2"
+    bare.mkdir()
+    for f in bags["mcap"].iterdir():
+        if f.suffix == ".mcap":
+            (bare / f.name).write_bytes(f.read_bytes())
+    assert_user_error(run("info", bare), "has no metadata.yaml", "ros2 bag reindex")
+
+
 def test_pose_child_frame_goes_with_a_pose_topic(bags, tmp_path: Path) -> None:
     r = run(
         "map", bags["ros1"], "-r", pb.RES, "--sensor-frame", "--pose-child-frame", "base", "-o", tmp_path / "m.ndtom"

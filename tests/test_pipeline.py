@@ -456,6 +456,20 @@ def test_a_pose_without_a_child_frame_is_the_vehicles_that_carries_the_sensor(tm
         map_recording(odom, pb.RES, pose_topic="/odom", pose_child_frame="base")
 
 
+def test_pose_messages_stamped_0_are_matched_by_record_time(tmp_path: Path) -> None:
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain", registered=True), pb.RES)
+    m, s = map_recording(pb.write_plane_bag(tmp_path, name="z", registered=True, odom_zero_stamps=True), pb.RES)
+    assert s.scans_used == pb.N_CLOUDS and any("/odom: 5 poses stamped 0 (unset)" in n for n in s.skip_notes)
+    np.testing.assert_allclose(plain.known_cells()["logodds"].sum(), m.known_cells()["logodds"].sum(), rtol=1e-3)
+
+
+def test_a_mount_republished_with_other_values_is_noted(tmp_path: Path) -> None:
+    _, s = map_recording(pb.write_plane_bag(tmp_path, name="r", remount=True), pb.RES)
+    assert any("/tf_static gives base -> lidar more than once with different values" in n for n in s.skip_notes)
+    _, s = map_recording(pb.write_plane_bag(tmp_path, name="p"), pb.RES)
+    assert not any("/tf_static gives" in n for n in s.skip_notes)
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

@@ -89,6 +89,8 @@ def write_plane_bag(
     faults: bool = False,
     broken: dict[int, str] | None = None,
     pose_stamped: bool = False,
+    odom_zero_stamps: bool = False,
+    remount: bool = False,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
@@ -102,7 +104,8 @@ def write_plane_bag(
     empty cloud with a default header (no frame, stamp 0) before the first, as some drivers
     publish at start-up. ``pose_stamped``: the vehicle's ('base') poses on /pose as
     PoseStamped, which names no child frame, in place of TF's map -> base (tf_static keeps the
-    mount base -> lidar)."""
+    mount base -> lidar). ``odom_zero_stamps``: /odom's header stamps left 0 (its record times
+    are right). ``remount``: /tf_static gives base -> lidar a second time, 10 cm higher."""
     rng = np.random.default_rng(42)
     e: list = []
     if faults:
@@ -147,7 +150,9 @@ def write_plane_bag(
                     "/odom",
                     "nav_msgs/msg/Odometry",
                     t,
-                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.odometry(t, "map", odom_child, tr, q),
+                    lambda m, t=t, tr=T[:3, 3].copy(), q=q: m.odometry(
+                        0 if odom_zero_stamps else t, "map", odom_child, tr, q
+                    ),
                 )
             )
     if with_tf:
@@ -159,6 +164,11 @@ def write_plane_bag(
                 lambda m: m.tf([(T0, "base", "lidar", *BASE_MOUNT)]),
             )
         )
+        if remount:
+            up = ((0.2, 0.0, 0.6), BASE_MOUNT[1])
+            e.append(
+                ("/tf_static", "tf2_msgs/msg/TFMessage", T0 - 850 * MS, lambda m: m.tf([(T0, "base", "lidar", *up)]))
+            )
         for k in range(n_clouds):
             T = T_map_base(k)
             q = fx.quat_axis_angle((0, 0, 1), 0.05 * k) if k else (0.0, 0.0, 0.0, 1.0)

@@ -82,8 +82,13 @@ def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
 
 
 def default_output(bag: Path) -> Path:
-    """The map path used without -o: the recording's name with .ndtom, in the current folder."""
-    name = bag.expanduser().resolve().name if bag.name in ("", ".", "..") else bag.name
+    """The map path used without -o: the recording's name with .ndtom, in the current folder
+    (a file inside a ROS2 bag folder, its metadata.yaml or storage file, names the folder)."""
+    bag = bag.expanduser()
+    in_ros2 = bag.name == "metadata.yaml" or bag.suffix in (".db3", ".mcap")
+    if in_ros2 and bag.is_file() and (bag.parent / "metadata.yaml").is_file():
+        bag = bag.resolve().parent
+    name = bag.resolve().name if bag.name in ("", ".", "..") else bag.name
     stem = name.removesuffix(".bag")
     return Path.cwd() / (stem + MAP_SUFFIX)
 
@@ -517,6 +522,9 @@ def map_(
             raise ValueError(f"--pose-child-frame goes with poses from a pose topic, not with {given[0]}")
         if every > 1 and every_distance is not None:
             raise ValueError("give --every or --every-distance, not both")
+        for opt, v in (("--start", start), ("--end", end)):
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"{opt} must be a number of seconds from the recording's start, got {v}")
         if start is not None and end is not None and end < start:
             raise ValueError(f"--end ({end}) is before --start ({start})")
         if memory_limit is not None:

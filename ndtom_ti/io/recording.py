@@ -223,6 +223,9 @@ def _resolve_path(path: Path) -> tuple[list[Path], str, str]:
                 'metadata.yaml and the .db3/.mcap files).'
             )
             listing = ', '.join(inside[:10]) + (' ...' if len(inside) > 10 else '') if inside else 'it is empty'
+            if any(n.endswith(('.db3', '.mcap')) for n in inside):
+                # a bag whose recorder was killed before it wrote metadata.yaml
+                hint = ' `ros2 bag reindex FOLDER` writes its metadata.yaml from the storage files.'
             raise RecordingError(
                 f'{path} is a folder but not a ROS2 bag: it has no metadata.yaml (contents: {listing}).{hint}'
             )
@@ -321,7 +324,9 @@ class Recording:
             'The file looks truncated or corrupt (an interrupted recording loses the index at its end); '
             '`rosbag reindex` can repair a ROS1 bag.'
             if self.format == 'ros1'
-            else 'The bag folder looks truncated or corrupt: check metadata.yaml and its storage files.'
+            else 'The bag folder looks truncated or corrupt: check metadata.yaml and its storage files '
+            '(`ros2 bag reindex FOLDER` rebuilds metadata.yaml; an MCAP file cut short can be recovered with '
+            '`mcap recover`).'
         )
         return f'cannot read {self.path} as a {self.format.upper()} bag ({type(err).__name__}: {err}). {hint}'
 
@@ -708,7 +713,8 @@ class _PoseSources:
             bad: dict[str, int] = {}
             parent: str | None = None
             child: str | None = None
-            for _, mt, raw in self._rec._messages(topic):
+            zero_stamps = 0
+            for t_rec, mt, raw in self._rec._messages(topic):
                 m = self._rec._deserialize(raw, mt, topic)
                 if msgtype.endswith('TransformStamped'):
                     v, q = m.transform.translation, m.transform.rotation
@@ -728,9 +734,13 @@ class _PoseSources:
                 if why is not None:  # an unset or broken pose (tf2 drops such transforms too)
                     bad[why] = bad.get(why, 0) + 1
                     continue
-                stamps.append(stamp_ns(m.header.stamp))
+                stamp = stamp_ns(m.header.stamp)
+                zero_stamps += stamp == 0
+                stamps.append(_cloud_stamp(stamp, t_rec))  # an unset stamp: the bag's record time, as for clouds
                 ts.append(t)
                 qs.append(r)
+            if zero_stamps:
+                notes.append(f'{topic}: {zero_stamps} poses stamped 0 (unset): matched by the bag\'s record time')
             for why, n in bad.items():
                 notes.append(f'{topic}: ignored {n} pose{"s" if n != 1 else ""} with {why}')
             track = PoseTrack.from_tq(stamps, ts, qs, source=f'pose topic {topic}')
@@ -793,7 +803,7 @@ class _PoseSources:
             f'tf: {chain}' + (' (static)' if static else ''),
             fixed,
             rng,
-            notes=tuple(tf.ignored_notes()),
+            notes=tuple(tf.run_notes()),
         )
 
     def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
@@ -927,7 +937,7 @@ class _PoseSources:
             fixed,
             (track.first_ns, track.last_ns),
             to_sensor,
-            notes=(*tnotes, *tf.ignored_notes()),
+            notes=(*tnotes, *tf.run_notes()),
         )
 
     def choose(

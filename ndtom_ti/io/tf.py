@@ -97,7 +97,15 @@ class TfBuffer:
             return
         self._parent[child] = parent
         if static:
-            self._static[child] = make_transform(translation, rotation)
+            T = make_transform(translation, rotation)
+            old = self._static.get(child)
+            if old is not None and not np.allclose(old, T, atol=1e-6):  # a mount re-published, changed
+                self._note(
+                    ('restatic', parent, child),
+                    f'/tf_static gives {parent} -> {child} more than once with different values; the last is '
+                    'used for every scan',
+                )
+            self._static[child] = T
             self._static_count[child] = self._static_count.get(child, 0) + 1
         else:
             self._samples.setdefault(child, []).append((int(stamp), tuple(translation), tuple(rotation)))
@@ -134,9 +142,11 @@ class TfBuffer:
             self._noted.add(key)
             self.notes.append(text)
 
-    def ignored_notes(self) -> list[str]:
-        """One line per edge whose transforms were dropped (``add``), with their count."""
-        return [
+    def run_notes(self) -> list[str]:
+        """What a mapping run with these transforms should say: one line per edge whose
+        transforms were dropped (``add``), with their count, and per mount that /tf_static
+        gave with different values."""
+        return [n for n in self.notes if n.startswith('/tf_static gives')] + [
             f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
             for (p, c), (n, why) in self.ignored.items()
         ]
