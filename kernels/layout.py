@@ -21,6 +21,7 @@ count leaves exactly as they create them (Taichi 1.7 has no reliable way to ask)
 from __future__ import annotations
 
 import math
+import numbers
 import threading
 from dataclasses import dataclass, replace
 from typing import Any
@@ -101,6 +102,24 @@ class Layout:
     leaf: int = 8
     owner: TileOwner | None = None
 
+    def __post_init__(self) -> None:
+        # Sizes as plain ints and l1 as a tuple (a list is not hashable: layouts key the
+        # storages), checked before any Taichi field is built from them.
+        def size(name: str, v: object) -> int:
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise TypeError(f"Layout: {name} must be an integer number of cells, got {v!r} ({type(v).__name__})")
+            return int(v)
+
+        l1 = self.l1
+        if isinstance(l1, (str, bytes)) or not hasattr(l1, "__len__") or len(l1) != 3:
+            raise ValueError(f"Layout: l1 must be three sizes (x, y, z), a tuple or list, got {l1!r}")
+        object.__setattr__(self, "l1", tuple(size("l1", n) for n in l1))
+        object.__setattr__(self, "l2", size("l2", self.l2))
+        object.__setattr__(self, "leaf", size("leaf", self.leaf))
+        if self.owner is not None and not isinstance(self.owner, TileOwner):
+            raise TypeError(f"Layout: owner must be a TileOwner or None, got {type(self.owner).__name__}")
+        self.validate()
+
     @property
     def region(self) -> int:
         """Cells per axis under one top-level pointer slot."""
@@ -151,6 +170,13 @@ class Layout:
             raise ValueError(f"grid of {self.cells} cells per axis overflows 32-bit cell indices")
         if self.owner is not None:
             self.owner.validate(self.leaf)
+
+    def fixed_bytes(self, slots: int) -> int:
+        """Bytes the storage of ``slots`` maps of this layout holds before any cell: per tree
+        a pointer slot per top-level region of every map slot (Taichi allocates and zeroes
+        them when the tree is built), and numpy's flag of each region in use."""
+        regions = slots * math.prod(self.l1)
+        return regions * (2 * POINTER_SLOT_BYTES + 2)
 
 
 def pool_bytes(layout: Layout, nodes) -> int:

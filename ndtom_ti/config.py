@@ -144,6 +144,11 @@ class MapConfig:
             bad("max_range_mode='free' needs a finite max_range")
         if not (self.n_max == 0 or 2 <= self.n_max <= N_LIMIT):
             bad(f"n_max must be 0 (off) or an integer from 2 to {N_LIMIT}, got {self.n_max:.6g}")
+        if 0 < self.n_max < self.min_points:  # N would never reach min_points: no cell ever holds a Gaussian
+            bad(
+                f"n_max ({self.n_max}) must be at least min_points ({self.min_points}), or 0 (no cap); "
+                "raise n_max or lower min_points"
+            )
         if self.miss_model not in MISS_MODELS:
             bad(f"miss_model must be one of {MISS_MODELS}, got {self.miss_model!r}")
         lo, hi = SIGMA_S_LIMITS

@@ -19,7 +19,7 @@ from .memreport import memory_report
 from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
 from .slot import MapSlot, release_dead
-from .snapshot import SETTINGS, MapSnapshot, copy_metadata
+from .snapshot import SETTINGS, MapSnapshot, copy_metadata, refuse_export_suffix
 
 
 def _locked(method):
@@ -165,8 +165,18 @@ class NdtOmMap:
         return cell_extent(self.known_cells()["index"], self.resolution)
 
     def cell_index(self, points: Any) -> np.ndarray:
-        """Cell indices ``floor(x / resolution)`` (int64) of world points (N, 3)."""
-        return np.floor(_as_points(points) / self.resolution).astype(np.int64)
+        """Cell indices ``floor(x / resolution)`` (int64) of world points (N, 3). ValueError
+        for points not finite or too far for an int64 index."""
+        pts = _as_points(points)
+        with np.errstate(over="ignore", invalid="ignore"):
+            q = np.floor(pts / self.resolution)
+        bad = np.flatnonzero(~(np.abs(q) < 2.0**63).all(axis=1))  # (NaN fails too: astype gives -2**63)
+        if len(bad):
+            raise ValueError(
+                f"points must be finite, with cell indices that fit int64 (|x| < {2.0**63 * self.resolution:.3g} m); "
+                f"point {bad[0]} is {pts[bad[0]].tolist()}"
+            )
+        return q.astype(np.int64)
 
     def cell_center(self, index: Any) -> np.ndarray:
         """World centres of cells (N, 3) from integer indices."""
@@ -278,9 +288,12 @@ class NdtOmMap:
         return occupancy_of(points, self.resolution, self._slot.in_grid, self.logodds_at, return_known)
 
     @_locked
-    def logodds_at(self, index: Any) -> np.ndarray:
-        """Log-odds (float64) of cells given by integer index (K, 3); unknown cells and
-        cells outside the grid read 0."""
+    def logodds_at(self, index: Any) -> Any:
+        """Log-odds (float64) of cells given by integer index (K, 3), or of one cell (3,)
+        (then a float, as ``occupancy`` of one point); unknown cells and cells outside the
+        grid read 0."""
+        if np.shape(index) == (3,):
+            return float(self.logodds_at(np.reshape(index, (1, 3)))[0])
         idx = check_cell_index(index)
         out = np.zeros(len(idx))
         ok = self._slot.in_grid(idx)
@@ -313,6 +326,7 @@ class NdtOmMap:
         """Write the map to one versioned file, atomically (see ``ndtom_ti.mapfile``).
         ``compact``: the Gaussians rounded (means to res / 131070, scatter to float32), for
         files about half the size where Gaussians are dense; the default is lossless."""
+        refuse_export_suffix(path, f"ndtom_ti.export.export_file(m, {str(path)!r})")
         path = check_target(path)  # before the work: a FIFO, device or folder is refused
         return self.snapshot().save(path, compact=compact)
 
@@ -340,6 +354,10 @@ class NdtOmMap:
         Takes a map slot, as any new map does."""
         import copy
 
+        if not isinstance(s, MapSnapshot):
+            raise TypeError(
+                f"from_snapshot takes a MapSnapshot (MapSnapshot.load(path) or m.snapshot()), got {type(s).__name__}"
+            )
         m = cls(
             s.resolution,
             occupancy=s.occupancy_enabled,
@@ -366,11 +384,9 @@ class NdtOmMap:
         coarse resolution from the same points. A parent's log-odds is the maximum of its
         known children's (an occupied child makes the parent occupied: safe for planning).
         """
-        if isinstance(factor, bool) or int(factor) != factor or factor < 2:
-            raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
-        from .multires import coarsen_state
+        from .multires import check_factor, coarsen_state
 
-        f = int(factor)
+        f = check_factor(factor, self.resolution)
         out = NdtOmMap(
             self.resolution * f,
             occupancy=self.occupancy_enabled,

@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import numpy as np
 
 from .cellkeys import group, lookup_rows, pack, unpack
-from .config import N_LIMIT
+from .config import N_LIMIT, RESOLUTION_MAX
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def check_factor(factor: object, resolution: float) -> int:
+    """The coarsening ``factor`` of a map at ``resolution`` as an int: ValueError unless it is
+    an integer >= 2 (not inf or NaN) whose cells stay within RESOLUTION_MAX."""
+    f = 0
+    if isinstance(factor, bool):
+        pass
+    elif isinstance(factor, numbers.Integral):
+        f = int(factor)
+    elif isinstance(factor, numbers.Real) and math.isfinite(factor) and float(factor).is_integer():
+        f = int(float(factor))
+    if f < 2:
+        raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
+    if f > RESOLUTION_MAX / resolution:  # (compared, not multiplied: 10**400 * 0.2 overflows)
+        raise ValueError(
+            f"factor is too large: the cells would be larger than {RESOLUTION_MAX:g} m; for cells of {resolution:g} m "
+            f"it can be at most {math.floor(RESOLUTION_MAX / resolution)}"
+        )
+    return f
 
 
 def _group(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

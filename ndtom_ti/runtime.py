@@ -23,6 +23,7 @@ CPU_POOL_HARD_MAX_BYTES = 960 * 2**20
 CPU_DEFAULT_SHARE = 0.5  # default CPU budget: this share of the machine's memory
 CUDA_DEFAULT_SHARE = 0.5  # default CUDA pool: this share of the device's memory
 DEFAULT_MAX_MAPS = 8
+MAX_THREADS = 1024  # init(cpu_max_num_threads=...)
 
 
 def chunk_for(budget: int) -> int:
@@ -87,6 +88,8 @@ def init(
         the environment variable NDTOM_HUGE_PAGES=0 turns that off).
     max_maps: how many maps may exist at once (default 8); each has a slot in the
         shared storage, fixed when the first map is made.
+    cpu_max_num_threads: Taichi's worker threads on the CPU, a positive integer (default:
+        one per CPU).
     pin_threads: on the CPU under Linux, fix each of Taichi's worker threads to a CPU of
         its own (affinity.py: short loops then run on all of them). Default: off, as a
         library should leave its host process's threads alone, unless the environment
@@ -105,6 +108,14 @@ def init(
             raise TypeError(f"{name} must be a number of GiB, got {gib!r} ({type(gib).__name__})")
         if not (math.isfinite(gib) and gib > 0):
             raise ValueError(f"{name} must be a positive number of GiB, got {gib!r}")
+    # (Taichi's own errors for these are C++ ones: "vector::_M_default_append", pybind's TypeError;
+    # and it starts every thread asked for at once)
+    n = cpu_max_num_threads
+    if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 1 <= n <= MAX_THREADS):
+        raise ValueError(
+            f"cpu_max_num_threads must be an integer from 1 to {MAX_THREADS} (threads), or None for Taichi's "
+            f"default (one per CPU); got {n!r}"
+        )
     with _lock:
         if _state.arch is not None:
             if arch not in ("auto", _state.arch):
@@ -130,8 +141,8 @@ def init(
         if max_maps is not None:
             _state.max_maps = _check_max_maps(max_maps)
         kwargs = {"offline_cache": offline_cache, "debug": debug, "log_level": ti.WARN}
-        if cpu_max_num_threads:
-            kwargs["cpu_max_num_threads"] = cpu_max_num_threads
+        if cpu_max_num_threads is not None:
+            kwargs["cpu_max_num_threads"] = int(cpu_max_num_threads)
         pool_gb = device_memory_GB
         if arch == "cuda" or (arch == "auto" and _cuda_driver_present()):
             if pool_gb is None:  # sized from the device (no bug there: one exact preallocation)
@@ -347,6 +358,7 @@ def storage(layout):
             del _storages[layout]  # built by init(), never used: init(max_maps=...) came since
             st = None
         if st is None:
+            _check_fits(layout, _state.max_maps)  # before init()'s storage gives way: a refusal leaves it
             unused = [key for key in _storages if key not in _used]
             for key in unused:  # init()'s default storage gives way to the layout of the first map
                 del _storages[key]
@@ -357,6 +369,26 @@ def storage(layout):
                 )
             st = _storages[layout] = Storage(layout, _state.max_maps)
         return st
+
+
+def _check_fits(layout, slots: int) -> None:
+    """ValueError when the fixed part of ``layout``'s storage (its top-level pointer arrays,
+    built whole for every map slot) cannot fit in this machine's memory: Taichi would grow
+    the process until Linux kills it, or fail half way and leave no map usable."""
+    from . import hostpool
+
+    need, mem = layout.fixed_bytes(slots), hostpool.physical_memory()
+    if need > mem:
+        why = f"more than this machine's {mem / 2**30:.1f} GiB of memory"
+    elif _state.arch == "cpu" and not hostpool.address_space_for(need):
+        why = f"more address space than this process may map (ulimit -v; {mem / 2**30:.1f} GiB of memory)"
+    else:
+        return
+    raise ValueError(
+        f"{layout} needs {need / 2**30:.1f} GiB for its top-level pointer arrays ({slots} map slots x "
+        f"{math.prod(layout.l1)} regions) before any cell is stored, {why}; give a smaller l1 (at a coarser "
+        "resolution fewer cells cover the same area), or fewer map slots with ndtom_ti.init(max_maps=...)"
+    )
 
 
 def acquire_slot(layout):

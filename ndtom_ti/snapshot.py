@@ -39,6 +39,19 @@ __all__ = ["ARRAYS", "MapSnapshot"]
 SETTINGS = ("resolution", "occupancy_enabled", "config", "layout", "metadata", "scans_inserted", "points_inserted")
 
 
+def refuse_export_suffix(path: str | Path, how: str) -> None:
+    """ValueError when ``path`` has the suffix of an export format (``map.ply``, ``map.bt``):
+    saving writes ndtom_ti's own map file, whatever the name. ``how``: the call that exports."""
+    from .export import SUFFIXES
+
+    fmt = SUFFIXES.get(Path(path).suffix.lower())
+    if fmt is not None:
+        raise ValueError(
+            f"{path} names the {fmt} export format, but save() writes ndtom_ti's own map file (.ndtom); "
+            f"to export, call {how}, or save under a .ndtom name"
+        )
+
+
 def copy_metadata(metadata: dict) -> dict:
     """A copy the map's later changes do not reach (one level deep for values that
     cannot be copied deeply: saving refuses those anyway)."""
@@ -216,6 +229,7 @@ class MapSnapshot:
         half the bytes where Gaussians are dense; not lossless). ``version=RAW_VERSION``
         (``ndtom_ti.mapfile``) writes the uncompressed format that ndtom_ti before format 4
         reads."""
+        refuse_export_suffix(path, f"s.export({str(path)!r}) (ndtom_ti.export.export_file)")
         if compact and version not in (None, mapfile.COMPACT_VERSION):
             raise ValueError(f"compact maps are format {mapfile.COMPACT_VERSION}; version {version} is lossless")
         if version is None:
@@ -242,8 +256,11 @@ class MapSnapshot:
         """World centres of cells (N, 3) from integer indices."""
         return (np.asarray(index, np.float64) + 0.5) * self.resolution
 
-    def logodds_at(self, index: Any) -> np.ndarray:
-        """Log-odds (float64) of cells given by integer index (K, 3); unknown cells read 0."""
+    def logodds_at(self, index: Any) -> Any:
+        """Log-odds (float64) of cells given by integer index (K, 3), or of one cell (3,)
+        (then a float, as ``NdtOmMap.logodds_at``); unknown cells read 0."""
+        if np.shape(index) == (3,):
+            return float(self.logodds_at(np.reshape(index, (1, 3)))[0])
         return self._lookup(check_cell_index(index)).astype(np.float64)
 
     def _lookup(self, idx: np.ndarray) -> np.ndarray:
@@ -306,11 +323,9 @@ class MapSnapshot:
         each Gaussian merged with the RCU into its parent ``floor(index / factor)`` (N
         capped at the config's ``n_max``), each parent's log-odds the maximum of its known
         children's (method.md sec. 4). Runs in numpy: no map slot."""
-        if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or int(factor) != factor or factor < 2:
-            raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
-        from .multires import coarsen_state
+        from .multires import check_factor, coarsen_state
 
-        f = int(factor)
+        f = check_factor(factor, self.resolution)
         settings = {
             "resolution": self.resolution * f,
             "occupancy_enabled": self.occupancy_enabled,

@@ -15,6 +15,13 @@ __all__ = ['load_pose_file']
 
 _TUM_COLS = 8
 _KITTI_COLS = 12
+# A stamp this large is no time in seconds (3e9 years): it is an integer of nanoseconds.
+_NS_STAMPS = 10**17
+_INT64_MAX = 2**63 - 1
+_STAMP_UNITS = (
+    'stamps are seconds (1311877813.991479) or integer nanoseconds (1311877813991479000); '
+    'convert other units (microseconds, milliseconds) to seconds'
+)
 
 
 def _seconds_to_ns(tok: str) -> int:
@@ -22,10 +29,22 @@ def _seconds_to_ns(tok: str) -> int:
     return int((Decimal(tok) * 1_000_000_000).to_integral_value())
 
 
+def _stamp_ns(tok: str) -> int | None:
+    """A stamp as int ns: seconds, or integer nanoseconds where it can only be that (>= 1e17);
+    None when it does not fit int64 ns."""
+    d = Decimal(tok)
+    if d.is_nan():
+        raise InvalidOperation(tok)
+    if not d.copy_abs() < _NS_STAMPS:  # (before int() or arithmetic: 1e999999999 overflows them)
+        return int(d) if d.copy_abs() <= _INT64_MAX and d == d.to_integral_value() else None
+    ns = _seconds_to_ns(tok)
+    return ns if abs(ns) <= _INT64_MAX else None
+
+
 def _read_rows(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, tokens) of the non-empty, non-comment lines; separators: spaces or commas."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding='utf-8-sig')  # (a BOM some editors write is no part of the first number)
     except UnicodeDecodeError:
         raise RecordingError(f'{path}: not a text file; a pose file is TUM or KITTI text') from None
     rows = []
@@ -47,9 +66,12 @@ def _load_stamps(stamps: str | Path | Sequence[int] | np.ndarray) -> np.ndarray:
             if len(tok) != 1:
                 raise RecordingError(f'{p}:{lineno}: expected one time stamp (seconds) per line, got {len(tok)} values')
             try:
-                out.append(_seconds_to_ns(tok[0]))
+                ns = _stamp_ns(tok[0])
             except InvalidOperation:
                 raise RecordingError(f'{p}:{lineno}: {tok[0]!r} is not a number') from None
+            if ns is None:
+                raise RecordingError(f'{p}:{lineno}: time stamp {tok[0]} is out of range; {_STAMP_UNITS}')
+            out.append(ns)
         return np.asarray(out, dtype=np.int64)
     return np.asarray(stamps, dtype=np.int64).reshape(-1)
 
@@ -59,7 +81,7 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
 
     The format is detected from the column count of the first data line: 8 = TUM
     (``t tx ty tz qx qy qz qw``, t in seconds on the clock of the cloud header
-    stamps), 12 = KITTI (row-major 3x4 ``[R | t]``). Lines starting with '#' and
+    stamps; integers above 1e17 are read as nanoseconds), 12 = KITTI (row-major 3x4 ``[R | t]``). Lines starting with '#' and
     blank lines are skipped; commas are accepted as separators.
 
     KITTI lines carry no time. With ``stamps`` (a file with one time in seconds per
@@ -95,7 +117,10 @@ def load_pose_file(path: str | Path, stamps: str | Path | Sequence[int] | np.nda
         if not np.all(np.isfinite(values[i])):
             raise RecordingError(f'{p}:{lineno}: non-finite value (nan/inf)')
         if fmt == 'TUM':
-            tum_stamps[i] = _seconds_to_ns(tok[0])
+            ns = _stamp_ns(tok[0])
+            if ns is None:
+                raise RecordingError(f'{p}:{lineno}: time stamp {tok[0]} is out of range; {_STAMP_UNITS}')
+            tum_stamps[i] = ns
     if fmt == 'TUM':
         if stamps is not None:
             raise RecordingError(f'{p} is a TUM file: its first column holds the stamps; do not pass a stamps file')

@@ -81,6 +81,14 @@ def rot_to_quat(R: np.ndarray) -> np.ndarray:
 def make_transform(translation: Sequence[float] | np.ndarray, rotation: np.ndarray | Sequence[float]) -> np.ndarray:
     """4x4 pose from a translation and either a 3x3 rotation or a quaternion (x, y, z, w)."""
     rot = np.asarray(rotation, dtype=np.float64)
+    # (numpy would broadcast a 3-vector, e.g. roll pitch yaw, or a scalar into nonsense rows)
+    if rot.shape not in ((4,), (3, 3)):
+        raise ValueError(
+            f'rotation must be a 3x3 rotation matrix or a quaternion (x, y, z, w), got shape {rot.shape}; '
+            'convert angles to one first (e.g. scipy.spatial.transform.Rotation.from_euler(...).as_quat())'
+        )
+    if np.shape(translation) != (3,):
+        raise ValueError(f'translation must be 3 numbers (x, y, z), got shape {np.shape(translation)}')
     T = np.eye(4)
     T[:3, :3] = quat_to_rot(rot) if rot.shape == (4,) else rot
     T[:3, 3] = np.asarray(translation, dtype=np.float64)
