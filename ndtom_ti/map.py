@@ -18,6 +18,7 @@ from .mapfile import MapFileError
 from .memreport import memory_report
 from .scan_update import BLOCK_CELLS, ScanReport, ScanUpdate, UpdatePlan
 from .scaninput import as_points as _as_points
+from .signals import deferred_interrupt
 from .slot import MapSlot, release_dead
 from .snapshot import SETTINGS, MapSnapshot, copy_metadata, refuse_export_suffix
 
@@ -214,10 +215,11 @@ class NdtOmMap:
         ``T_world_sensor`` (4, 4) mapping sensor-frame points into the world.
 
         NaN/Inf points, points outside [min_range, max_range] and points outside the grid
-        are dropped and counted in the returned report. A call that raises leaves the map
-        unchanged.
+        are dropped and counted in the returned report. A call that raises an error leaves
+        the map unchanged; Ctrl-C during a call (KeyboardInterrupt, in the main thread) is
+        raised once the scan is inserted whole (a second Ctrl-C raises at once).
         """
-        with self._lock:  # the dense block is shared by the maps of the process
+        with self._lock, deferred_interrupt():  # the dense block is shared by the maps of the process
             self._slot.check_open()
             # Kernels compile (or load from Taichi's offline cache) at their first call in
             # the process: a scan's time includes those its update needed first.

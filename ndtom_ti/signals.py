@@ -21,7 +21,15 @@ from typing import Any
 
 from .exitcodes import signal_exit_code
 
-__all__ = ["Interrupted", "LiveSignals", "StopSignals", "loop_signals", "signal_name", "stop_signals"]
+__all__ = [
+    "Interrupted",
+    "LiveSignals",
+    "StopSignals",
+    "deferred_interrupt",
+    "loop_signals",
+    "signal_name",
+    "stop_signals",
+]
 
 
 class Interrupted(KeyboardInterrupt):
@@ -30,6 +38,35 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signal_name(signum))
         self.signum = signum
+
+
+@contextmanager
+def deferred_interrupt() -> Iterator[None]:
+    """Ctrl-C during the block raises KeyboardInterrupt when the block ends, not inside it:
+    a scan's kernels then run whole (raised between two of them, it left half a scan in the
+    map). A second Ctrl-C raises at once. Only where Python's own handler would raise it (the
+    main thread, SIGINT not taken by the caller); anything else is left as it is."""
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    got: list[int] = []
+
+    def later(signum: int, frame: Any) -> None:
+        if got:  # asked twice: now, whatever is half done
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            raise KeyboardInterrupt
+        got.append(signum)
+
+    signal.signal(signal.SIGINT, later)
+    try:
+        yield
+    finally:
+        if signal.getsignal(signal.SIGINT) is later:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+    if got:
+        raise KeyboardInterrupt
 
 
 def signal_name(signum: int | None) -> str:

@@ -335,6 +335,35 @@ def test_interrupted_update_leaves_the_shared_block_zero(rng, monkeypatch):
     np.testing.assert_array_equal(a["logodds"], b["logodds"])
 
 
+def test_ctrl_c_during_a_scan_is_raised_once_it_is_inserted_whole(rng, monkeypatch):
+    """Ctrl-C (SIGINT) arriving between a scan's kernels: the scan is inserted whole, then
+    KeyboardInterrupt is raised (raised between two kernels, it left half a scan)."""
+    import signal
+
+    from ndtom_ti.kernels.args import Bound
+
+    scans = scene_scans(rng, 2)
+    ref = build(0.25, scans)
+    m = build(0.25, scans[:1])
+    call = Bound.__call__
+    sent = []
+
+    def ctrl_c_in_merge(self, **kw):
+        if self.name == "merge" and not sent:  # (once: a second Ctrl-C raises at once)
+            sent.append(1)
+            os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C sends; its handler runs before the next line
+        return call(self, **kw)
+
+    monkeypatch.setattr(Bound, "__call__", ctrl_c_in_merge)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt):
+        m.insert_scan(*scans[1])
+    monkeypatch.undo()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    assert m.scans_inserted == 2
+    state_equal(m, ref)
+
+
 def test_gaussian_filters():
     m = NdtOmMap(1.0)
     pts = np.array([[3.5, 0.5, 0.5]] * 2 + [[5.2, 0.5, 0.5], [5.4, 0.5, 0.5], [5.6, 0.6, 0.4]])
