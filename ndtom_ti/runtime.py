@@ -10,6 +10,7 @@ import os
 import threading
 import warnings
 from dataclasses import dataclass, replace
+from typing import Any
 
 ARCHS = ("auto", "cpu", "cuda")
 
@@ -51,6 +52,7 @@ class _State:
     max_maps: int = DEFAULT_MAX_MAPS
     pinned: tuple = ()  # (thread id, cpu) of each pinned Taichi worker
     huge_pages: int = 0  # bytes of the CPU pool advised MADV_HUGEPAGE
+    taichi: Any = None  # Taichi's runtime object that init() started (check_taichi)
 
 
 _state = _State()
@@ -181,6 +183,7 @@ def init(
 
         fast_frontend()
         impl.get_runtime().materialize()
+        _state.taichi = impl.get_runtime()
     # Likewise the maps' storage (its trees are built when the first map is made, maybe in a
     # worker thread): built now for the default layout. An unused one gives way to another
     # layout or max_maps (storage()).
@@ -351,6 +354,7 @@ def storage(layout):
     from ndtom_ti.kernels.layout import Layout, Storage
 
     ensure_init()
+    check_taichi()
     layout = replace(layout, owner=None) if layout is not None else Layout()  # (owners: per slot)
     with _lock:
         st = _storages.get(layout)
@@ -369,6 +373,22 @@ def storage(layout):
                 )
             st = _storages[layout] = Storage(layout, _state.max_maps)
         return st
+
+
+def check_taichi() -> None:
+    """RuntimeError when Taichi was started again (``ti.init`` or ``ti.reset`` by other code in
+    the process) after ndtom_ti started it: that frees every field, and a kernel on the maps'
+    trees would then crash the process."""
+    if _state.taichi is None:
+        return
+    from taichi.lang import impl
+
+    if impl.get_runtime() is not _state.taichi:
+        raise RuntimeError(
+            "Taichi was initialised again (ti.init or ti.reset) after ndtom_ti started it, which freed the "
+            "maps' fields: no map of this process can be used or made. Code that calls ti.init itself cannot "
+            "share a process with ndtom_ti's maps: run it in a process of its own"
+        )
 
 
 def _check_fits(layout, slots: int) -> None:

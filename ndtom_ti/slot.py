@@ -93,6 +93,7 @@ class MapSlot:
     def check_open(self) -> None:
         if not self._release.alive:
             raise ValueError("this map is closed (NdtOmMap.close()); make a new map or load one")
+        runtime.check_taichi()
 
     # ------------------------------------------------------------------ memory
 

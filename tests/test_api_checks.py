@@ -191,3 +191,27 @@ def test_make_transform_of_no_translation_is_refused():
     with pytest.raises(ValueError, match="translation must be 3 numbers"):
         make_transform(5.0, [0, 0, 0, 1])
     np.testing.assert_array_equal(make_transform([1, 2, 3], np.eye(3))[:3, 3], [1, 2, 3])
+
+
+def test_taichi_started_again_by_other_code_is_refused_not_a_crash():
+    """ti.init or ti.reset by other code frees the maps' fields: using a map, or making one,
+    then raises RuntimeError (a kernel on the freed trees crashed the process)."""
+    code = textwrap.dedent(
+        """
+        import numpy as np, taichi as ti, ndtom_ti
+        m = ndtom_ti.NdtOmMap(0.2)
+        pts = np.random.default_rng(0).normal(size=(2000, 3)) + [4, 0, 0]
+        m.insert_scan(pts, np.eye(4))
+        ti.init(ti.cpu)
+        for use in (lambda: m.insert_scan(pts, np.eye(4)), m.gaussians, lambda: ndtom_ti.NdtOmMap(0.2)):
+            try:
+                use()
+            except RuntimeError as e:
+                assert "Taichi was initialised again" in str(e), e
+            else:
+                raise SystemExit("no error")
+        print("refused")
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "refused" in out.stdout, out.stdout + out.stderr
