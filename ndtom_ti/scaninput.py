@@ -16,6 +16,9 @@ def cell_box(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def as_points(points: Any) -> np.ndarray:
+    if isinstance(points, np.ma.MaskedArray) and np.ma.getmask(points) is not np.ma.nomask:
+        # np.asarray drops the mask: masked coordinates become NaN, dropped and counted as not finite
+        points = np.ma.asarray(points, dtype=np.float64).filled(np.nan)
     arr = np.asarray(points)
     if arr.dtype == np.bool_:
         raise TypeError("points must be a real numeric (N, 3) array in metres, got booleans")

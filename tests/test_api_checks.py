@@ -215,3 +215,11 @@ def test_taichi_started_again_by_other_code_is_refused_not_a_crash():
     )
     out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and "refused" in out.stdout, out.stdout + out.stderr
+
+
+def test_masked_points_are_dropped_as_not_finite():
+    m = small_map()
+    pts = np.ma.masked_array(np.random.default_rng(1).uniform(-3, 3, (400, 3)), mask=False)
+    pts[:10, 1] = np.ma.masked
+    rep = m.insert_scan(pts, np.eye(4))
+    assert rep.dropped_nonfinite == 10 and rep.points_used == 390
