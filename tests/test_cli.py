@@ -538,6 +538,31 @@ def test_small_cli_inputs(bags, tmp_path: Path, monkeypatch) -> None:
     assert_user_error(run("info", bare), "has no metadata.yaml", "ros2 bag reindex")
 
 
+def test_a_map_that_cannot_be_written_is_written_elsewhere(bags, tmp_path: Path, monkeypatch) -> None:
+    """The save fails at the end (a full disk, a dangling link): the map goes to the current
+    folder instead of being lost with the run."""
+    out = tmp_path / "full" / "m.ndtom"
+    out.parent.mkdir()
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    save = NdtOmMap.save
+
+    def full_disk(self, path, **kw):
+        if Path(path).parent == out.parent:
+            raise OSError(28, "No space left on device")
+        return save(self, path, **kw)
+
+    monkeypatch.setattr(NdtOmMap, "save", full_disk)
+    r = run("map", bags["ros1"], "-r", pb.RES, "-o", out)
+    assert r.exit_code == 1, r.output
+    rescued = list(here.glob("m.rescued-*.ndtom"))
+    assert len(rescued) == 1 and f"it was written to {rescued[0]} instead" in r.output, r.output
+    m = NdtOmMap.load(rescued[0])
+    assert m.scans_inserted == pb.N_CLOUDS and m.metadata["complete"] is True
+    del m
+
+
 def test_pose_child_frame_goes_with_a_pose_topic(bags, tmp_path: Path) -> None:
     r = run(
         "map", bags["ros1"], "-r", pb.RES, "--sensor-frame", "--pose-child-frame", "base", "-o", tmp_path / "m.ndtom"

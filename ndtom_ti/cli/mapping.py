@@ -6,6 +6,7 @@ table, and the save after a complete or stopped run. The loop is
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -223,6 +224,22 @@ def _summary_table(summary: Any, output: Path | None) -> Table:
     return t
 
 
+def _rescue(m: Any, target: Path, compact: bool) -> Path | None:
+    """Write the map somewhere else when its own path failed (a full disk, a dangling link):
+    the current folder, then the temporary one. The path written, or None."""
+    import tempfile
+
+    name = f"{target.stem}.rescued-{os.getpid()}{MAP_SUFFIX}"
+    for folder in dict.fromkeys((Path.cwd(), Path(tempfile.gettempdir()))):
+        if folder.resolve() == target.parent.resolve():
+            continue
+        try:
+            return m.save(folder / name, compact=compact)
+        except (OSError, ValueError):
+            continue
+    return None
+
+
 def _finish_mapping(
     m: Any,
     summary: Any,
@@ -250,7 +267,13 @@ def _finish_mapping(
             wrote = m.save(target, compact=compact)
         except OSError as exc:
             out.print(_summary_table(summary, None))
-            fail(f"cannot write the map to {target}: {exc}", "choose another path with -o", EXIT_FAILURE)
+            rescued = _rescue(m, target, compact)  # the mapping is not lost with the save
+            fail(
+                f"cannot write the map to {target}: {exc}"
+                + (f"; it was written to {rescued} instead" if rescued else "; nor could it be written elsewhere"),
+                f"move {rescued} where it belongs" if rescued else "choose another path with -o",
+                EXIT_FAILURE,
+            )
     kept = f"; {output}, the map there before this run, is unchanged" if wrote and target != output else ""
     out.print(_summary_table(summary, wrote))
     for row in extra_rows or []:
