@@ -361,7 +361,7 @@ def floor_plane(m: Any, *, min_probability: float = 0.5) -> tuple[np.ndarray, st
     g = m.gaussians(min_probability=max(float(min_probability), 0.5))
     if len(g["n"]) == 0:
         raise ValueError(
-            "the map has no occupied Gaussians to find the floor by; give the height band (--z-min and --z-max)"
+            "the map has no occupied Gaussians to find the floor by; give the height band (z_min and z_max; --z-min and --z-max in ndtom export)"
         )
     mean = g["mean"]
     tile = max(1.0, 4 * float(m.resolution))
