@@ -470,6 +470,19 @@ def test_a_mount_republished_with_other_values_is_noted(tmp_path: Path) -> None:
     assert not any("/tf_static gives" in n for n in s.skip_notes)
 
 
+def test_clouds_on_the_sensors_clock_are_matched_by_record_time_when_asked(tmp_path: Path) -> None:
+    """A driver that stamps clouds with the sensor's own clock: refused with the option that
+    helps; with cloud_time="record" the bag's record times match them to the poses."""
+    bag = pb.write_plane_bag(tmp_path, name="clock", sensor_clock=True)
+    with pytest.raises(RecordingError, match=r"(?s)do not overlap.*--cloud-time record"):
+        map_recording(bag, pb.RES)
+    m, s = map_recording(bag, pb.RES, cloud_time="record")
+    assert s.scans_used == pb.N_CLOUDS and m.metadata["options"]["cloud_time"] == "record"
+    pb.check_plane_map(m)
+    with pytest.raises(ValueError, match="cloud_time must be one of header, record"):
+        map_recording(bag, pb.RES, cloud_time="sensor")
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

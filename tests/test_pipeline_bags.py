@@ -91,6 +91,7 @@ def write_plane_bag(
     pose_stamped: bool = False,
     odom_zero_stamps: bool = False,
     remount: bool = False,
+    sensor_clock: bool = False,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
@@ -105,7 +106,9 @@ def write_plane_bag(
     publish at start-up. ``pose_stamped``: the vehicle's ('base') poses on /pose as
     PoseStamped, which names no child frame, in place of TF's map -> base (tf_static keeps the
     mount base -> lidar). ``odom_zero_stamps``: /odom's header stamps left 0 (its record times
-    are right). ``remount``: /tf_static gives base -> lidar a second time, 10 cm higher."""
+    are right). ``remount``: /tf_static gives base -> lidar a second time, 10 cm higher.
+    ``sensor_clock``: the clouds' header stamps on another clock (1000 s behind the poses'),
+    their record times right."""
     rng = np.random.default_rng(42)
     e: list = []
     if faults:
@@ -221,7 +224,8 @@ def write_plane_bag(
             continue
         if bad_fields:  # the same bytes, but the fields are called range, bearing, elevation
             packed.fields = [(new, o, d) for new, (_, o, d) in zip(("range", "bearing", "elevation"), packed.fields)]
-        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=t, p=packed: m.cloud(t, frame, p)))
+        ts = t - 1000 * 10**9 if sensor_clock else t
+        e.append(("/points", "sensor_msgs/msg/PointCloud2", t + 1, lambda m, t=ts, p=packed: m.cloud(t, frame, p)))
         if second_topic:
             e.append(
                 ("/points_front", "sensor_msgs/msg/PointCloud2", t + 2, lambda m, t=t, p=packed: m.cloud(t, frame, p))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -80,6 +81,11 @@ def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
         ways.append("a CUDA device (--arch cuda)")
     more = " Or map a part: --max-scans N or --end T stops before it." if summary.scans_used else ""
     return error, f"{saved} To map scan {scan}, use " + ", ".join(ways[:-1]) + f", or {ways[-1]}." + more
+
+
+class CloudTime(str, Enum):
+    header = "header"
+    record = "record"
 
 
 def default_output(bag: Path) -> Path:
@@ -390,6 +396,13 @@ def map_(
             show_default=False,
         ),
     ] = None,
+    cloud_time: Annotated[
+        CloudTime,
+        typer.Option(
+            help="A cloud's time: its header stamp, or the bag's record time (clouds stamped on the sensor's own "
+            "clock, which the poses are not on).",
+        ),
+    ] = CloudTime.header,
     every: Annotated[int, typer.Option(min=1, help="Keep every N-th cloud.")] = 1,
     every_distance: Annotated[
         float | None,
@@ -596,6 +609,7 @@ def map_(
             sensor_frame_only=sensor_frame,
             ray_origin_frame=ray_origin_frame,
             pose_child_frame=pose_child_frame,
+            cloud_time=cloud_time.value,
             every=every,
             every_distance=every_distance,
             t_start=start,

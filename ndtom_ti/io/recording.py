@@ -665,7 +665,7 @@ class Recording:
         frame = normalize_frame(first[1].header.frame_id)
         choice = self._poses.choose(
             frame,
-            _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
+            first[0] if sel.cloud_time == 'record' else _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
             fixed_frame=sel.fixed_frame,
             pose_topic=sel.pose_topic,
             poses_file=sel.poses_file,
@@ -758,6 +758,12 @@ class _PoseSources:
             f'{what} is stamped {_s(lo)} .. {_s(hi)} but the clouds from {_s(first_stamp)} on: the times '
             'do not overlap'
             + (' (different clocks, e.g. simulation time, or data of another recording)' if far else '')
+            + (
+                '; clouds stamped on the sensor\'s own clock are matched by the bag\'s record time with '
+                '--cloud-time record (cloud_time="record")'
+                if self._rec.start_ns - 10**9 <= lo <= self._rec.start_ns + self._rec.duration_ns + 10**9
+                else ''
+            )
         )
 
     def _tf_choice(self, frame: str, fixed_frame: str | None, first_stamp: int, tol: int) -> _PoseChoice:
@@ -1088,6 +1094,7 @@ class ScanStream:
         self.pose_range_ns = first.choice.range_ns
         self._every = selection.every
         self._every_distance = selection.every_distance
+        self._record_time = selection.cloud_time == 'record'
         t_start, t_end = selection.t_start, selection.t_end
         self._lo = None if t_start is None else rec.start_ns + round(t_start * 1e9)
         self._hi = None if t_end is None else rec.start_ns + round(t_end * 1e9)
@@ -1112,6 +1119,9 @@ class ScanStream:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
+    def _stamp(self, header_ns: int, record_ns: int) -> int:
+        return record_ns if self._record_time else _cloud_stamp(header_ns, record_ns)
+
     @property
     def start_ns(self) -> int:
         """The recording's start (what t_start and t_end count from)."""
@@ -1128,7 +1138,7 @@ class ScanStream:
             if rng is None or part.choice.fn is None:
                 continue
             first = self._rec._first_message(part.topic)
-            t0 = _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]) if first else rng[0]
+            t0 = self._stamp(stamp_ns(first[1].header.stamp), first[0]) if first else rng[0]
             lo = max(rng[0], t0, self._lo if self._lo is not None else rng[0])
             hi = min(rng[1], self._hi if self._hi is not None else rng[1], self._rec.start_ns + self._rec.duration_ns)
             for t in np.unique(np.linspace(lo, hi, samples).astype(np.int64)) if hi >= lo else ():
@@ -1178,12 +1188,12 @@ class ScanStream:
                 fast = decode_livox_raw(raw, rec.format == 'ros1') if kind == 'livox' else None
                 if fast is not None:
                     stamp, frame, pts = fast
-                    stamp = _cloud_stamp(stamp, t)
+                    stamp = self._stamp(stamp, t)
                     frame = normalize_frame(frame)
                     empty = len(pts) == 0
                 else:
                     msg = rec._deserialize(raw, msgtype, topic)
-                    stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t)
+                    stamp = self._stamp(stamp_ns(msg.header.stamp), t)
                     frame = normalize_frame(msg.header.frame_id)
                     if kind == 'livox':
                         empty = len(msg.points) == 0

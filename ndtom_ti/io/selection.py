@@ -13,6 +13,8 @@ from typing import Any
 
 from .transforms import PoseTrack
 
+CLOUD_TIMES = ("header", "record")  # what a cloud's time is (ScanSelection.cloud_time)
+
 
 @dataclass(frozen=True)
 class ScanSelection:
@@ -26,7 +28,9 @@ class ScanSelection:
     frame, e.g. registered clouds with their odometry in TF only); ``pose_child_frame``: the frame
     whose poses a pose topic's messages give when they name none (PoseStamped,
     PoseWithCovarianceStamped; default: the frame tf_static mounts the cloud frame on, else the
-    cloud frame); ``every`` keeps cloud
+    cloud frame); ``cloud_time``: "header" (a cloud's header stamp; its record time where the
+    stamp is 0) or "record" (the bag's record time: clouds stamped on the sensor's own clock,
+    not the clock of the poses); ``every`` keeps cloud
     indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
     (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
     stops after that many kept scans.
@@ -39,11 +43,16 @@ class ScanSelection:
     sensor_frame_only: bool = False
     ray_origin_frame: str | None = None
     pose_child_frame: str | None = None
+    cloud_time: str = "header"
     every: int = 1
     every_distance: float | None = None
     t_start: float | None = None
     t_end: float | None = None
     max_scans: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.cloud_time not in CLOUD_TIMES:
+            raise ValueError(f"cloud_time must be one of {', '.join(CLOUD_TIMES)}, got {self.cloud_time!r}")
 
     def options(self) -> dict:
         """The selection as a map's metadata records it (``start``/``end``; a pose file's
@@ -57,6 +66,7 @@ class ScanSelection:
             "sensor_frame_only": self.sensor_frame_only,
             **({"ray_origin_frame": self.ray_origin_frame} if self.ray_origin_frame else {}),
             **({"pose_child_frame": self.pose_child_frame} if self.pose_child_frame else {}),
+            **({"cloud_time": self.cloud_time} if self.cloud_time != "header" else {}),
             "every": self.every,
             "every_distance": self.every_distance,
             "start": self.t_start,
