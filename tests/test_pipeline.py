@@ -483,6 +483,45 @@ def test_clouds_on_the_sensors_clock_are_matched_by_record_time_when_asked(tmp_p
         map_recording(bag, pb.RES, cloud_time="sensor")
 
 
+def test_a_mount_the_recording_lacks_can_be_given(tmp_path: Path) -> None:
+    """/tf_static not recorded: the lidar is not in the TF tree and the recording is refused;
+    the mount given as static_transform_publisher takes it (--static-transform) gives the
+    map of the recording that has it."""
+    from ndtom_ti.io.selection import parse_static_transform
+
+    plain, _ = map_recording(pb.write_plane_bag(tmp_path, name="plain"), pb.RES)
+    bag = pb.write_plane_bag(tmp_path, name="nomount", mount_recorded=False)
+    with pytest.raises(RecordingError, match="lidar"):
+        map_recording(bag, pb.RES)
+    (x, y, z), q = pb.BASE_MOUNT
+    text = " ".join(repr(float(v)) for v in (x, y, z, *q)) + " base lidar"
+    m, s = map_recording(bag, pb.RES, static_transforms=[text])
+    assert "static transform given: base -> lidar" in s.skip_notes
+    a, b = plain.known_cells(), m.known_cells()
+    np.testing.assert_array_equal(a["index"], b["index"])
+    np.testing.assert_array_equal(a["logodds"], b["logodds"])
+    assert m.metadata["options"]["static_transforms"] == [["base", "lidar", [x, y, z], [float(v) for v in q]]]
+    # yaw pitch roll, as static_transform_publisher takes them: the same rotation
+    p, c, t, q2 = parse_static_transform("1 2 3 0.3 -0.2 0.1 base lidar")
+    from ndtom_ti.io import quat_to_rot
+
+    cy, sy, cp, sp, cr, sr = np.cos(0.3), np.sin(0.3), np.cos(-0.2), np.sin(-0.2), np.cos(0.1), np.sin(0.1)
+    Rz, Ry, Rx = (
+        [[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]],
+        [[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]],
+        [[1, 0, 0], [0, cr, -sr], [0, sr, cr]],
+    )
+    np.testing.assert_allclose(quat_to_rot(q2), np.array(Rz) @ np.array(Ry) @ np.array(Rx), atol=1e-12)
+    assert (p, c, t) == ("base", "lidar", (1.0, 2.0, 3.0))
+    for bad, why in (
+        ("1 2 3 base lidar", "give 'x y z"),
+        ("1 2 x 0 0 0 1 a b", "must be numbers"),
+        ("0 0 0 0 0 0 0 a b", "zero length"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            parse_static_transform(bad)
+
+
 def _registered_f64_bag(root: Path, name: str, offset: np.ndarray) -> Path:
     """The plane scene's clouds registered in 'map' as FLOAT64 points, moved by ``offset``
     (as a lidar odometry in UTM coordinates writes them), with the lidar's poses on /odom."""

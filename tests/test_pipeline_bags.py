@@ -92,6 +92,7 @@ def write_plane_bag(
     odom_zero_stamps: bool = False,
     remount: bool = False,
     sensor_clock: bool = False,
+    mount_recorded: bool = True,
 ) -> Path:
     """Write the scene; returns the bag path (a .bag file or a ROS2 folder). ``registered``:
     the clouds' points in the world frame 'map', as a lidar odometry publishes them, with
@@ -108,7 +109,8 @@ def write_plane_bag(
     mount base -> lidar). ``odom_zero_stamps``: /odom's header stamps left 0 (its record times
     are right). ``remount``: /tf_static gives base -> lidar a second time, 10 cm higher.
     ``sensor_clock``: the clouds' header stamps on another clock (1000 s behind the poses'),
-    their record times right."""
+    their record times right. ``mount_recorded``: False leaves /tf_static out (base -> lidar
+    is then unknown to the recording)."""
     rng = np.random.default_rng(42)
     e: list = []
     if faults:
@@ -158,7 +160,7 @@ def write_plane_bag(
                     ),
                 )
             )
-    if with_tf:
+    if with_tf and mount_recorded:
         e.append(
             (
                 "/tf_static",
@@ -167,6 +169,7 @@ def write_plane_bag(
                 lambda m: m.tf([(T0, "base", "lidar", *BASE_MOUNT)]),
             )
         )
+    if with_tf:
         if remount:
             up = ((0.2, 0.0, 0.6), BASE_MOUNT[1])
             e.append(

@@ -396,6 +396,15 @@ def map_(
             show_default=False,
         ),
     ] = None,
+    static_transform: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="'X Y Z QX QY QZ QW PARENT CHILD'",
+            help="A mount the recording lacks (its /tf_static not recorded), as static_transform_publisher takes "
+            "it (or X Y Z YAW PITCH ROLL PARENT CHILD); repeat for more.",
+            show_default=False,
+        ),
+    ] = None,
     cloud_time: Annotated[
         CloudTime,
         typer.Option(
@@ -610,6 +619,7 @@ def map_(
             ray_origin_frame=ray_origin_frame,
             pose_child_frame=pose_child_frame,
             cloud_time=cloud_time.value,
+            static_transforms=tuple(static_transform or ()),
             every=every,
             every_distance=every_distance,
             t_start=start,

@@ -635,6 +635,11 @@ class Recording:
             raise ValueError(f't_end ({t_end}) is before t_start ({t_start})')
         if depth_stride < 1:
             raise ValueError(f'depth_stride must be >= 1, got {depth_stride}')
+        if sel.static_transforms:
+            tf = self.tf()
+            for parent, child, t, q in sel.static_transforms:  # (a recording without its /tf_static)
+                tf.add(parent, child, 0, t, q, static=True)
+                tf.given.append(f'{normalize_frame(parent)} -> {normalize_frame(child)}')
         names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
         if len(names) > 1 and any(not n for n in names):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')

@@ -30,7 +30,10 @@ class ScanSelection:
     PoseWithCovarianceStamped; default: the frame tf_static mounts the cloud frame on, else the
     cloud frame); ``cloud_time``: "header" (a cloud's header stamp; its record time where the
     stamp is 0) or "record" (the bag's record time: clouds stamped on the sensor's own clock,
-    not the clock of the poses); ``every`` keeps cloud
+    not the clock of the poses); ``static_transforms``: mounts the recording lacks (its
+    /tf_static was not recorded), each ``(parent, child, (x, y, z), (qx, qy, qz, qw))`` or a
+    string as ``static_transform_publisher`` takes it (:func:`parse_static_transform`);
+    ``every`` keeps cloud
     indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
     (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
     stops after that many kept scans.
@@ -44,6 +47,7 @@ class ScanSelection:
     ray_origin_frame: str | None = None
     pose_child_frame: str | None = None
     cloud_time: str = "header"
+    static_transforms: tuple = ()
     every: int = 1
     every_distance: float | None = None
     t_start: float | None = None
@@ -53,6 +57,10 @@ class ScanSelection:
     def __post_init__(self) -> None:
         if self.cloud_time not in CLOUD_TIMES:
             raise ValueError(f"cloud_time must be one of {', '.join(CLOUD_TIMES)}, got {self.cloud_time!r}")
+        given = self.static_transforms
+        if isinstance(given, (str, bytes)) or not isinstance(given, (tuple, list)):
+            raise TypeError("static_transforms must be a list of transforms, each a string or (parent, child, t, q)")
+        object.__setattr__(self, "static_transforms", tuple(_static(t) for t in given))
 
     def options(self) -> dict:
         """The selection as a map's metadata records it (``start``/``end``; a pose file's
@@ -67,6 +75,11 @@ class ScanSelection:
             **({"ray_origin_frame": self.ray_origin_frame} if self.ray_origin_frame else {}),
             **({"pose_child_frame": self.pose_child_frame} if self.pose_child_frame else {}),
             **({"cloud_time": self.cloud_time} if self.cloud_time != "header" else {}),
+            **(
+                {"static_transforms": [[p, c, list(t), list(q)] for p, c, t, q in self.static_transforms]}
+                if self.static_transforms
+                else {}
+            ),
             "every": self.every,
             "every_distance": self.every_distance,
             "start": self.t_start,
@@ -91,3 +104,47 @@ class ScanSelection:
         if self.max_scans is not None:
             count = min(count, self.max_scans)
         return count
+
+
+def parse_static_transform(text: str) -> tuple[str, str, tuple, tuple]:
+    """A mount as ``static_transform_publisher`` takes it: ``x y z qx qy qz qw parent child``
+    or ``x y z yaw pitch roll parent child`` (radians) -> (parent, child, t, q). ValueError."""
+    tok = text.replace(",", " ").split()
+    if len(tok) not in (8, 9):
+        raise ValueError(
+            f"static transform {text!r}: give 'x y z qx qy qz qw PARENT CHILD' or 'x y z yaw pitch roll PARENT CHILD'"
+        )
+    try:
+        v = [float(x) for x in tok[:-2]]
+    except ValueError:
+        raise ValueError(f"static transform {text!r}: its first {len(tok) - 2} values must be numbers") from None
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError(f"static transform {text!r}: values must be finite")
+    if len(v) == 6:  # yaw pitch roll (Z Y X), as static_transform_publisher
+        (cy, sy), (cp, sp), (cr, sr) = ((math.cos(a / 2), math.sin(a / 2)) for a in v[3:])
+        q = (
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy,
+        )
+    else:
+        q = tuple(v[3:])
+        if math.sqrt(sum(x * x for x in q)) < 1e-12:
+            raise ValueError(f"static transform {text!r}: the quaternion has zero length")
+    return tok[-2], tok[-1], tuple(v[:3]), tuple(q)
+
+
+def _static(item: Any) -> tuple[str, str, tuple, tuple]:
+    if isinstance(item, str):
+        return parse_static_transform(item)
+    try:
+        parent, child, t, q = item
+        t, q = tuple(float(x) for x in t), tuple(float(x) for x in q)
+    except (TypeError, ValueError):
+        raise TypeError(
+            f"a static transform is a string or (parent, child, (x, y, z), (qx, qy, qz, qw)); got {item!r}"
+        ) from None
+    if len(t) != 3 or len(q) != 4 or not all(math.isfinite(x) for x in (*t, *q)):
+        raise ValueError(f"static transform {item!r}: give 3 finite translation and 4 quaternion values")
+    return str(parent), str(child), t, q

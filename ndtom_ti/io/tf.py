@@ -59,6 +59,7 @@ class TfBuffer:
         self._noted: set[tuple[str, str, str]] = set()
         # (parent, child) -> (transforms dropped: NaN/Inf or a zero quaternion, why the first)
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
+        self.given: list[str] = []  # mounts given with the selection (static_transforms), not recorded
 
     # ------------------------------------------------------------------ building
     def add(
@@ -146,10 +147,15 @@ class TfBuffer:
         """What a mapping run with these transforms should say: one line per edge whose
         transforms were dropped (``add``), with their count, and per mount that /tf_static
         gave with different values."""
-        return [n for n in self.notes if n.startswith('/tf_static gives')] + [
-            f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
-            for (p, c), (n, why) in self.ignored.items()
-        ]
+        given = [f'static transform given: {e}' for e in dict.fromkeys(self.given)]
+        return (
+            given
+            + [n for n in self.notes if n.startswith('/tf_static gives')]
+            + [
+                f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
+                for (p, c), (n, why) in self.ignored.items()
+            ]
+        )
 
     # ------------------------------------------------------------------ structure
     def frames(self) -> list[str]:
