@@ -563,6 +563,28 @@ def test_a_map_that_cannot_be_written_is_written_elsewhere(bags, tmp_path: Path,
     del m
 
 
+def test_no_output_replaces_a_recording_or_a_map(bags, tmp_path: Path) -> None:
+    """Outputs of every command (an export, a page, the demo's map) refuse a recording, a file
+    inside a ROS2 bag's folder and, unless they are a map themselves, a map file."""
+    m = tmp_path / "m.ndtom"
+    assert run("map", bags["ros1"], "-r", pb.RES, "-o", m).exit_code == 0
+    rec = tmp_path / "rec.bag"
+    rec.write_bytes(bags["ros1"].read_bytes())
+    other = tmp_path / "other.ndtom"
+    other.write_bytes(m.read_bytes())
+    meta = bags["mcap"] / "metadata.yaml"
+    before = meta.read_bytes()
+    assert_user_error(run("export", m, "-o", meta), "inside the ROS2 bag", "choose another path")
+    assert_user_error(run("export", m, "-f", "ply", "-o", rec), "it is a ROS1 bag")
+    assert_user_error(run("export", m, "-f", "ply", "-o", other), "it is an ndtom map file")
+    assert meta.read_bytes() == before and rec.read_bytes() == bags["ros1"].read_bytes()
+    demo = tmp_path / "d"
+    demo.mkdir()
+    (demo / "demo.ndtom").write_bytes(rec.read_bytes())
+    assert_user_error(run("demo", "--out", demo, "--scans", 2), "it is a ROS1 bag")
+    assert (demo / "demo.ndtom").read_bytes() == rec.read_bytes()
+
+
 def test_pose_child_frame_goes_with_a_pose_topic(bags, tmp_path: Path) -> None:
     r = run(
         "map", bags["ros1"], "-r", pb.RES, "--sensor-frame", "--pose-child-frame", "base", "-o", tmp_path / "m.ndtom"
@@ -576,7 +598,7 @@ def test_the_map_file_does_not_replace_other_files(bags, tmp_path: Path) -> None
     other = tmp_path / "other.bag"
     other.write_bytes(bags["ros1"].read_bytes())
     r = run("map", bags["ros1"], "-r", pb.RES, "-o", other)
-    assert_user_error(r, "is not an ndtom map file (it is a ROS1 bag)", "choose another path with -o")
+    assert_user_error(r, "it is a ROS1 bag", "choose another path")
     assert other.read_bytes() == bags["ros1"].read_bytes()
     notes = tmp_path / "notes.txt"
     notes.write_text("calibration notes\n")
@@ -590,7 +612,7 @@ def test_the_map_file_does_not_replace_other_files(bags, tmp_path: Path) -> None
         assert not target.exists()
     disguised = tmp_path / "rec.ndtom"  # a recording, whatever its name
     disguised.write_bytes(bags["ros1"].read_bytes())
-    assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", disguised), "(it is a ROS1 bag)")
+    assert_user_error(run("map", bags["ros1"], "-r", pb.RES, "-o", disguised), "it is a ROS1 bag")
     empty = tmp_path / "empty.ndtom"
     empty.touch()  # an empty file (as `touch` leaves) is no loss
     assert run("map", bags["ros1"], "-r", pb.RES, "-o", empty).exit_code == 0

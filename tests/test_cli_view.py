@@ -19,6 +19,13 @@ def test_view_html_snapshot_and_missing_map(tmp_path):
     assert (tmp_path / "snap.html").stat().st_size > 10000
     res = CliRunner().invoke(app, ["view", str(tmp_path / "absent.ndtom")])
     assert res.exit_code == 2
+    # a page never replaces a recording or a map (another one, here a copy)
+    for victim, kind in ((tmp_path / "rec.bag", "a ROS1 bag"), (tmp_path / "other.ndtom", "an ndtom map file")):
+        victim.write_bytes(b"#ROSBAG V2.0\n" + bytes(100) if kind == "a ROS1 bag" else path.read_bytes())
+        before = victim.read_bytes()
+        res = CliRunner().invoke(app, ["view", str(path), "--html", str(victim)])
+        assert res.exit_code == 2 and f"it is {kind}" in res.output, res.output
+        assert victim.read_bytes() == before
 
 
 def test_map_view_maps_the_recording_live_and_saves_it(tmp_path, monkeypatch):

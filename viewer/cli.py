@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ndtom_ti.atomic import kept_kind
 from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from ndtom_ti.signals import LiveSignals
 
@@ -120,6 +121,11 @@ def view_command(
             return EXIT_USAGE
         if html.exists() and not html.is_file():
             _error(f"cannot write {html}: it exists and is not a regular file", "choose another --html path")
+            return EXIT_USAGE
+        kind = kept_kind(html)
+        if kind is not None:
+            where = kind if kind.startswith("inside") else f"it is {kind}"
+            _error(f"cannot write {html}: {where}, which writing the page would destroy", "choose another --html path")
             return EXIT_USAGE
     t0 = time.perf_counter()
     path = Path(map_path)

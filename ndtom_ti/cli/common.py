@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from ..atomic import temp_prefix
+from ..atomic import kept_kind, temp_prefix
 from ..config import check_resolution
 from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
 from ..frames import as_frame_origin
@@ -182,15 +182,13 @@ def check_writable(path: Path, what: str = "output") -> Path:
         fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o", EXIT_FAILURE)
     if path.exists() and not path.is_file():
         fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
+    kind = kept_kind(path)
+    if kind is not None and not (what == "map file" and kind == "an ndtom map file"):  # (maps replace maps)
+        where = kind if kind.startswith("inside") else f"it is {kind}"
+        fail(f"cannot write the {what} {path}: {where}, which writing it would destroy", "choose another path")
     return path
 
 
-# First bytes of files a map output must not replace, and what they are.
-_FOREIGN_HEADS = (
-    (b"#ROSBAG", "a ROS1 bag"),
-    (b"SQLite format 3", "an SQLite database (a ROS2 bag?)"),
-    (b"\x89MCAP", "an MCAP file (a ROS2 bag?)"),
-)
 _RECORDING_SUFFIXES = (".bag", ".db3", ".mcap")
 
 
@@ -210,7 +208,7 @@ def check_map_output(path: Path, option: str = "-o") -> None:
     suffix = path.suffix.lower()
     if head and not head.startswith(MAGIC):
         # (a damaged file named as a map is replaced; a recording is not, whatever its name)
-        kind = next((name for start, name in _FOREIGN_HEADS if head.startswith(start)), None)
+        kind = kept_kind(path)
         if kind is not None or suffix != MAP_SUFFIX:
             fail(
                 f"{path} exists and is not an ndtom map file (it is {kind or 'a file of another kind'}): writing "

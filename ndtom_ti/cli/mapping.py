@@ -745,6 +745,7 @@ def demo(
         except OSError as exc:
             fail(f"cannot create the folder {out}: {exc.strerror or exc}", "choose another folder with --out")
         out_path = check_writable(out / ("demo" + MAP_SUFFIX), "map file")
+        check_map_output(out_path, "--out")
         scene = demo_scene.Scene()
         t0 = time.perf_counter()
         data = demo_scene.make_scans(scans, scene=scene)
