@@ -8,7 +8,8 @@ Layout (little endian):
     8 bytes   magic  b"NDTOMTI\\n"
     4 bytes   format version (uint32)
     8 bytes   header length H (uint64)
-    H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256
+    H bytes   header, UTF-8 JSON: settings, array table, payload length and SHA-256, and last
+              its own SHA-256 (of the format version and the header without it; since 2026-11-29)
     payload   versions 4-7: each array's zstd frames, back to back (``mapcodec``; the table
               gives name, dtype, shape, coding and the frames' sizes); versions 1-3: the
               arrays' raw bytes (the table gives name, dtype, shape, offset, nbytes)
@@ -21,6 +22,7 @@ import itertools
 import json
 import math
 import os
+import re
 import stat
 import struct
 from pathlib import Path
@@ -114,7 +116,17 @@ def _encode(s: dict, cells: dict, version: int) -> tuple[bytes, list]:
         "payload_bytes": offset,
         "payload_sha256": sha.hexdigest(),
     }
-    return json.dumps(header, default=_json_default).encode("utf-8"), blobs
+    body = json.dumps(header, default=_json_default).encode("utf-8")
+    # The header's own checksum, last (readers of files without it, and older readers, go on
+    # as before): a flipped bit in the resolution or frame_origin otherwise read as valid.
+    return body[:-1] + b', "header_sha256": "' + _header_digest(version, body).encode() + b'"}', blobs
+
+
+def _header_digest(version: int, body: bytes) -> str:
+    return hashlib.sha256(struct.pack("<I", version) + body).hexdigest()
+
+
+_HEADER_SHA = re.compile(rb', "header_sha256": "([0-9a-f]{64})"\}$')
 
 
 def _bytes(a: np.ndarray | bytes) -> memoryview:
@@ -150,6 +162,14 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
         if len(prefix) < _PREFIX.size:
             raise MapFileError(f"{path} is truncated ({size} bytes): no complete header")
         _, version, hlen = _PREFIX.unpack(prefix)
+        if hlen > _MAX_HEADER or _PREFIX.size + hlen > size:
+            raise MapFileError(f"{path} is truncated or corrupt: header of {hlen} bytes does not fit in {size} bytes")
+        raw = fh.read(hlen)
+        if version > mapcodec.NEWEST + 1000:  # no version ndtom_ti will reach: flipped bits
+            raise MapFileError(f"{path} is corrupt: format version {version} is no version of this format")
+        signed = _HEADER_SHA.search(raw) if version <= mapcodec.NEWEST else None
+        if signed is not None and _header_digest(version, raw[: signed.start()] + b"}") != signed.group(1).decode():
+            raise MapFileError(f"{path} is corrupt: header checksum mismatch")
         if version > mapcodec.NEWEST:
             raise MapFileError(
                 f"{path} is map format version {version}; this ndtom_ti reads up to version "
@@ -157,10 +177,8 @@ def _read(path: Path, header_only: bool = False) -> tuple[dict, dict, int]:
             )
         if version < 1:
             raise MapFileError(f"{path} has invalid format version {version}")
-        if hlen > _MAX_HEADER or _PREFIX.size + hlen > size:
-            raise MapFileError(f"{path} is truncated or corrupt: header of {hlen} bytes does not fit in {size} bytes")
         try:
-            header = json.loads(fh.read(hlen).decode("utf-8"))
+            header = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise MapFileError(f"{path} is corrupt: unreadable header ({exc})") from None
         except RecursionError:

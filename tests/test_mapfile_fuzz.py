@@ -71,9 +71,15 @@ def split(data: bytes) -> tuple[bytes, dict, bytes]:
 
 
 def join(head: bytes, header: dict, payload: bytes, *, fix_sha: bool = True) -> bytes:
+    """A map file of these parts; ``fix_sha``: both checksums made to match (the payload's,
+    and the header's own, last, over the format version and the header before it)."""
     if fix_sha:
         header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
+        header.pop("header_sha256", None)
     hb = json.dumps(header).encode()
+    if fix_sha:
+        digest = hashlib.sha256(head[8:12] + hb).hexdigest()
+        hb = hb[:-1] + b', "header_sha256": "' + digest.encode() + b'"}'
     return head + struct.pack("<Q", len(hb)) + hb + payload
 
 
@@ -553,3 +559,28 @@ def test_codec_leaves_out_rows_of_zero_scatter():
     assert back.tobytes() == scatter.tobytes()
     assert sizes[mapcodec.VERSION] < 60 * 1001 + 1000, sizes  # the kept rows (~48 B each) and the bits
     assert sizes[mapcodec.VERSION] < sizes[4], sizes
+
+
+@pytest.mark.parametrize("name", ["ndtom", "ndtom v7", "ndtom v3"])
+def test_a_flipped_bit_in_the_header_is_corruption(tmp_path, name):
+    """The header's own checksum: a bit flipped in the resolution (0.3 -> 0.7 read as valid,
+    the map scaled 2.3x) or in the version is refused; a file without it (written before it
+    existed) reads as before."""
+    data = bases()[name]
+    hlen = struct.unpack("<Q", data[12:20])[0]
+    header = data[20 : 20 + hlen]
+    at = header.index(b'"resolution": ') + len(b'"resolution": ')
+    for pos, bit in ((20 + at, 0x04), (8, 0x01)):  # a digit of the resolution; the version's lowest bit
+        bad = bytearray(data)
+        bad[pos] ^= bit
+        path = tmp_path / "bad.ndtom"
+        path.write_bytes(bytes(bad))
+        with pytest.raises(MapFileError, match="header checksum mismatch"):
+            NdtOmMap.load(path)
+        with pytest.raises(MapFileError, match="header checksum mismatch"):
+            read_header(path)
+    head, h, payload = split(data)
+    h.pop("header_sha256")
+    old = tmp_path / "old.ndtom"
+    old.write_bytes(join(head, h, payload, fix_sha=False))
+    assert "header_sha256" not in read_header(old) and NdtOmMap.load(old).scans_inserted > 0

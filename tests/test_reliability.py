@@ -592,6 +592,7 @@ def build(
     ``header_bytes`` change it. (The values' checks are the same for every version.)"""
     header = json.loads(json.dumps(header))
     header["version"] = version
+    header.pop("header_sha256", None)  # (a hand-made file: as those written before the header's checksum)
     entries, blobs, off = [], [], 0
     for e in header["arrays"]:
         a = np.ascontiguousarray(arrays[e["name"]], dtype=e["dtype"])
@@ -796,6 +797,7 @@ def split4(data: bytes) -> tuple[dict, bytes]:
 def join4(header: dict, payload: bytes, *, fix_sha: bool = True) -> bytes:
     """A compressed file (format 4 or 5, the header's version) of ``payload``."""
     header = {**header, "payload_bytes": len(payload)}
+    header.pop("header_sha256", None)  # (a hand-made file: as those written before the header's checksum)
     if fix_sha:
         header["payload_sha256"] = hashlib.sha256(payload).hexdigest()
     hb = json.dumps(header).encode()

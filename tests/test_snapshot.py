@@ -305,6 +305,7 @@ def _rewrite(path: Path, out: Path, header_edit=None, arrays_edit=None) -> Path:
         header_edit(header)
     blob = b"".join(np.ascontiguousarray(arrays[e["name"]]).tobytes() for e in header["arrays"])
     header["payload_sha256"] = hashlib.sha256(blob).hexdigest()
+    header.pop("header_sha256", None)  # (a hand-made file: as those written before the header's checksum)
     hb = json.dumps(header).encode()
     out.write_bytes(data[:12] + struct.pack("<Q", len(hb)) + hb + blob)
     return out
