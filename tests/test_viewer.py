@@ -405,7 +405,7 @@ def test_live_mapping_reports_bad_scans(make_viewer):
     lm = v.live([good[0], "not a scan", good[1]], NdtOmMap(RES), refresh_interval=0.05)
     lm.play()
     assert lm.wait(timeout=20)
-    assert lm.scans_done == 1 and "TypeError" in lm.error
+    assert lm.scans_done == 1 and "scan 2 could not be inserted: each scan must have .points" in lm.error
     time.sleep(0.3)
     assert "Stopped" in v.controls.live_status.content
 
