@@ -674,6 +674,8 @@ def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
     del m
     (tmp_path / "file").write_text("x")
     assert_user_error(run("demo", "--out", tmp_path / "file"), "is a file, not a folder")
+    # the same for the sweep's --out (a raw "[Errno 17] File exists" before; experiments share the check)
+    assert_user_error(run("sweep", "--synthetic", "--out", tmp_path / "file"), "is a file, not a folder")
 
 
 # ---------------------------------------------------------------------------- real processes

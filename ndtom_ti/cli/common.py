@@ -189,6 +189,19 @@ def check_writable(path: Path, what: str = "output") -> Path:
     return path
 
 
+def output_folder(out: Path, what: str) -> Path:
+    """``--out``, a folder for ``what``, made if missing; a file there or a folder that cannot
+    be made is a clear error (not a raw OSError)."""
+    out = out.expanduser()
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out} is a file, not a folder", f"give a folder for {what}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fail(f"cannot create the folder {out}: {exc.strerror or exc}", "choose another folder with --out")
+    return out
+
+
 _RECORDING_SUFFIXES = (".bag", ".db3", ".mcap")
 
 

@@ -22,6 +22,7 @@ from .common import (
     init_taichi,
     make_table,
     need_extra,
+    output_folder,
     resolution_list,
     resolution_option,
     user_errors,
@@ -72,8 +73,7 @@ def sweep(
         if baseline == "octomap":
             need_extra("pyoctomap", "the OctoMap baseline (--baseline octomap)")
         no_plot = without_extra("matplotlib", "the sweep writes sweep.csv and the table but no sweep.png")
-        out = out.expanduser()
-        out.mkdir(parents=True, exist_ok=True)
+        out = output_folder(out, "sweep.csv and sweep.png")
         check_writable(out / "sweep.csv", "CSV file")
         used = init_taichi(arch)
         if synthetic or bag is None:  # one of the two, checked above
@@ -184,8 +184,7 @@ def experiments(
             plots = False
         if sweep_list:
             without_extra("pyoctomap", "the --sweep times NDT-OM and its floor but not OctoMap")
-        out = out.expanduser()
-        out.mkdir(parents=True, exist_ok=True)
+        out = output_folder(out, "the experiments' CSVs, plots and summary.json")
         check_writable(out / "summary.json", "summary file")
         init_taichi(arch)
         summary = ex.run_experiments(

@@ -42,6 +42,7 @@ from .common import (
     init_taichi,
     make_table,
     need_extra,
+    output_folder,
     own_process,
     partial_path,
     resolution_option,
@@ -737,13 +738,7 @@ def demo(
         resolution = resolution_option(resolution)
         if view:
             need_extra("viser", "the live viewer (--view)")
-        out = out.expanduser()
-        if out.exists() and not out.is_dir():
-            fail(f"--out {out} is a file, not a folder", "give a folder for the demo's output")
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            fail(f"cannot create the folder {out}: {exc.strerror or exc}", "choose another folder with --out")
+        out = output_folder(out, "the demo's output")
         out_path = check_writable(out / ("demo" + MAP_SUFFIX), "map file")
         check_map_output(out_path, "--out")
         scene = demo_scene.Scene()
