@@ -45,29 +45,33 @@ _TMP_NAME_BYTES = 200
 _STALE_SECONDS = 5.0  # a temporary untouched this long, and not locked, was left by a killed writer
 
 
-# First bytes of files that an output must not replace unasked, and what they are.
+# First bytes of recordings that an output must not replace, and what they are.
 _HEADS = (
-    (b"#ROSBAG", "a ROS1 bag"),
-    (b"SQLite format 3", "an SQLite database (a ROS2 bag?)"),
-    (b"\x89MCAP", "an MCAP file (a ROS2 bag?)"),
-    (b"NDTOMTI\n", "an ndtom map file"),
+    (b"#ROSBAG", "it is a ROS1 bag"),
+    (b"SQLite format 3", "it is an SQLite database (a ROS2 bag?)"),
+    (b"\x89MCAP", "it is an MCAP file (a ROS2 bag?)"),
 )
+MAP_KIND = "it is an ndtom map file"  # what kept_kind says of a map file
 
 
 def kept_kind(path: str | Path) -> str | None:
-    """What ``path`` is, when it is something an output must never replace: a recording (a
-    bag by its first bytes, or any file of a ROS2 bag's folder) or a map file. None for
-    anything else (or nothing there)."""
+    """Why ``path`` is something an output must never replace, as a clause ("it is a ROS1
+    bag"): a recording (a bag by its first bytes, or any file of a ROS2 bag's folder) or a
+    map file (MAP_KIND). None for anything else (or nothing there)."""
+    from .mapfile import MAGIC  # (mapfile writes through this module)
+
     path = Path(path)
     meta = path.parent / "metadata.yaml"
     try:
         if meta.is_file() and "rosbag2_bagfile_information" in meta.read_text(errors="replace")[:4096]:
-            return f"inside the ROS2 bag {path.parent}"
+            return f"it lies inside the ROS2 bag {path.parent}"
         with open(path, "rb") as fh:
             head = fh.read(16)
     except OSError:
         return None
-    return next((name for start, name in _HEADS if head.startswith(start)), None)
+    if head.startswith(MAGIC):
+        return MAP_KIND
+    return next((why for start, why in _HEADS if head.startswith(start)), None)
 
 
 def temp_prefix(path: Path) -> str:

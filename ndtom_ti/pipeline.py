@@ -328,10 +328,15 @@ def frame_origin(m: Any, T_world_sensor: np.ndarray) -> np.ndarray | None:
         if origin is None:
             raise ValueError(f"the map's metadata has frame_origin {kept!r}, not three finite numbers (metres)")
         return origin
-    layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
+    layout = _layout_of(m)
     if layout is None or getattr(m, "scans_inserted", 0):
         return None
     return far_origin(T_world_sensor, layout.cells, m.resolution)
+
+
+def _layout_of(m: Any) -> Any:
+    """The grid layout of a map or a tiled map (None for another kind of map)."""
+    return getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
 
 
 class Observer:
@@ -459,7 +464,7 @@ def check_path_fits(m: Any, stream: Any) -> None:
     Says how far the path goes, where it leaves, and what fits. RecordingError."""
     from .io import RecordingError
 
-    layout = getattr(m, "layout", None) or getattr(getattr(m, "tiling", None), "layout", None)
+    layout = _layout_of(m)
     sensor_path = getattr(stream, "sensor_path", None)
     if layout is None or sensor_path is None or getattr(m, "scans_inserted", 0):
         return

@@ -124,8 +124,7 @@ def view_command(
             return EXIT_USAGE
         kind = kept_kind(html)
         if kind is not None:
-            where = kind if kind.startswith("inside") else f"it is {kind}"
-            _error(f"cannot write {html}: {where}, which writing the page would destroy", "choose another --html path")
+            _error(f"cannot write {html}: {kind}, which writing the page would destroy", "choose another --html path")
             return EXIT_USAGE
     t0 = time.perf_counter()
     path = Path(map_path)

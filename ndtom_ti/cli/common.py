@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from ..atomic import kept_kind, temp_prefix
+from ..atomic import MAP_KIND, kept_kind, temp_prefix
 from ..config import check_resolution
 from ..exitcodes import EXIT_FAILURE, EXIT_USAGE, signal_exit_code
 from ..frames import as_frame_origin
@@ -183,9 +183,8 @@ def check_writable(path: Path, what: str = "output") -> Path:
     if path.exists() and not path.is_file():
         fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
     kind = kept_kind(path)
-    if kind is not None and not (what == "map file" and kind == "an ndtom map file"):  # (maps replace maps)
-        where = kind if kind.startswith("inside") else f"it is {kind}"
-        fail(f"cannot write the {what} {path}: {where}, which writing it would destroy", "choose another path")
+    if kind is not None and not (what == "map file" and kind == MAP_KIND):  # (maps replace maps)
+        fail(f"cannot write the {what} {path}: {kind}, which writing it would destroy", "choose another path")
     return path
 
 
@@ -224,7 +223,7 @@ def check_map_output(path: Path, option: str = "-o") -> None:
         kind = kept_kind(path)
         if kind is not None or suffix != MAP_SUFFIX:
             fail(
-                f"{path} exists and is not an ndtom map file (it is {kind or 'a file of another kind'}): writing "
+                f"{path} exists and is not an ndtom map file ({kind or 'it is a file of another kind'}): writing "
                 "the map would destroy it",
                 f"choose another path with {option}, or remove {path} first if it is not needed",
             )

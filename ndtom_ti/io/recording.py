@@ -178,9 +178,10 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
     return fn
 
 
-def _cloud_stamp(header_ns: int, record_ns: int) -> int:
-    """A cloud's time: its header stamp, or where a driver left it 0 (unset) the bag's record time."""
-    return header_ns if header_ns != 0 else record_ns
+def _cloud_stamp(header_ns: int, record_ns: int, by_record: bool = False) -> int:
+    """A cloud's time: its header stamp, or where a driver left it 0 (unset) the bag's record
+    time; ``by_record`` (ScanSelection.cloud_time "record"): the record time always."""
+    return record_ns if by_record or header_ns == 0 else header_ns
 
 
 def _inverse_fn(fn: PoseFn) -> PoseFn:
@@ -638,8 +639,7 @@ class Recording:
         if sel.static_transforms:
             tf = self.tf()
             for parent, child, t, q in sel.static_transforms:  # (a recording without its /tf_static)
-                tf.add(parent, child, 0, t, q, static=True)
-                tf.given.append(f'{normalize_frame(parent)} -> {normalize_frame(child)}')
+                tf.give(parent, child, t, q)
         names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
         if len(names) > 1 and any(not n for n in names):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
@@ -670,7 +670,7 @@ class Recording:
         frame = normalize_frame(first[1].header.frame_id)
         choice = self._poses.choose(
             frame,
-            first[0] if sel.cloud_time == 'record' else _cloud_stamp(stamp_ns(first[1].header.stamp), first[0]),
+            _cloud_stamp(stamp_ns(first[1].header.stamp), first[0], sel.cloud_time == 'record'),
             fixed_frame=sel.fixed_frame,
             pose_topic=sel.pose_topic,
             poses_file=sel.poses_file,
@@ -1124,9 +1124,6 @@ class ScanStream:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
-    def _stamp(self, header_ns: int, record_ns: int) -> int:
-        return record_ns if self._record_time else _cloud_stamp(header_ns, record_ns)
-
     @property
     def start_ns(self) -> int:
         """The recording's start (what t_start and t_end count from)."""
@@ -1143,7 +1140,7 @@ class ScanStream:
             if rng is None or part.choice.fn is None:
                 continue
             first = self._rec._first_message(part.topic)
-            t0 = self._stamp(stamp_ns(first[1].header.stamp), first[0]) if first else rng[0]
+            t0 = _cloud_stamp(stamp_ns(first[1].header.stamp), first[0], self._record_time) if first else rng[0]
             lo = max(rng[0], t0, self._lo if self._lo is not None else rng[0])
             hi = min(rng[1], self._hi if self._hi is not None else rng[1], self._rec.start_ns + self._rec.duration_ns)
             for t in np.unique(np.linspace(lo, hi, samples).astype(np.int64)) if hi >= lo else ():
@@ -1193,12 +1190,12 @@ class ScanStream:
                 fast = decode_livox_raw(raw, rec.format == 'ros1') if kind == 'livox' else None
                 if fast is not None:
                     stamp, frame, pts = fast
-                    stamp = self._stamp(stamp, t)
+                    stamp = _cloud_stamp(stamp, t, self._record_time)
                     frame = normalize_frame(frame)
                     empty = len(pts) == 0
                 else:
                     msg = rec._deserialize(raw, msgtype, topic)
-                    stamp = self._stamp(stamp_ns(msg.header.stamp), t)
+                    stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t, self._record_time)
                     frame = normalize_frame(msg.header.frame_id)
                     if kind == 'livox':
                         empty = len(msg.points) == 0

@@ -59,7 +59,8 @@ class TfBuffer:
         self._noted: set[tuple[str, str, str]] = set()
         # (parent, child) -> (transforms dropped: NaN/Inf or a zero quaternion, why the first)
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
-        self.given: list[str] = []  # mounts given with the selection (static_transforms), not recorded
+        self._given: dict[str, None] = {}  # 'parent -> child' of mounts given, not recorded (give)
+        self._restatic: dict[str, None] = {}  # notes of mounts /tf_static gave with different values
 
     # ------------------------------------------------------------------ building
     def add(
@@ -101,11 +102,12 @@ class TfBuffer:
             T = make_transform(translation, rotation)
             old = self._static.get(child)
             if old is not None and not np.allclose(old, T, atol=1e-6):  # a mount re-published, changed
-                self._note(
-                    ('restatic', parent, child),
+                text = (
                     f'/tf_static gives {parent} -> {child} more than once with different values; the last is '
-                    'used for every scan',
+                    'used for every scan'
                 )
+                self._restatic[text] = None
+                self._note(('restatic', parent, child), text)
             self._static[child] = T
             self._static_count[child] = self._static_count.get(child, 0) + 1
         else:
@@ -143,14 +145,19 @@ class TfBuffer:
             self._noted.add(key)
             self.notes.append(text)
 
+    def give(self, parent: str, child: str, translation: Any, rotation: Any) -> None:
+        """A mount the recording lacks (its /tf_static not recorded), given by the user: a
+        static edge like a recorded one, said in ``run_notes``."""
+        self.add(parent, child, 0, translation, rotation, static=True)
+        self._given[f'{normalize_frame(parent)} -> {normalize_frame(child)}'] = None
+
     def run_notes(self) -> list[str]:
-        """What a mapping run with these transforms should say: one line per edge whose
-        transforms were dropped (``add``), with their count, and per mount that /tf_static
-        gave with different values."""
-        given = [f'static transform given: {e}' for e in dict.fromkeys(self.given)]
+        """What a mapping run with these transforms should say: the mounts given (``give``),
+        per mount that /tf_static gave with different values, and one line per edge whose
+        transforms were dropped (``add``), with their count."""
         return (
-            given
-            + [n for n in self.notes if n.startswith('/tf_static gives')]
+            [f'static transform given: {e}' for e in self._given]
+            + list(self._restatic)
             + [
                 f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
                 for (p, c), (n, why) in self.ignored.items()
