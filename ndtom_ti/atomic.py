@@ -51,6 +51,7 @@ _HEADS = (
     (b"SQLite format 3", "it is an SQLite database (a ROS2 bag?)"),
     (b"\x89MCAP", "it is an MCAP file (a ROS2 bag?)"),
 )
+MAP_MAGIC = b"NDTOMTI\n"  # a map file's first bytes (mapfile.MAGIC)
 MAP_KIND = "it is an ndtom map file"  # what kept_kind says of a map file
 
 
@@ -58,8 +59,6 @@ def kept_kind(path: str | Path) -> str | None:
     """Why ``path`` is something an output must never replace, as a clause ("it is a ROS1
     bag"): a recording (a bag by its first bytes, or any file of a ROS2 bag's folder) or a
     map file (MAP_KIND). None for anything else (or nothing there)."""
-    from .mapfile import MAGIC  # (mapfile writes through this module)
-
     path = Path(path)
     meta = path.parent / "metadata.yaml"
     try:
@@ -69,7 +68,7 @@ def kept_kind(path: str | Path) -> str | None:
             head = fh.read(16)
     except OSError:
         return None
-    if head.startswith(MAGIC):
+    if head.startswith(MAP_MAGIC):
         return MAP_KIND
     return next((why for start, why in _HEADS if head.startswith(start)), None)
 

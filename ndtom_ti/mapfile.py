@@ -31,12 +31,12 @@ from typing import NoReturn, TypeGuard
 import numpy as np
 
 from . import mapcodec
-from .atomic import atomic_write, check_target
+from .atomic import MAP_MAGIC, atomic_write, check_target
 from .cellstate import ARRAYS, ROWS
 from .config import N_LIMIT, MapConfig, check_resolution
 from .kernels.layout import Layout
 
-MAGIC = b"NDTOMTI\n"
+MAGIC = MAP_MAGIC  # b"NDTOMTI\n" (atomic.kept_kind knows map files by it too)
 # 2: g_erased_near (version 1 files lack it: read as zeros).
 # 3: g_ndt_state (earlier files lack it: read as zeros).
 # 4: the arrays compressed (mapcodec): ~2-4 bytes a known cell instead of ~17.5.
