@@ -29,8 +29,11 @@ _dead_slots: list = []  # (storage, slot) of maps collected while another thread
 def _release_slot(st, slot: int) -> None:
     """Empty a dead map's slot (a kernel: never while another thread's kernels run). The
     garbage collector calls this in any thread, maybe inside another lock's holder: it
-    never waits; a slot it cannot empty now is emptied by the next map call."""
-    if not st.lock.acquire(blocking=False):
+    never waits; a slot it cannot empty now is emptied by the next map call. Nor does it
+    run where this thread holds the lock: the collector may have stopped a map call in
+    the middle, even inside Taichi's compile of a kernel, which a kernel of ours would
+    re-enter (Python 3.11's parser state then fails every later compile)."""
+    if st.lock._is_owned() or not st.lock.acquire(blocking=False):
         _dead_slots.append((st, slot))
         return
     try:
@@ -84,7 +87,9 @@ class MapSlot:
     def close(self) -> None:
         """Give the slot back now (runs once: the collector will not release it again)."""
         with self.lock:
-            self._release()
+            if self._release.detach() is not None:  # not closed before
+                runtime.release_slot(self.storage, self.index)
+                release_dead()
 
     @property
     def closed(self) -> bool:

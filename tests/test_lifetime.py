@@ -1,6 +1,10 @@
 """Map lifetimes: close(), `with`, and a named error when every map slot is taken."""
 
 import gc
+import os
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -66,3 +70,36 @@ def test_no_free_slot_is_a_named_error_that_says_what_to_do():
     NdtOmMap(0.5).close()  # a slot again
     for m in held:
         m.close()
+
+
+def test_a_map_the_collector_frees_inside_a_compile_waits_for_the_next_call():
+    """A map in a reference cycle (an exception's traceback keeps one) is freed whenever
+    the collector runs, also inside Taichi's compile of another map's kernel. Emptying
+    its slot there ran a kernel inside the compile, and Python 3.11's parser state then
+    failed every later compile ("AST constructor recursion depth mismatch")."""
+    code = """
+        import gc, numpy as np, ndtom_ti
+        ndtom_ti.init("cpu")
+        pts = np.random.default_rng(0).normal(size=(2000, 3)) * 0.3 + [3.0, 0.0, 0.0]
+        a = ndtom_ti.NdtOmMap(0.2)
+        a.insert_scan(pts, np.eye(4))
+        a.cycle = a  # a map only the collector frees
+        del a
+        gc.set_threshold(1)  # collections at (nearly) every allocation, inside the next compile too
+        b = ndtom_ti.NdtOmMap(0.2, miss_model="paper")  # kernels this process has not compiled
+        b.insert_scan(pts, np.eye(4))
+        gc.set_threshold(700)
+        c = ndtom_ti.NdtOmMap(0.2)
+        c.insert_scan(pts, np.eye(4))
+        st = ndtom_ti.runtime.storage(b.layout)
+        print("OK", len(b) > 0, len(b) == len(c), st.slots - len(st.free_slots))
+    """
+    p = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "NDTOM_ARCH": "cpu"},
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "OK True True 2" in p.stdout, p.stdout
