@@ -11,6 +11,7 @@ import numpy as np
 from . import runtime
 from .cellkeys import count_distinct, pack
 from .kernels.args import Nodes
+from .kernels.layout import pool_bytes as layout_pool_bytes
 from .runtime import MapMemoryError
 from .scaninput import cell_box
 
@@ -126,17 +127,28 @@ class MemoryBudget:
     def reserve(self, extra_nodes: np.ndarray) -> None:
         """Refuse, before any kernel runs, work that could take Taichi's memory pool past
         the budget (runtime.pool_limit)."""
-        need = self.st.pool_bytes(extra_nodes, all_types=True)
-        if need > runtime.pool_limit():
-            self.refuse(need)
+        if not self.fits(extra_nodes):
+            raise self.refusal(extra_nodes)
 
-    def refuse(self, need: int) -> None:
-        """Raise the MapMemoryError of an update that needs ``need`` bytes of pool."""
-        limit = runtime.pool_limit()
-        raise MapMemoryError(
+    def refusal(self, extra_nodes: np.ndarray) -> MapMemoryError:
+        """The MapMemoryError of an update that adds ``extra_nodes`` (per node type)."""
+        st, limit = self.st, runtime.pool_limit()
+        want = st.nodes() + np.asarray(extra_nodes, np.int64)
+        need = layout_pool_bytes(st.layout, np.maximum(np.maximum(st.node_high_water, want), 1))
+        # Taichi keeps each node type's chunks for that type alone: nodes freed by earlier
+        # scans or maps serve an update only where it needs their kind.
+        idle = need - layout_pool_bytes(st.layout, np.maximum(want, 1))
+        kept = ""
+        if idle > limit / 16:
+            kept = (
+                f" Of it, {idle / 2**20:.0f} MiB hold nodes freed earlier (by a refused scan or deleted maps) "
+                "of a kind this update does not need: Taichi keeps them for that kind, and a new process "
+                "starts without them."
+            )
+        return MapMemoryError(
             f"this update could take Taichi's memory pool to {need / 2**20:.0f} MiB, past the "
-            f"{limit / 2**20:.0f} MiB budget (this map holds {self.st.slot_bytes(self.slot) / 2**20:.0f} MiB "
-            f"of nodes; all maps {self.st.pool_bytes() / 2**20:.0f} MiB of pool). Use a coarser "
+            f"{limit / 2**20:.0f} MiB budget (this map holds {st.slot_bytes(self.slot) / 2**20:.0f} MiB "
+            f"of nodes; all maps {st.pool_bytes() / 2**20:.0f} MiB of pool).{kept} Use a coarser "
             f"resolution or a smaller max_range, delete other maps, give a larger budget "
             f"(ndtom_ti.init(memory_limit_GB=...) before the first map), or use CUDA. The map is unchanged."
         )

@@ -288,12 +288,12 @@ class RayTracer:
                     k.reset_rays()(slot=slot, touched=self.touched, nt=nt)
                 else:
                     k.reset_rays_all()(slot=slot)
-                need = st.pool_bytes(bound + hits, all_types=True)
                 # The leaves these rays made hold nothing now: give them back for later scans.
                 from .kernels.release import release_empty_leaves
 
                 release_empty_leaves(st, slot)
-                budget.refuse(need)  # nothing of this scan is kept
+                refused = budget.refusal(bound + hits)  # said of the pool as the rays left it
+                raise refused  # nothing of this scan is kept
         return None
 
     def hit_marks(self) -> tuple[np.ndarray, int, int]:

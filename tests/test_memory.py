@@ -238,6 +238,35 @@ def test_refused_scan_gives_back_its_nodes_and_later_scans_fit():
     assert values(out, "AFTER") == ["True", "True", "True"]
 
 
+SPENT_POOL = """
+    import sys, numpy as np, ndtom_ti
+    ndtom_ti.init("cpu", memory_limit_GB=0.875)
+    rng = np.random.default_rng(0)
+    far = rng.normal(size=(300, 3))
+    far *= 300.0 / np.linalg.norm(far, axis=1, keepdims=True)
+    far[:, 2] *= 0.1
+    near = rng.normal(size=(60000, 3))
+    near *= 11.0 / np.linalg.norm(near, axis=1, keepdims=True)
+    m = ndtom_ti.NdtOmMap(0.05)
+    for name, pts in (("FAR", far), ("NEAR", near))[2 - int(sys.argv[1]):]:
+        try:
+            m.insert_scan(pts, np.eye(4))
+            print(name, "accepted")
+        except ndtom_ti.MapMemoryError as exc:
+            print(name, "refused", "freed-earlier" if "freed earlier" in str(exc) else "plain")
+"""
+
+
+def test_a_refusal_names_the_pool_a_refused_scan_left_to_other_node_kinds():
+    """Taichi keeps a node kind's chunks for that kind: 300 rays to 300 m at 0.05 m fill
+    regions (512 KiB each) until refused, and a scan of near leaves that a fresh process
+    takes no longer fits beside them. Its refusal says so, and that a new process helps."""
+    assert values(run_py(SPENT_POOL, "1"), "NEAR") == ["accepted"]
+    out = run_py(SPENT_POOL, "2")
+    assert values(out, "FAR") == ["refused", "plain"]
+    assert values(out, "NEAR") == ["refused", "freed-earlier"]
+
+
 GAP = """
     import sys, numpy as np, ndtom_ti
     ndtom_ti.init("cpu", memory_limit_GB=0.9375)
