@@ -678,6 +678,27 @@ def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
     assert_user_error(run("sweep", "--synthetic", "--out", tmp_path / "file"), "is a file, not a folder")
 
 
+@pytest.mark.parametrize("fail_at", [1, 4])
+def test_demo_refused_by_the_memory_budget_hints_in_its_own_options(tmp_path: Path, monkeypatch, fail_at) -> None:
+    """The demo has no --memory-limit or --max-range: its hint names neither, and with no
+    scan mapped there is no ground-truth table of "nan%" (what -r 0.001 printed)."""
+    orig = NdtOmMap.insert_scan
+    calls = {"n": 0}
+
+    def insert(self, points, T):
+        calls["n"] += 1
+        if calls["n"] == fail_at:
+            raise MapMemoryError("this update could take Taichi's memory pool to 999 MiB, past the budget (test)")
+        return orig(self, points, T)
+
+    monkeypatch.setattr(NdtOmMap, "insert_scan", insert)
+    r = run("demo", "--out", tmp_path / "d", "--scans", "6", "--no-progress")
+    assert_user_error(r, f"scan {fail_at} was refused", "coarser resolution (-r 0.4)", code=1)
+    assert "--memory-limit" not in r.output and "--max-range" not in r.output and "--max-scans" not in r.output
+    assert "nan" not in r.output
+    assert ("Against the ground truth" in r.output) == (fail_at > 1)
+
+
 # ---------------------------------------------------------------------------- real processes
 def _ndtom() -> list[str]:
     exe = shutil.which("ndtom")

@@ -53,19 +53,23 @@ from .tiles import plan
 
 
 # ---------------------------------------------------------------------------- map
-def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
-    """The error and hint of a scan the memory budget refused, in `ndtom map`'s options."""
+def _memory_refusal(summary: Any, saved: str, map_options: bool = True) -> tuple[str, str]:
+    """The error and hint of a scan the memory budget refused, in `ndtom map`'s options
+    (``map_options`` False: in the demo's, which has no --memory-limit or --max-range)."""
     from .. import hostpool, runtime
 
     budget = runtime.pool_limit() / 2**30
     scan = summary.scans_used + 1
     error = (
-        f"scan {scan} was refused: it could take Taichi's memory pool past its {budget:.2f} GiB budget "
-        f"(--memory-limit); nothing of it was mapped"
+        f"scan {scan} was refused: it could take Taichi's memory pool past its {budget:.2f} GiB budget"
+        + (" (--memory-limit)" if map_options else "")
+        + "; nothing of it was mapped"
     )
     ways = []
     note = runtime.pool_note()
-    if runtime.current_arch() == "cpu" and note is None:
+    if not map_options:
+        pass
+    elif runtime.current_arch() == "cpu" and note is None:
         most = 0.8 * hostpool.physical_memory() / 2**30
         if most > budget * 1.1:
             ways.append(
@@ -74,13 +78,14 @@ def _memory_refusal(summary: Any, saved: str) -> tuple[str, str]:
             )
     elif note is not None:
         ways.append(f"(--memory-limit cannot go past ~0.94 GiB here: {note})")
-    ways += [
-        f"a coarser resolution (-r {2 * summary.resolution:g})",
-        "a smaller --max-range (long rays at a fine resolution touch the most cells)",
-    ]
+    ways.append(f"a coarser resolution (-r {2 * summary.resolution:g})")
+    if map_options:
+        ways.append("a smaller --max-range (long rays at a fine resolution touch the most cells)")
     if runtime.current_arch() == "cpu":
         ways.append("a CUDA device (--arch cuda)")
-    more = " Or map a part: --max-scans N or --end T stops before it." if summary.scans_used else ""
+    more = " Or map a part: --max-scans N or --end T stops before it." if summary.scans_used and map_options else ""
+    if len(ways) == 1:
+        return error, f"{saved} To map scan {scan}, use {ways[0]}."
     return error, f"{saved} To map scan {scan}, use " + ", ".join(ways[:-1]) + f", or {ways[-1]}." + more
 
 
@@ -256,12 +261,14 @@ def _finish_mapping(
     signals: Any = None,
     compact: bool = False,
     keep_existing: bool = False,
+    map_options: bool = True,
 ) -> int:
     """Print the summary, write the map (also after Ctrl-C, SIGTERM, a memory stop or a bad
     scan; ``compact``: its Gaussians rounded), return the exit code. ``signals``: the
     command's StopSignals; from here on a signal only waits for the map to be on disk.
     ``keep_existing``: ``output`` held a map before the run; a run that stopped early
-    writes beside it (``partial_path``) and leaves that map as it was."""
+    writes beside it (``partial_path``) and leaves that map as it was. ``map_options``
+    False: the hints name only the options the demo has."""
     if signals is not None:
         signals.phase = "saving"
     bar.stop(summary)
@@ -305,7 +312,7 @@ def _finish_mapping(
             if wrote
             else "Nothing was mapped; no map written."
         )
-        error, hint = _memory_refusal(summary, saved)
+        error, hint = _memory_refusal(summary, saved, map_options)
         err.print(Text.assemble(("Error: ", "bold red"), (error, "red")))
         err.print(Text.assemble(("Hint: ", "bold"), hint))
         return EXIT_FAILURE
@@ -773,7 +780,9 @@ def demo(
                         "command": "ndtom demo --view",
                         "demo": {"scans": scans, "scene": "room 12x8x3 m, 5 boxes"},
                     },
-                    finish=lambda m, summary, signals=None: _finish_mapping(m, summary, out_path, bar, signals=signals),
+                    finish=lambda m, summary, signals=None: _finish_mapping(
+                        m, summary, out_path, bar, signals=signals, map_options=False
+                    ),
                 )
             finally:
                 bar.stop()
@@ -794,19 +803,29 @@ def demo(
             except BaseException:
                 bar.stop()
                 raise
-            check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
-            m.metadata["ground_truth_check"] = check
-            gt = make_table("Against the ground truth", "", "", header=False)
-            gt.add_row(
-                "Gaussians on a true surface", f"{check['on_surface'] * 100:.1f}% (mean within {resolution / 4:g} m)"
-            )
-            gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
-            gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
-            code = _finish_mapping(m, summary, out_path, bar, [gt], signals=sig)
+            rows = []
+            if summary.scans_used:  # nothing to check a map without scans against
+                check = demo_scene.ground_truth_check(m.gaussians(), resolution, scene)
+                m.metadata["ground_truth_check"] = check
+                rows.append(_truth_table(check, resolution))
+            code = _finish_mapping(m, summary, out_path, bar, rows, signals=sig, map_options=False)
             m.close()  # its slot back now: the map is on disk
         if code == EXIT_OK:
             console_out().print(_demo_next(out_path), soft_wrap=True, markup=False)
     raise typer.Exit(code)
+
+
+def _truth_table(check: dict, resolution: float) -> Any:
+    """The demo map's ground-truth check as a table."""
+    gt = make_table("Against the ground truth", "", "", header=False)
+    if check["gaussians"]:
+        on = f"{check['on_surface'] * 100:.1f}% (mean within {resolution / 4:g} m)"
+        gt.add_row("Gaussians on a true surface", on)
+        gt.add_row("median distance to surface", f"{check['median_distance'] * 1000:.1f} mm")
+    else:
+        gt.add_row("Gaussians on a true surface", "none: the map holds no Gaussian")
+    gt.add_row("left where the box was taken away", str(check["left_in_vanished"]))
+    return gt
 
 
 def _demo_next(out_path: Path) -> str:
