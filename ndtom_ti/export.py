@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -316,13 +316,15 @@ def octree_stream(index: Any, occupied: Any) -> tuple[int, bytes]:
     return 1 + int(n_children), bits_a.astype("<u2").tobytes()
 
 
-def write_bt(index: Any, occupied: Any, resolution: float, path: str | Path) -> Path:
-    """OctoMap binary tree (``.bt``) of cells ``index`` (K, 3) at ``resolution`` (module doc)."""
+def write_bt(index: Any, occupied: Any, resolution: float, path: str | Path, comment: str | None = None) -> Path:
+    """OctoMap binary tree (``.bt``) of cells ``index`` (K, 3) at ``resolution`` (module doc);
+    ``comment``: one more header comment line (OctoMap's reader skips them)."""
     size, data = octree_stream(index, occupied)
     header = (
         "# Octomap OcTree binary file\n"
         "# written by ndtom_ti: known cells of an NDT Occupancy Map, occupied or free\n"
-        f"id OcTree\nsize {size}\nres {float(resolution)!r}\ndata\n"
+        + (f"# {comment}\n" if comment else "")
+        + f"id OcTree\nsize {size}\nres {float(resolution)!r}\ndata\n"
     ).encode("ascii")
 
     def write(fh: IO[bytes]) -> None:
@@ -344,6 +346,7 @@ class Grid:
     z_band: tuple[float, float]  # metres: map-frame heights, or heights above the floor plane
     band: str  # the band in words
     z_band_note: str = ""  # how the floor was found, for a band above it
+    origin_note: str = ""  # what frame ``origin`` is in, when not the map's
 
     OCCUPIED = 0
     FREE = 254
@@ -477,11 +480,12 @@ def write_grid(grid: Grid, path: str | Path) -> tuple[Path, Path]:
         f"image: {pgm.name}\n"
         "mode: trinary\n"
         f"resolution: {grid.resolution!r}\n"
-        f"origin: [{ox:.9g}, {oy:.9g}, 0.0]\n"
+        f"origin: [{ox:.12g}, {oy:.12g}, 0.0]\n"
         "negate: 0\n"
         "occupied_thresh: 0.65\n"
         "free_thresh: 0.196\n"
         f"# cells of {grid.band}; 0 occupied, 254 free, 205 unknown\n"
+        + (f"# {grid.origin_note}\n" if grid.origin_note else "")
     )
     atomic_write(pgm, lambda fh: (fh.write(head), fh.write(grid.image.tobytes())))
     atomic_write(yml, lambda fh: fh.write(text.encode("utf-8")))
@@ -534,6 +538,13 @@ def export_file(
     mp = float(min_probability)
     if fmt == "grid":
         grid = occupancy_grid(m, z_min, z_max, min_probability=mp)
+        fo = as_frame_origin(m.metadata.get("frame_origin"))
+        if fo is not None:  # map_server places the grid in the poses' frame: the shift added
+            grid = replace(
+                grid,
+                origin=(grid.origin[0] + float(fo[0]), grid.origin[1] + float(fo[1])),
+                origin_note=f"origin in the poses' frame: the map's frame_origin {fo[0]:.3f} {fo[1]:.3f} {fo[2]:.3f} added",
+            )
         pgm, yml = write_grid(grid, path)
         h, w = grid.image.shape
         n_occ = int((grid.image == Grid.OCCUPIED).sum())
@@ -549,7 +560,8 @@ def export_file(
         thr = max(mp, 0.5)
         occ = k["p_occ"] > thr
         keep = occ | (k["p_occ"] < 0.5)
-        out = write_bt(k["index"][keep], occ[keep], m.resolution, path)
+        shift = frame_origin_note(m.metadata)
+        out = write_bt(k["index"][keep], occ[keep], m.resolution, path, comment=shift)
         n_occ = int(occ.sum())
         n_free = int(keep.sum()) - n_occ
         return Exported(
@@ -557,6 +569,7 @@ def export_file(
             fmt,
             n_occ + n_free,
             f"OctoMap tree of {n_occ:,} occupied and {n_free:,} free cells at {m.resolution:g} m to {out}",
+            [_relative(shift, "the tree's cells")] if shift else [],
         )
     g = m.gaussians(min_points=min_points, min_probability=mp)
     shift = frame_origin_note(m.metadata)
@@ -575,7 +588,13 @@ def export_file(
     else:
         out = write_csv(g, path)
     k = len(g["n"])
-    return Exported([out], fmt, k, f"{k:,} Gaussians (p_occ > {mp:g}) to {out}")
+    notes = [_relative(shift, "the means and cell indices")] if shift and fmt == "csv" else []
+    return Exported([out], fmt, k, f"{k:,} Gaussians (p_occ > {mp:g}) to {out}", notes)
+
+
+def _relative(shift: str, what: str) -> str:
+    """The note of a file that cannot carry a map's frame_origin (CSV) or keeps it in a comment only (.bt)."""
+    return f"{what} are in the map's shifted frame: {shift}"
 
 
 def export_map(

@@ -18,7 +18,7 @@ import test_pipeline_bags as pb  # noqa: E402
 
 from ndtom_ti import NdtOmMap  # noqa: E402
 from ndtom_ti.cli import app  # noqa: E402
-from ndtom_ti.export import COV_TERMS, export_map, write_ply  # noqa: E402
+from ndtom_ti.export import COV_TERMS, export_file, export_map, write_ply  # noqa: E402
 from ndtom_ti.pipeline import map_scans  # noqa: E402
 
 IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -271,11 +271,36 @@ def test_pcd_holds_means_n_and_occupancy(map_file: Path, tmp_path: Path) -> None
 
 def test_a_shifted_maps_exports_say_its_frame_origin(map_file: Path, tmp_path: Path) -> None:
     """A map made in a shifted frame (georeferenced poses, pipeline.frame_origin): PLY and
-    PCD headers and the npz's metadata say where the file's (0, 0, 0) lies; others do not."""
+    PCD headers, the .bt's and the npz's metadata say where the file's (0, 0, 0) lies; a
+    CSV cannot, and its export says so; the grid's origin is in the poses' frame, as
+    map_server places it."""
     m = NdtOmMap.load(map_file)
     plain = export_map(m, tmp_path / "plain.ply")[0]
     assert not [line for line in read_ply(plain)[0] if "frame_origin" in line]
+    for fmt in ("csv", "bt"):
+        assert export_file(m, tmp_path / f"plain.{fmt}").notes == []
+    export_file(m, tmp_path / "plain.pgm", z_min=1.0, z_max=2.0)
     m.metadata["frame_origin"] = [512_300.0, 5_412_300.0, 0.0]
+    for fmt in ("csv", "bt"):
+        (said,) = export_file(m, tmp_path / f"m.{fmt}").notes
+        assert "shifted frame: frame_origin 512300.000 5412300.000 0.000" in said
+    assert b"\n# frame_origin 512300.000 5412300.000 0.000: add it" in (tmp_path / "m.bt").read_bytes()[:400]
+    try:
+        import pyoctomap
+    except ImportError:
+        pass
+    else:  # OctoMap's reader skips the comment line
+        trees = [pyoctomap.OcTree(1.0) for _ in range(2)]
+        assert all(t.readBinary(str(tmp_path / f"{n}.bt")) for t, n in zip(trees, ("plain", "m"), strict=True))
+        assert trees[0].size() == trees[1].size() > 100
+    export_file(m, tmp_path / "m.pgm", z_min=1.0, z_max=2.0)
+    assert (tmp_path / "m.pgm").read_bytes() == (tmp_path / "plain.pgm").read_bytes()
+    (x0, y0, _), (x1, y1, _) = (
+        read_map_yaml(tmp_path / "plain.yaml")["origin"],
+        read_map_yaml(tmp_path / "m.yaml")["origin"],
+    )
+    assert (x1 - x0, y1 - y0) == pytest.approx((512_300.0, 5_412_300.0), abs=1e-6)
+    assert "frame_origin 512300.000 5412300.000 0.000 added" in (tmp_path / "m.yaml").read_text()
     note = "frame_origin 512300.000 5412300.000 0.000: add it to these coordinates for the recording's frame"
     header, v = read_ply(export_map(m, tmp_path / "m.ply")[0])
     assert f"comment {note}" in header and len(v) > 100
