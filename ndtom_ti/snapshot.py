@@ -194,6 +194,7 @@ class MapSnapshot:
             joined = cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
             if doc.get("frame_origin") is not None:  # the run's shift of the poses (pipeline.frame_origin)
                 joined.metadata["frame_origin"] = doc["frame_origin"]
+            joined.metadata["complete"] = bool(doc.get("complete"))  # a checkpoint of a run not finished: False
             return joined
         if Path(path).is_dir():
             raise mapfile.MapFileError(tiledfile.not_tiled(path))

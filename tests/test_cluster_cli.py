@@ -7,6 +7,7 @@ the same map) or stop before any work."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -215,6 +216,10 @@ def test_ctrl_c_checkpoints_and_resume_finishes(tmp_path: Path, local_engine, mo
     assert "Interrupted: saved the 2 scans" in r.output and "Checkpoint of 2 scans written to" in r.output
     folder = tmp_path / "m.ndtom.tiles"
     assert MapSnapshot.load(folder).scans_inserted == 2 and MapSnapshot.load(out).metadata["complete"] is False
+    assert MapSnapshot.load(folder).metadata["complete"] is False  # the folder read as a map says it too
+    assert run("export", folder, "-o", tmp_path / "ckpt.npz").exit_code == 0
+    with np.load(tmp_path / "ckpt.npz") as z:
+        assert json.loads(str(z["metadata"]))["complete"] is False
     monkeypatch.setattr(TiledMap, "insert_scan", orig)
     r = run("map", bag, "-r", pb.RES, "-o", out, "--workers", "2", "--tile-size", "1", "--no-progress", "--resume")
     assert r.exit_code == 0, r.output
