@@ -360,13 +360,17 @@ def floor_plane(m: Any, *, min_probability: float = 0.5) -> tuple[np.ndarray, st
     """The floor as a plane ``z = a + b x + c y`` (returns ``[a, b, c]`` and a note): the
     lowest occupied Gaussians of 1 m tiles, fitted by RANSAC (inliers within 0.15 m, tilt
     at most 15 degrees) and least squares on the inliers. Tilted map frames (a sensor's
-    start pose as the map frame) get a tilted floor."""
-    g = m.gaussians(min_probability=max(float(min_probability), 0.5))
-    if len(g["n"]) == 0:
+    start pose as the map frame) get a tilted floor. A map without occupied Gaussians (too
+    few points a cell for one) is fitted to the centres of its occupied cells."""
+    thr = max(float(min_probability), 0.5)
+    mean, what = m.gaussians(min_probability=thr)["mean"], "Gaussians"
+    if len(mean) == 0:
+        k = m.known_cells()
+        mean, what = (k["index"][k["p_occ"] > thr] + 0.5) * float(m.resolution), "occupied cells"
+    if len(mean) == 0:
         raise ValueError(
-            "the map has no occupied Gaussians to find the floor by; give the height band (z_min and z_max; --z-min and --z-max in ndtom export)"
+            "the map has no occupied cells to find the floor by; give the height band (z_min and z_max; --z-min and --z-max in ndtom export)"
         )
-    mean = g["mean"]
     tile = max(1.0, 4 * float(m.resolution))
     t = np.floor(mean[:, :2] / tile).astype(np.int64)
     order = np.lexsort((mean[:, 2], t[:, 1], t[:, 0]))
@@ -396,7 +400,7 @@ def floor_plane(m: Any, *, min_probability: float = 0.5) -> tuple[np.ndarray, st
     tilt = math.degrees(math.atan(math.hypot(best[1], best[2])))
     return best, (
         f"floor plane z = {best[0]:.2f} {best[1]:+.4f} x {best[2]:+.4f} y (tilt {tilt:.1f} deg), fitted to "
-        f"the lowest Gaussians of {len(low)} tiles of {tile:g} m"
+        f"the lowest {what} of {len(low)} tiles of {tile:g} m"
     )
 
 

@@ -478,3 +478,21 @@ def test_grid_default_band_is_above_the_floor(map_file: Path, tmp_path: Path) ->
     img = read_pgm(tmp_path / "auto.pgm")
     # the band starts above the floor's cells: the floor is not drawn as an obstacle
     assert (img == 0).sum() < 0.2 * (img == 254).sum()
+
+
+def test_grid_finds_the_floor_of_a_map_without_gaussians(rng, tmp_path: Path) -> None:
+    """Cells of too few points for a Gaussian (min_points 50) are occupied all the same:
+    the default band's floor is fitted to their centres (it was refused as a map with no
+    occupied Gaussians)."""
+    m = NdtOmMap(0.2, min_points=50, n_max=100)
+    floor = np.c_[rng.uniform(-8, 8, (4000, 2)), np.full(4000, -1.25)]
+    wall = np.c_[np.full(800, 6.0), rng.uniform(-8, 8, 800), rng.uniform(-1.2, 1.0, 800)]
+    m.insert_scan(np.r_[floor, wall], np.eye(4))
+    assert len(m) == 0
+    e = export_file(m, tmp_path / "g.pgm")
+    assert "fitted to the lowest occupied cells of" in e.notes[0]
+    a = float(re.search(r"floor plane z = (\S+)", e.notes[0]).group(1))
+    assert abs(a - (-1.3)) < 0.01  # the floor cells' centres
+    img = read_pgm(tmp_path / "g.pgm")
+    assert (img == 0).any() and (img == 254).any()  # the wall an obstacle, the floor's space free
+    m.close()
