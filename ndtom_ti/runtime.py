@@ -53,10 +53,15 @@ class _State:
     pinned: tuple = ()  # (thread id, cpu) of each pinned Taichi worker
     huge_pages: int = 0  # bytes of the CPU pool advised MADV_HUGEPAGE
     taichi: Any = None  # Taichi's runtime object that init() started (check_taichi)
+    ready: bool = False  # init() done, its default storage built
+    init_thread: Any = None  # the thread that started Taichi: the only one that may build trees
 
 
 _state = _State()
 _lock = threading.Lock()
+# Held by init() to its end (the default storage built too): another thread's first map
+# waits for it, as Taichi builds a tree's code only in the thread that called ti.init.
+_init_lock = threading.RLock()
 _storages: dict = {}  # Layout -> Storage shared by all maps of that layout
 _used: set = set()  # the layouts whose storage has held a map
 
@@ -118,6 +123,23 @@ def init(
             f"cpu_max_num_threads must be an integer from 1 to {MAX_THREADS} (threads), or None for Taichi's "
             f"default (one per CPU); got {n!r}"
         )
+    with _init_lock:
+        return _init(
+            arch, device_memory_GB, memory_limit_GB, max_maps, offline_cache, cpu_max_num_threads, pin_threads, debug
+        )
+
+
+def _init(
+    arch: str,
+    device_memory_GB: float | None,
+    memory_limit_GB: float | None,
+    max_maps: int | None,
+    offline_cache: bool,
+    cpu_max_num_threads: int | None,
+    pin_threads: bool | None,
+    debug: bool,
+) -> str:
+    """init() past its checks of the arguments, holding _init_lock."""
     with _lock:
         if _state.arch is not None:
             if arch not in ("auto", _state.arch):
@@ -182,12 +204,14 @@ def init(
         from .compiling import fast_frontend
 
         fast_frontend()
+        _state.init_thread = threading.current_thread()
         impl.get_runtime().materialize()
         _state.taichi = impl.get_runtime()
     # Likewise the maps' storage (its trees are built when the first map is made, maybe in a
     # worker thread): built now for the default layout. An unused one gives way to another
     # layout or max_maps (storage()).
     storage(None)
+    _state.ready = True
     return _state.arch
 
 
@@ -335,7 +359,7 @@ def pinned_threads() -> list[tuple[int, int]]:
 
 
 def ensure_init() -> str:
-    return _state.arch or init()
+    return _state.arch if _state.ready else init()
 
 
 def pool_limit() -> int:
@@ -363,6 +387,13 @@ def storage(layout):
             st = None
         if st is None:
             _check_fits(layout, _state.max_maps)  # before init()'s storage gives way: a refusal leaves it
+            if threading.current_thread() is not _state.init_thread:
+                raise RuntimeError(
+                    f"a map of a new grid layout ({layout}) was made in thread {threading.current_thread().name!r}; "
+                    f"Taichi builds a layout's fields only in the thread that started it "
+                    f"({_state.init_thread.name!r}, by ndtom_ti.init or the first map): make the first map of this "
+                    "layout there (it may be closed at once), then use maps of it from any thread"
+                )
             unused = [key for key in _storages if key not in _used]
             for key in unused:  # init()'s default storage gives way to the layout of the first map
                 del _storages[key]

@@ -488,7 +488,8 @@ import ndtom_ti
 from ndtom_ti import NdtOmMap
 
 case = sys.argv[1]
-ndtom_ti.init("cpu")
+if case != "race":
+    ndtom_ti.init("cpu")
 errors = []
 rng = np.random.default_rng(0)
 pts = rng.normal(size=(2000, 3)) + [3.0, 0.0, 0.0]
@@ -527,6 +528,34 @@ elif case == "worker":  # the first map of the process is made and used in a wor
     t = threading.Thread(target=guarded(work))
     t.start()
     t.join()
+elif case == "race":  # no init(): four threads make the process's first maps at once
+    ready = threading.Barrier(4)
+    counts = []
+
+    def first():
+        ready.wait()
+        with NdtOmMap(0.2) as m:
+            m.insert_scan(pts, np.eye(4))
+            counts.append(len(m))
+
+    ts = [threading.Thread(target=guarded(first)) for _ in range(4)]
+    [t.start() for t in ts]
+    [t.join() for t in ts]
+    if len(set(counts)) != 1 or len(counts) != 4 or counts[0] == 0:
+        errors.append(f"maps differ: {counts}")
+elif case == "layout":  # a worker thread's map of a layout the process has not built: refused clearly
+    def other_layout():
+        try:
+            NdtOmMap(0.2, layout=ndtom_ti.Layout(l1=(64, 64, 16)))
+            errors.append("a new layout was built in a worker thread")
+        except RuntimeError as exc:
+            if "make the first map of this layout there" not in str(exc):
+                raise
+    t = threading.Thread(target=guarded(other_layout))
+    t.start()
+    t.join()
+    with NdtOmMap(0.2) as m:  # the process is still usable
+        m.insert_scan(pts, np.eye(4))
 elif case == "settings":  # what init() still lets a process choose before its first map
     ndtom_ti.init(max_maps=2)
     a, b = NdtOmMap(0.5), NdtOmMap(0.5)
@@ -540,7 +569,7 @@ sys.exit(1 if errors else 0)
 """
 
 
-@pytest.mark.parametrize("case", ["reader", "worker", "settings"])
+@pytest.mark.parametrize("case", ["reader", "worker", "race", "layout", "settings"])
 def test_first_taichi_use_from_a_worker_thread(tmp_path, case):
     import subprocess
 
