@@ -359,7 +359,7 @@ def pinned_threads() -> list[tuple[int, int]]:
 
 
 def ensure_init() -> str:
-    return _state.arch if _state.ready else init()
+    return _state.arch if _state.ready and _state.arch is not None else init()
 
 
 def pool_limit() -> int:
