@@ -489,6 +489,27 @@ def test_view_port_in_use_uses_the_next_and_prints_it(map_file, monkeypatch, cap
     assert f"port {port} is in use" in out and f"http://127.0.0.1:{seen['port']}" in out
 
 
+def test_view_with_no_free_port_up_to_65535_is_a_clear_error(map_file, capsys):
+    """viser looks for the next free port itself and raised in a thread past 65535 (the
+    command then hung without a viewer): the top port busy is a user error now."""
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        busy.bind(("127.0.0.1", 65535))
+    except OSError:
+        busy.close()
+        pytest.skip("port 65535 is taken on this machine")
+    busy.listen(1)
+    try:
+        assert view_command(map_file, "127.0.0.1", 65535, None) == 2
+    finally:
+        busy.close()
+    err = capsys.readouterr().err
+    assert "every port above it up to 65535" in err and "choose another port" in err and "Traceback" not in err
+
+
 def test_view_host_that_cannot_be_listened_on(map_file, capsys):
     pytest.importorskip("viser")
     from ndtom_ti.viewer.cli import view_command

@@ -40,7 +40,7 @@ from .panel import html_panel, with_panel
 from .redraw import redraw
 from .scene import FirstView, MapScene
 from .security import AccessGuard
-from .server import announcement, check_listen, start_server, url_for
+from .server import announcement, listen_port, start_server, url_for
 
 if TYPE_CHECKING:
     from ndtom_ti import NdtOmMap
@@ -146,7 +146,7 @@ class MapViewer:
         if not 0 <= port <= 65535:
             raise ValueError(f"port must be in [0, 65535], got {port}")
         self.requested_port = port
-        port_free = check_listen(host, port)
+        use_port = listen_port(host, port)
 
         self.caps = Caps(
             int(max_ellipsoids), int(max_splats), int(max_chosen), int(max_free_cells), int(max_occupied_cells)
@@ -167,14 +167,14 @@ class MapViewer:
         self.levels = LevelCache(m, compare, size=cache_size)
 
         self.guard = AccessGuard(host, token=token, allowed_hosts=allowed_hosts)
-        self.server = start_server(host, port, label=label, guard=self.guard, environment_map=environment_map)
+        self.server = start_server(host, use_port, label=label, guard=self.guard, environment_map=environment_map)
         self.label = label
         self.host = host
         self.port = int(self.server.get_port())
         self.url = url_for(host, self.port, self.guard.token)
         self.port_note = ""
         if port and self.port != port:
-            why = "in use" if not port_free else "not available"
+            why = "in use" if use_port != port else "not available"
             self.port_note = f"port {port} is {why}; the viewer uses port {self.port} instead"
         self.scene = MapScene(self.server, self.caps)
         try:

@@ -138,7 +138,9 @@ def view_command(
         return EXIT_INTERRUPTED
     if m is None:
         return EXIT_USAGE
-    _say(f"Loaded {len(m):,} Gaussians at {m.resolution:g} m in {time.perf_counter() - t0:.1f} s")
+    _say(
+        f"Loaded {len(m):,} Gaussian{'' if len(m) == 1 else 's'} at {m.resolution:g} m in {time.perf_counter() - t0:.1f} s"
+    )
     cmp_map = None
     if compare is not None:
         cmp_map = _load(Path(compare), "comparison map")

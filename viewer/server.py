@@ -11,12 +11,14 @@ from typing import Any
 from ._deps import require_viser
 from .security import AccessGuard, guarded_server, primary_address
 
-__all__ = ["announcement", "check_listen", "start_server", "url_for"]
+__all__ = ["announcement", "listen_port", "start_server", "url_for"]
 
 
-def check_listen(host: str, port: int) -> bool:
-    """Raise ``ValueError`` if nothing can listen on ``host``; return whether ``port`` is
-    free there (viser moves on to the next free port when it is not)."""
+def listen_port(host: str, port: int) -> int:
+    """The port to listen on at ``host``: ``port`` when it is free (or 0: any), else the next
+    free one above it. ``ValueError`` if nothing can listen on ``host``, or no port from
+    ``port`` to 65535 is free (viser, left to look itself, raised in a thread past 65535
+    and never started)."""
     try:
         infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except socket.gaierror as exc:
@@ -37,7 +39,15 @@ def check_listen(host: str, port: int) -> bool:
     if not usable:
         err = try_bind(infos[0][0], infos[0][4], 0)
         raise ValueError(f"cannot listen on host {host!r}: {getattr(err, 'strerror', None) or err}")
-    return port == 0 or all(try_bind(fam, addr, port) is None for fam, addr in usable)
+    for p in range(port, 65536) if port else ():
+        if all(try_bind(fam, addr, p) is None for fam, addr in usable):
+            return p
+    if port:
+        raise ValueError(
+            f"port {port} is in use on {host}, and so is every port above it up to 65535; "
+            "choose another port (or 0 for any free one)"
+        )
+    return 0
 
 
 def url_for(host: str, port: int, token: str | None = None) -> str:
