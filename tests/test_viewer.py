@@ -811,3 +811,35 @@ def test_view_says_what_it_does_while_a_map_loads(map_file, monkeypatch, capsys)
     assert first and tick and url and first[0] < tick[0] < url[0], out
     assert any(line.startswith("Loaded ") and "Gaussians" in line for line in out)
     assert seen and url and seen[0] in out[url[0]]  # the URL is printed once it serves
+
+
+def test_auto_level_of_detail_draws_the_first_coarser_level_that_fits(make_viewer, rng):
+    """A coarse cell gets a Gaussian from points that made none in its finer cells, so the
+    count estimated from the native Gaussians falls short (2x: 184 estimated, 373 there):
+    auto moves on until a level fits whole (6x here), not an even subsample of one that
+    does not."""
+    m = NdtOmMap(0.2)
+    wall = np.c_[np.full(300, 6.05), rng.integers(-40, 40, 300) * 0.2 + 0.1, rng.integers(0, 10, 300) * 0.2 + 0.1]
+    dense = np.repeat(wall, 5, 0) + rng.normal(scale=0.02, size=(1500, 3))
+    sparse = np.c_[np.full(1500, 8.05), rng.uniform(-16, 16, 1500), rng.uniform(0, 4, 1500)]
+    m.insert_scan(np.r_[dense, sparse], np.eye(4))
+    counts = {f: len(m.coarsen(f).gaussians(min_probability=0.5)["n"]) for f in (2, 3, 4, 6, 8)}
+    fits = min(f for f, n in counts.items() if n <= 200)
+    assert fits >= 4, counts  # the estimate alone would pick 2x
+    v = make_viewer(m, max_ellipsoids=50, max_splats=200)
+    assert v.drawn["factor"] == fits and v.drawn["gaussians"] == counts[fits], (v.drawn["factor"], counts)
+    assert f"showing the {fits}x coarser level" in v.controls.stats.content
+    m.close()
+
+
+def test_a_shifted_map_says_its_frame_origin_beside_positions_and_heights(maps, make_viewer):
+    """A georeferenced map is drawn in its shifted frame (frame_origin): the panel says where
+    that frame lies, and the height legend what to add (it showed 12-20 m for 312-320 m)."""
+    m, _ = maps
+    s = m.snapshot()
+    s.metadata["frame_origin"] = [512_300.0, 5_402_300.0, 300.0]
+    v = make_viewer(s)
+    assert "(512300.00, 5402300.00, 300.00) m of the poses' frame" in v.controls.stats.content
+    assert "add 300.00 m for the poses' frame" in v.controls.legend.content
+    plain = make_viewer(m.snapshot())
+    assert "Frame origin" not in plain.controls.stats.content and "add " not in plain.controls.legend.content

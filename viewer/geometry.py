@@ -280,16 +280,20 @@ def legend_html(
     clip: tuple[float, float] | None = None,
     prange: tuple[float, float] | None = None,
     at_top: float | None = None,
+    frame_z: float | None = None,
 ) -> str:
     """A small colour bar with its scale (fitted to the map), and the fixed colours of the
     layers the view offers (conflicting cells with a comparison map, trajectory and latest
-    scan while mapping live, free cells when drawn)."""
+    scan while mapping live, free cells when drawn). ``frame_z``: the height of a shifted
+    map's origin in its poses' frame (frame_origin), said beside the heights."""
     ts = np.linspace(0.0, 1.0, 9)
     if mode == "height":
         cols = turbo(ts)
         lo, hi = zrange
         left, mid, right = (f"{v + 0.0:.2f} m".replace("-0.00", "0.00") for v in (lo, (lo + hi) / 2, hi))
         title = "Colour: height of the Gaussian's mean"
+        if frame_z is not None:
+            title += f" in the map's frame (add {frame_z:.2f} m for the poses' frame)"
     elif prange is not None:
         # the occupied half of the scale, spread over what is drawn (threshold .. highest p)
         lo, hi = prange

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ndtom_ti.frames import as_frame_origin
 from ndtom_ti.snapshot import MapSnapshot
 
 from . import geometry as geo
@@ -163,25 +164,30 @@ class LevelCache:
                 # Too many to draw: the first coarser level that fits (its Gaussians are larger, so
                 # they stay visible from afar, where an even subsample of small ones fades out).
                 # Estimate each level's count from the parents of the drawn cells.
+                # The estimate can fall short (a coarse cell gets a Gaussian from points that
+                # made none in its finer cells): a level that still does not fit gives way to
+                # the next coarser one.
                 idx = g["index"]
-                choice = None
-                for f in LOD_FACTORS:
-                    if len(np.unique(geo.cell_keys(idx // f))) <= cap:
-                        choice = f
-                        break
-                choice = choice or LOD_FACTORS[-1]
+                first = next(
+                    (i for i, f in enumerate(LOD_FACTORS) if len(np.unique(geo.cell_keys(idx // f))) <= cap),
+                    len(LOD_FACTORS) - 1,
+                )
                 try:
-                    cm = self._any_level("ndtom", sel * choice)
-                    m, factor = cm, sel * choice
-                    del cm
-                    g = m.gaussians(min_probability=thr)
+                    for choice in LOD_FACTORS[first:]:
+                        cm = self._any_level("ndtom", sel * choice)
+                        m, factor = cm, sel * choice
+                        del cm
+                        g = m.gaussians(min_probability=thr)
+                        if len(g["n"]) <= cap:
+                            break
                     out["notes"].append(
                         f"{fmt(n_sel)} Gaussians at {base.resolution * sel:g} m exceed {fmt(cap)}: "
-                        f"showing the {choice}x coarser level ({m.resolution:g} m)"
+                        f"showing the {factor // sel}x coarser level ({m.resolution:g} m)"
                     )
                 except MemoryError as exc:
                     out["notes"].append(f"a coarser level could not be made ({exc})")
             out.update(factor=factor, resolution=m.resolution, g=g, native_resolution=base.resolution)
+            out["frame_origin"] = as_frame_origin(base.metadata.get("frame_origin"))  # None: not shifted
             out["stats"] = {
                 "scans": base.scans_inserted,
                 "points": base.points_inserted,

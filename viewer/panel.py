@@ -49,6 +49,12 @@ def stats_markdown(snap: dict, drawn: dict, caps: Caps) -> str:
                 f"**Recursive NDT**: {fmt(cs['gaussians'])} Gaussians; **{fmt(cs['conflicts'])} conflicting cells**"
             )
     lines.append(f"**Memory**: {st['memory'] / 2**20:.1f} MiB")
+    fo = snap.get("frame_origin")
+    if fo is not None:
+        lines.append(
+            f"**Frame origin**: ({fo[0]:.2f}, {fo[1]:.2f}, {fo[2]:.2f}) m of the poses' frame is the map's "
+            "(0, 0, 0); positions and heights here are the map's"
+        )
     for note in drawn["notes"]:
         lines.append(f"**Note**: {note}")
     return "  \n".join(lines)

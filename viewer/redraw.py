@@ -53,6 +53,7 @@ def redraw(
             clip=clip,
             prange=drawn["prange"],
             at_top=at_top,
+            frame_z=None if snap.get("frame_origin") is None else float(snap["frame_origin"][2]),
         )
         c.show(
             legend=legend,
