@@ -10,6 +10,7 @@ import math
 import os
 import shutil
 import socket
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any
@@ -17,6 +18,7 @@ from typing import Annotated, Any
 import typer
 from rich.text import Text
 
+from ..exitcodes import EXIT_FAILURE
 from ..tiledfile import MANIFEST, is_tiled, read_manifest
 from .common import (
     MAP_SUFFIX,
@@ -57,6 +59,7 @@ class TiledRun:
     threads: int | None
     memory_limit: float | None
     resumed_scans: int = 0
+    checkpoint_failed: str | None = None  # why the last checkpoint could not be written
     job: dict | None = None  # the recording, selection and map settings (checked on --resume)
 
     def set_job(self, job: dict) -> None:
@@ -109,7 +112,12 @@ class TiledRun:
             return
         if not m.scans_inserted:
             return  # nothing mapped: nothing to keep or resume from
-        m.checkpoint(complete=summary.complete)
+        try:
+            m.checkpoint(complete=summary.complete)
+        except OSError as exc:  # the map file is still written (-o); the run then exits 1 (clean)
+            self.checkpoint_failed = f"the checkpoint of {m.scans_inserted} scans to {self.folder} failed: {exc}"
+            err.print(Text(f"Error: {self.checkpoint_failed}; writing the map file anyway", style="red"))
+            return
         if not summary.complete:
             err.print(
                 Text(
@@ -120,7 +128,15 @@ class TiledRun:
             )
 
     def clean(self, summary: Any) -> None:
-        """A complete run without --tiled: its checkpoint folder is not needed any more."""
+        """A complete run without --tiled: its checkpoint folder is not needed any more. A
+        checkpoint that could not be written fails the run (exit 1) once the map is saved."""
+        if self.checkpoint_failed:
+            fail(
+                f"{self.checkpoint_failed}; the map file was written",
+                f"make {self.folder} writable (or give another --tiled DIR) and map again; the map file holds "
+                "every scan",
+                EXIT_FAILURE,
+            )
         if summary.complete and not self.keep and self.folder.is_dir():
             shutil.rmtree(self.folder, ignore_errors=True)
 
@@ -181,6 +197,9 @@ def plan(
         )
     if os.path.realpath(folder) == os.path.realpath(output.expanduser()):
         fail(f"{what} {folder} is the map file -o {output}", "give the tiled map a folder of its own")
+    # the map file inside the folder would replace its manifest or a tile, or be taken for one
+    check_not_input(output, {f"tiled map ({what})": folder})
+    check_folder_writable(folder, what)
     resumed = 0
     if resume:
         if not is_tiled(folder):
@@ -224,6 +243,26 @@ def plan(
         memory_limit=memory_limit,
         resumed_scans=resumed,
     )
+
+
+def check_folder_writable(folder: Path, what: str) -> None:
+    """Fail now, before any scan, when the checkpoints could not be written to ``folder``
+    (made when the first checkpoint is written): a read-only or immutable folder, a file on
+    its path, a file system that takes no files."""
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        fail(f"cannot make {what} {folder}: {probe} is a file, not a folder", "choose another folder with --tiled DIR")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".ndtom-check-", dir=probe))
+    except OSError as exc:
+        action = "write to" if probe == folder else f"make {what}"
+        fail(
+            f"cannot {action} {folder}: {exc.strerror or exc} (in {probe})",
+            "choose a writable folder for the checkpoints with --tiled DIR",
+            EXIT_FAILURE,
+        )
 
 
 def check_reachable(address: str) -> None:

@@ -59,7 +59,8 @@ class TiledMap:
     ``memory_limit_GB``: each worker's budget. ``folder``: where checkpoints go (a tiled
     map: a manifest and a map file per tile), every ``checkpoint_every`` scans; a lost
     worker makes the job restart every worker from the last one and replay the scans
-    since. ``resume``: carry on from the checkpoint in ``folder``. Map options as for
+    since. A periodic checkpoint that cannot be written (OSError) does not stop the job:
+    ``checkpoint_error`` says why, and the next checkpoint tries again. ``resume``: carry on from the checkpoint in ``folder``. Map options as for
     :class:`~ndtom_ti.NdtOmMap` (``config``, ``occupancy`` or MapConfig fields).
     """
 
@@ -103,6 +104,8 @@ class TiledMap:
         self.scans_inserted = 0
         self.points_inserted = 0
         self.restarts = 0  # times a lost worker made the job go back to a checkpoint
+        # why the last periodic checkpoint could not be written (None: it was, or none was due)
+        self.checkpoint_error: str | None = None
         self.scan_bytes = 0  # the scans' points and poses sent (once to each worker's host)
         self._since: list[tuple] = []  # scans since the last checkpoint: replayed after a loss
         self._starts: list[Start | None] = [None] * workers
@@ -179,7 +182,10 @@ class TiledMap:
         rep.seconds = time.perf_counter() - t0
         self.points_inserted += rep.points_used
         if self.checkpoint_every and self.scans_inserted % self.checkpoint_every == 0:
-            self.checkpoint()
+            try:
+                self.checkpoint()
+            except OSError as exc:  # the scans stay in the workers (and here, to replay): the next one tries again
+                self.checkpoint_error = f"the checkpoint of {self.scans_inserted} scans failed: {exc}"
         return rep
 
     def _step(self, scan: tuple) -> list[dict]:
@@ -218,6 +224,7 @@ class TiledMap:
         path = write_manifest(self.folder, info, names)
         self._starts = self._starts_of([n for n, _ in names], [t for _, t in names])
         self._since = []
+        self.checkpoint_error = None
         return path
 
     def _starts_of(self, names: list[str], tiles: list) -> list[Start | None]:

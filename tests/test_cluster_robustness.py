@@ -1,0 +1,88 @@
+"""`ndtom map --workers N`, `ndtom merge` and TiledMap facing mistakes and faults: outputs
+inside the tiled map, folders that cannot be written, tiles that are damaged or of another
+run, a resumed run of other scans, lost workers at a checkpoint. Each is a clear error or
+a counted, reported recovery, never a traceback or a wrong map. The workers run in this
+process (TiledMap's local engine) unless a test says otherwise."""
+
+from __future__ import annotations
+
+import errno
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import test_cluster_cli as cli
+import test_pipeline_bags as pb
+from test_cluster_cli import assert_same_cells, assert_user_error, run
+
+from ndtom_ti.cluster import TiledMap
+from ndtom_ti.tiledfile import MANIFEST
+
+local_engine = cli.local_engine  # the workers in this process
+no_mapping = cli.no_mapping  # the command must stop before mapping
+
+TWO = ("--workers", "2", "--tile-size", "1", "--no-progress")
+
+
+@pytest.fixture
+def bag(tmp_path: Path) -> Path:
+    return pb.write_plane_bag(tmp_path)
+
+
+def map_bag(bag: Path, *args: object):
+    return run("map", bag, "-r", pb.RES, *TWO, *args)
+
+
+# ---------------------------------------------------------------------------- A: -o inside --tiled
+def test_the_map_file_inside_the_tiled_folder_is_refused(tmp_path: Path, bag: Path, no_mapping) -> None:
+    """-o naming the manifest (or any file) inside --tiled DIR would replace it or a tile."""
+    q = tmp_path / "q.tiles"
+    q.mkdir()
+    r = map_bag(bag, "--tiled", q, "-o", q / "manifest.json")
+    assert_user_error(r, "lies inside the tiled map (--tiled)", "choose a path outside")
+    r = map_bag(bag, "--tiled", q, "-o", q / "m.ndtom")
+    assert_user_error(r, "lies inside the tiled map (--tiled)")
+
+
+def test_the_map_file_inside_a_resumed_tiled_folder_is_refused(tmp_path: Path, bag: Path, local_engine) -> None:
+    t = tmp_path / "p.tiles"
+    assert map_bag(bag, "--tiled", t, "-o", tmp_path / "m.ndtom").exit_code == 0
+    tile = json.loads((t / MANIFEST).read_text())["tiles"][0]
+    before = (t / tile).read_bytes()
+    r = map_bag(bag, "--tiled", t, "--resume", "-o", t / tile)
+    assert_user_error(r, "lies inside the tiled map (--tiled)")
+    assert (t / tile).read_bytes() == before
+
+
+# ---------------------------------------------------------------------------- B: unwritable --tiled
+@pytest.mark.parametrize("where", ["afile/sub", "/proc/ndtom-tiles"])
+def test_a_tiled_folder_that_cannot_be_made_is_refused_before_mapping(
+    tmp_path: Path, bag: Path, no_mapping, where: str
+) -> None:
+    (tmp_path / "afile").write_text("x")
+    folder = tmp_path / where if not where.startswith("/") else Path(where)
+    r = map_bag(bag, "--tiled", folder, "-o", tmp_path / "m.ndtom")
+    assert r.exit_code in (1, 2), r.output
+    assert "Error: cannot make --tiled" in r.output and "Hint:" in r.output, r.output
+    assert not (tmp_path / "m.ndtom").exists()
+
+
+def test_a_checkpoint_that_fails_mid_run_still_writes_the_map(tmp_path: Path, bag: Path, local_engine, monkeypatch):
+    """A checkpoint that cannot be written (a full disk) neither stops the mapping nor loses
+    it: the map file holds every scan; the run says so and exits 1."""
+    ref = tmp_path / "ref.ndtom"
+    assert run("map", bag, "-r", pb.RES, "-o", ref, "--no-progress").exit_code == 0
+
+    def full(self, complete=False):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(TiledMap, "checkpoint", full)
+    out = tmp_path / "m.ndtom"
+    r = map_bag(bag, "--tiled", tmp_path / "T", "--checkpoint-every", "1", "-o", out)
+    assert r.exit_code == 1, r.output
+    assert "checkpoint of" in r.output and "No space left on device" in r.output, r.output
+    assert "the map file was written" in r.output and "internal error" not in r.output
+    assert_same_cells(ref, out)
