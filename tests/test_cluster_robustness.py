@@ -86,3 +86,16 @@ def test_a_checkpoint_that_fails_mid_run_still_writes_the_map(tmp_path: Path, ba
     assert "checkpoint of" in r.output and "No space left on device" in r.output, r.output
     assert "the map file was written" in r.output and "internal error" not in r.output
     assert_same_cells(ref, out)
+
+
+# ---------------------------------------------------------------------------- C: huge tiles
+@pytest.mark.parametrize("size", ["1e9", "1e20"])
+def test_a_tile_larger_than_the_grid_is_refused(tmp_path: Path, bag: Path, no_mapping, size: str) -> None:
+    """A tile's cell count must fit the kernels' int32: at most the grid's side."""
+    top = 32768 * pb.RES
+    r = run("map", bag, "-r", pb.RES, "--workers", "2", "--tile-size", size, "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, f"--tile-size must be at most {top:g} m at -r {pb.RES:g}")
+    with pytest.raises(ValueError, match=f"at most {top:g} m"):
+        TiledMap(pb.RES, tile_size=float(size), engine="local", probe=False)
+    with TiledMap(pb.RES, tile_size=top, engine="local", probe=False) as tm:
+        assert tm.tiling.tile_cells == 32768

@@ -178,6 +178,13 @@ def plan(
     size = 16.0 if tile_size is None else tile_size
     if not (math.isfinite(size) and size > 0):
         raise ValueError(f"--tile-size must be a positive number of metres, got {size:g}")
+    from ..cluster.tiling import max_tile_size
+
+    if size > max_tile_size(resolution):
+        raise ValueError(
+            f"--tile-size must be at most {max_tile_size(resolution):g} m at -r {resolution:g} (a tile as long as "
+            f"the map's whole grid), got {size:g}"
+        )
     every = 100 if checkpoint_every is None else checkpoint_every
     if every < 0:
         raise ValueError(f"--checkpoint-every must be 0 (only at the end) or more scans, got {every}")

@@ -33,6 +33,12 @@ class Tiling:
             raise ValueError(f"tile size must be a positive number of metres, got {self.tile_size!r}")
         if self.layout.owner is not None:
             object.__setattr__(self, "layout", replace(self.layout, owner=None))
+        top = max_tile_size(self.resolution, self.layout)
+        if self.tile_size > top:  # (its cell count would overflow the kernels' int32 tiles)
+            raise ValueError(
+                f"tile size must be at most {top:g} m at {self.resolution:g} m (the whole grid, "
+                f"{max(self.layout.cells)} cells a side), got {self.tile_size:g}"
+            )
 
     @property
     def tile_cells(self) -> int:
@@ -56,6 +62,12 @@ class Tiling:
         workers may have to count."""
         r = np.asarray(cells, np.int64).reshape(-1, 3) % self.tile_cells
         return ((r == 0) | (r == self.tile_cells - 1)).any(axis=1)
+
+
+def max_tile_size(resolution: float, layout: Layout | None = None) -> float:
+    """The largest tile edge in metres at ``resolution``: the grid's longest side (one tile
+    then holds whole slabs of the grid; a larger one would hold nothing more)."""
+    return max((layout or Layout()).cells) * resolution
 
 
 def split_tiles(state: dict, tile_cells: int) -> dict[tuple[int, int, int], dict]:
