@@ -510,6 +510,19 @@ def test_view_with_no_free_port_up_to_65535_is_a_clear_error(map_file, capsys):
     assert "every port above it up to 65535" in err and "choose another port" in err and "Traceback" not in err
 
 
+def test_view_refuses_a_bad_port_or_page_folder_before_loading_the_map(map_file, capsys):
+    pytest.importorskip("viser")
+    from ndtom_ti.viewer.cli import view_command
+
+    assert view_command(map_file, "127.0.0.1", 70000, None) == 2
+    out, err = capsys.readouterr()
+    assert "port must be in [0, 65535], got 70000" in err and "Loading" not in out
+    if sys.platform.startswith("linux"):  # /proc takes no new file
+        assert view_command(map_file, "127.0.0.1", 0, "/proc/page.html") == 2
+        out, err = capsys.readouterr()
+        assert "cannot write /proc/page.html: folder /proc" in err and "Loading" not in out
+
+
 def test_view_host_that_cannot_be_listened_on(map_file, capsys):
     pytest.importorskip("viser")
     from ndtom_ti.viewer.cli import view_command

@@ -13,6 +13,7 @@ import contextlib
 import inspect
 import math
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -24,11 +25,17 @@ from ndtom_ti.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USA
 from ndtom_ti.signals import LiveSignals
 
 from ._deps import ViewerNotInstalledError, require_viser
+from .server import listen_port
 
 if TYPE_CHECKING:
     from ndtom_ti.io import ScanSelection
 
 __all__ = ["live_command", "live_demo_command", "live_recording_command", "view_command"]
+
+LISTEN_HINT = (
+    "use --host 127.0.0.1 (this machine only) or an address of this machine, and a --port in 0..65535 "
+    "(0: any free port)"
+)
 
 
 def _error(message: str, hint: str | None = None) -> None:
@@ -126,6 +133,19 @@ def view_command(
         if kind is not None:
             _error(f"cannot write {html}: {kind}, which writing the page would destroy", "choose another --html path")
             return EXIT_USAGE
+        try:  # before the map loads: a folder that takes no file is said at once
+            tempfile.TemporaryFile(dir=parent).close()
+        except OSError as exc:
+            _error(f"cannot write {html}: folder {parent}: {exc.strerror or exc}", "choose another --html path")
+            return EXIT_USAGE
+    else:
+        try:  # before the map loads: a host or port that cannot serve is said at once
+            if not 0 <= int(port) <= 65535:
+                raise ValueError(f"port must be in [0, 65535], got {port}")
+            listen_port(host, int(port))
+        except ValueError as exc:
+            _error(str(exc), LISTEN_HINT)
+            return EXIT_USAGE
     t0 = time.perf_counter()
     path = Path(map_path)
     if path.is_file():
@@ -163,11 +183,7 @@ def view_command(
                 progress=_say,
             )
     except ValueError as exc:
-        _error(
-            str(exc),
-            "use --host 127.0.0.1 (this machine only) or an address of this machine, "
-            "and a --port in 0..65535 (0: any free port)",
-        )
+        _error(str(exc), LISTEN_HINT)
         return EXIT_USAGE
     except KeyboardInterrupt:
         _error("interrupted (Ctrl-C) while preparing the scene")
@@ -302,7 +318,7 @@ def live_command(
     try:
         viewer = MapViewer(m, host=host, port=port, progress=_say)
     except ValueError as exc:
-        _error(str(exc), "use --host 127.0.0.1 (this machine only) or an address of this machine")
+        _error(str(exc), LISTEN_HINT)
         return EXIT_USAGE
 
     code = EXIT_OK
