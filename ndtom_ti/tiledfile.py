@@ -13,9 +13,13 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NoReturn
 
+import numpy as np
+
+from . import mapfile
 from .atomic import atomic_write
 from .mapfile import MapFileError
 
@@ -53,6 +57,8 @@ def write_manifest(folder: str | Path, info: dict, tiles: list[tuple[str, tuple[
         **info,
         "tiles": [name for name, _ in tiles],
         "tile_ids": [[int(x) for x in t] for _, t in tiles],
+        # each file's payload digest: a tile file of another run (or checkpoint) is refused
+        "tile_sha256": [mapfile.read_header(folder / name)["payload_sha256"] for name, _ in tiles],
     }
     text = json.dumps(doc, indent=1, sort_keys=True).encode()
     path = atomic_write(folder / MANIFEST, lambda fh: fh.write(text))
@@ -95,7 +101,85 @@ def read_manifest(folder: str | Path) -> dict:
         or not all(isinstance(i, list) and len(i) == 3 and all(type(x) is int for x in i) for i in ids)
     ):
         bad(f"tile_ids must give the 3 integer indices of each tile, got {ids!r}")
+    if len({tuple(i) for i in ids}) != len(ids):
+        bad("tile_ids names a tile twice")
+    digests = doc.get("tile_sha256")  # (manifests written before 2026-11-29 have none)
+    if digests is not None and (
+        not isinstance(digests, list) or len(digests) != len(tiles) or not all(isinstance(d, str) for d in digests)
+    ):
+        bad("tile_sha256 must give a digest for each tile file")
     for t in tiles or ():
         if Path(t).name != t or not (folder / t).is_file():
-            bad(f"tile file {t!r} is missing from {folder}")
+            raise MapFileError(
+                f"the tiled map {folder} is incomplete: its tile file {t} is missing (the {MANIFEST} names it)"
+            )
     return doc
+
+
+def read_tile(folder: str | Path, doc: dict, i: int) -> tuple[dict, dict]:
+    """Tile ``i`` of the manifest ``doc`` of ``folder``: (settings, cell arrays) as
+    ``mapfile.read`` gives them, checked against the manifest: its digest, resolution, scans
+    and points, the job's map options, and its cells inside the tile the manifest names.
+    Any fault: MapFileError naming the file."""
+    folder = Path(folder)
+    name, tile = doc["tiles"][i], doc["tile_ids"][i]
+    path = folder / name
+    settings, arrays = mapfile.read(path)
+
+    def bad(what: str) -> NoReturn:
+        raise MapFileError(f"{path} does not belong to the tiled map {folder}: {what}")
+
+    digests = doc.get("tile_sha256")
+    if digests is not None and mapfile.read_header(path)["payload_sha256"] != digests[i]:
+        bad(f"it is not the file its {MANIFEST} names (another run's or checkpoint's tile)")
+    for what, mine, theirs in (
+        ("resolution", settings["resolution"], doc["resolution"]),
+        ("scans", settings["scans_inserted"], doc["scans"]),
+        ("points", settings["points_inserted"], doc.get("points", settings["points_inserted"])),
+    ):
+        if mine != theirs:
+            bad(f"it holds {what} {mine}, the {MANIFEST} {theirs}")
+    job = doc.get("job") or {}
+    if "config" in job and json.loads(json.dumps(settings["config"].to_dict())) != job["config"]:
+        bad(f"it was mapped with other map options than the {MANIFEST}'s run")
+    if "occupancy" in job and settings["occupancy_enabled"] != job["occupancy"]:
+        bad(f"its occupancy setting differs from the {MANIFEST}'s run")
+    cells = doc["tile_cells"]
+    for key in ("occ_index", "g_index"):
+        idx = arrays[key]
+        if len(idx) and (idx.astype(np.int64) // cells != np.asarray(tile, np.int64)).any():
+            bad(f"it holds cells outside tile {tuple(tile)} ({cells} cells a side), the tile the {MANIFEST} names")
+    return settings, arrays
+
+
+def read_tiles(folder: str | Path, doc: dict) -> Iterator[tuple[dict, dict]]:
+    """Every tile of ``folder`` in turn (``read_tile``), each also checked against the first:
+    the same map options, so that they make one map."""
+    first: dict | None = None
+    for i, name in enumerate(doc["tiles"]):
+        settings, arrays = read_tile(folder, doc, i)
+        if first is None:
+            first = settings
+        elif settings["config"] != first["config"] or settings["occupancy_enabled"] != first["occupancy_enabled"]:
+            raise MapFileError(
+                f"{Path(folder) / name} does not belong to the tiled map {folder}: it was mapped with other map "
+                f"options than {doc['tiles'][0]}"
+            )
+        yield settings, arrays
+
+
+_CHECKED: set = set()  # folders whose tiles were read whole and found sound, as they were then
+
+
+def check_tiles(folder: str | Path, doc: dict) -> None:
+    """Read every tile of ``folder`` and check it (``read_tiles``); MapFileError naming the
+    first bad file. Once a folder passed, the same files (names, sizes, times) are not read
+    again in this process."""
+    folder = Path(folder)
+    stats = tuple((n, (folder / n).stat().st_size, (folder / n).stat().st_mtime_ns) for n in doc["tiles"])
+    key = (str(folder.resolve()), stats, (folder / MANIFEST).stat().st_mtime_ns)
+    if key in _CHECKED:
+        return
+    for _ in read_tiles(folder, doc):
+        pass
+    _CHECKED.add(key)

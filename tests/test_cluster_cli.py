@@ -29,7 +29,6 @@ from ndtom_ti.cli import app  # noqa: E402
 from ndtom_ti.cluster import TiledMap  # noqa: E402
 from ndtom_ti.mapfile import read_header  # noqa: E402
 from ndtom_ti.snapshot import MapSnapshot  # noqa: E402
-from ndtom_ti.tiledfile import write_manifest  # noqa: E402
 
 BALM = DATA / "balm_hall_every4"
 REPO = Path(__file__).resolve().parents[1]
@@ -294,7 +293,8 @@ def test_bad_options_fail_before_mapping(tmp_path: Path, no_mapping, args: list[
     for name in ("a.ndtom", "b.ndtom"):
         (old / name).write_bytes(b"")
     info = {"resolution": pb.RES, "tile_size": 1.0, "tile_cells": 4, "workers": 2, "scans": 2, "complete": False}
-    write_manifest(old, info, [("a.ndtom", (0, 0, 0)), ("b.ndtom", (1, 0, 0))])
+    doc = {"format": "ndtom-tiled", "version": 1, **info, "tiles": ["a.ndtom", "b.ndtom"]}
+    (old / "manifest.json").write_text(json.dumps({**doc, "tile_ids": [[0, 0, 0], [1, 0, 0]]}))
     bag = pb.write_plane_bag(tmp_path)
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))

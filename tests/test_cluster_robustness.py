@@ -18,7 +18,9 @@ import test_cluster_cli as cli
 import test_pipeline_bags as pb
 from test_cluster_cli import assert_same_cells, assert_user_error, run
 
+from ndtom_ti import pipeline
 from ndtom_ti.cluster import TiledMap
+from ndtom_ti.mapfile import MapFileError
 from ndtom_ti.tiledfile import MANIFEST
 
 local_engine = cli.local_engine  # the workers in this process
@@ -30,6 +32,10 @@ TWO = ("--workers", "2", "--tile-size", "1", "--no-progress")
 @pytest.fixture
 def bag(tmp_path: Path) -> Path:
     return pb.write_plane_bag(tmp_path)
+
+
+def refuse(*args, **kwargs):
+    raise AssertionError("mapping started")
 
 
 def map_bag(bag: Path, *args: object):
@@ -99,3 +105,24 @@ def test_a_tile_larger_than_the_grid_is_refused(tmp_path: Path, bag: Path, no_ma
         TiledMap(pb.RES, tile_size=float(size), engine="local", probe=False)
     with TiledMap(pb.RES, tile_size=top, engine="local", probe=False) as tm:
         assert tm.tiling.tile_cells == 32768
+
+
+# ---------------------------------------------------------------------------- D: a damaged checkpoint
+def damage(path: Path) -> None:
+    """Flip a byte of a map file's payload (its checksum no longer matches)."""
+    data = bytearray(path.read_bytes())
+    data[-5] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_resume_from_a_damaged_tile_is_refused_before_any_worker(tmp_path: Path, bag: Path, local_engine, monkeypatch):
+    t = tmp_path / "kc.tiles"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "2", "-o", tmp_path / "m.ndtom").exit_code == 0
+    tile = json.loads((t / MANIFEST).read_text())["tiles"][1]
+    damage(t / tile)
+    monkeypatch.setattr(pipeline, "map_recording", refuse)  # from here on the command must stop before mapping
+    r = map_bag(bag, "--tiled", t, "--resume", "-o", tmp_path / "m2.ndtom")
+    assert_user_error(r, "--resume: the checkpoint in", f"{tile} is corrupt", "new --tiled folder")
+    assert "internal error" not in r.output and "please report" not in r.output
+    with pytest.raises(MapFileError, match=f"{tile} is corrupt"):  # the API: before any worker starts
+        TiledMap(pb.RES, workers=2, tile_size=1.0, engine="local", probe=False, folder=t, resume=True)

@@ -19,7 +19,8 @@ import typer
 from rich.text import Text
 
 from ..exitcodes import EXIT_FAILURE
-from ..tiledfile import MANIFEST, is_tiled, read_manifest
+from ..mapfile import MapFileError
+from ..tiledfile import MANIFEST, check_tiles, is_tiled, read_manifest
 from .common import (
     MAP_SUFFIX,
     check_map_output,
@@ -223,6 +224,14 @@ def plan(
                 f"tiles of {doc['tile_cells']} cells (--tile-size {float(doc.get('tile_size', 0.0)):g}), not "
                 f"-r {resolution:g} --workers {workers} --tile-size {size:g} ({now[2]} cells)",
                 "resume with the stopped run's -r, --workers and --tile-size",
+            )
+        try:  # every tile read and checked here, before any worker starts from them
+            check_tiles(folder, doc)
+        except MapFileError as exc:
+            fail(
+                f"--resume: the checkpoint in {folder} is damaged: {exc}",
+                "put back an intact copy of that file if there is one; else map again into a new --tiled folder "
+                "(without --resume)",
             )
     elif is_tiled(folder):
         doc = read_manifest(folder)

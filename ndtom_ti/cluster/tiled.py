@@ -19,7 +19,7 @@ from ..runtime import MapMemoryError
 from ..scan_update import ScanReport
 from ..scaninput import as_points, as_pose
 from ..snapshot import MapSnapshot
-from ..tiledfile import read_manifest, write_manifest
+from ..tiledfile import check_tiles, read_manifest, write_manifest
 from .engines import LocalEngine, RayEngine, Start, WorkerLost, WorkerSpec
 from .tiling import Tiling
 
@@ -140,6 +140,7 @@ class TiledMap:
         if got != want:
             raise ValueError(f"{self.folder} holds a run of {got}, not {want}: resume it with the same settings")
         check_job(self.folder, doc, self.job)
+        check_tiles(self.folder, doc)  # a damaged tile: MapFileError here, not in a worker
         self.scans_inserted = int(doc["scans"])
         self.points_inserted = int(doc.get("points", 0))
         kept = doc.get("frame_origin")
