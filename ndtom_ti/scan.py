@@ -32,19 +32,10 @@ def scan_parts(item: Any) -> tuple[np.ndarray, np.ndarray]:
     from .scaninput import as_points, as_pose
 
     if hasattr(item, "points") and hasattr(item, "T_world_sensor"):
-        return _points(item.points, as_points), as_pose(item.T_world_sensor)
+        return as_points(item.points), as_pose(item.T_world_sensor)
     if isinstance(item, (tuple, list)) and len(item) == 2:
-        return _points(item[0], as_points), as_pose(item[1])
+        return as_points(item[0]), as_pose(item[1])
     raise TypeError(
         "each scan must have .points (N, 3) and .T_world_sensor (4, 4), or be a (points, T_world_sensor) "
         f"pair; got {type(item).__name__}"
     )
-
-
-def _points(points: Any, check: Any) -> np.ndarray:
-    try:
-        return check(points)
-    except ValueError as exc:
-        if "inhomogeneous" in str(exc) or "sequence" in str(exc):  # numpy on ragged lists
-            raise TypeError(f"points must be a real numeric (N, 3) array in metres: {exc}") from None
-        raise

@@ -19,7 +19,10 @@ def as_points(points: Any) -> np.ndarray:
     if isinstance(points, np.ma.MaskedArray) and np.ma.getmask(points) is not np.ma.nomask:
         # np.asarray drops the mask: masked coordinates become NaN, dropped and counted as not finite
         points = np.ma.asarray(points, dtype=np.float64).filled(np.nan)
-    arr = np.asarray(points)
+    try:
+        arr = np.asarray(points)
+    except ValueError as exc:  # numpy on ragged lists
+        raise TypeError(f"points must be a real numeric (N, 3) array in metres: {exc}") from None
     if arr.dtype == np.bool_:
         raise TypeError("points must be a real numeric (N, 3) array in metres, got booleans")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):

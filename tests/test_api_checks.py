@@ -223,3 +223,13 @@ def test_masked_points_are_dropped_as_not_finite():
     pts[:10, 1] = np.ma.masked
     rep = m.insert_scan(pts, np.eye(4))
     assert rep.dropped_nonfinite == 10 and rep.points_used == 390
+
+
+def test_ragged_points_are_a_type_error_in_insert_scan_as_in_map_scans():
+    """A list of rows of unequal length is not an (N, 3) array: insert_scan said numpy's
+    own ValueError ("inhomogeneous shape"), map_scans a TypeError."""
+    ragged = [[1.0, 2.0, 3.0], [1.0, 2.0]]
+    with NdtOmMap(0.2) as m:
+        with pytest.raises(TypeError, match=r"points must be a real numeric \(N, 3\) array"):
+            m.insert_scan(ragged, np.eye(4))
+        assert m.scans_inserted == 0
