@@ -618,8 +618,8 @@ def test_the_map_file_does_not_replace_other_files(bags, tmp_path: Path) -> None
     assert run("map", bags["ros1"], "-r", pb.RES, "-o", empty).exit_code == 0
 
 
-@pytest.mark.parametrize("fail_at", [3, 1])
-def test_memory_budget_saves_what_was_mapped_and_exits_1(bags, tmp_path: Path, monkeypatch, fail_at) -> None:
+def refuse_scan(monkeypatch, fail_at: int) -> None:
+    """Make the ``fail_at``-th scan inserted one the memory budget refuses."""
     orig = NdtOmMap.insert_scan
     calls = {"n": 0}
 
@@ -630,6 +630,11 @@ def test_memory_budget_saves_what_was_mapped_and_exits_1(bags, tmp_path: Path, m
         return orig(self, points, T)
 
     monkeypatch.setattr(NdtOmMap, "insert_scan", insert)
+
+
+@pytest.mark.parametrize("fail_at", [3, 1])
+def test_memory_budget_saves_what_was_mapped_and_exits_1(bags, tmp_path: Path, monkeypatch, fail_at) -> None:
+    refuse_scan(monkeypatch, fail_at)
     out = tmp_path / "mem.ndtom"
     r = run("map", bags["ros1"], "-r", pb.RES, "-o", out)
     assert_user_error(r, f"scan {fail_at} was refused", "memory pool", "coarser resolution", code=1)
@@ -682,16 +687,7 @@ def test_demo_maps_the_synthetic_room(tmp_path: Path) -> None:
 def test_demo_refused_by_the_memory_budget_hints_in_its_own_options(tmp_path: Path, monkeypatch, fail_at) -> None:
     """The demo has no --memory-limit or --max-range: its hint names neither, and with no
     scan mapped there is no ground-truth table of "nan%" (what -r 0.001 printed)."""
-    orig = NdtOmMap.insert_scan
-    calls = {"n": 0}
-
-    def insert(self, points, T):
-        calls["n"] += 1
-        if calls["n"] == fail_at:
-            raise MapMemoryError("this update could take Taichi's memory pool to 999 MiB, past the budget (test)")
-        return orig(self, points, T)
-
-    monkeypatch.setattr(NdtOmMap, "insert_scan", insert)
+    refuse_scan(monkeypatch, fail_at)
     r = run("demo", "--out", tmp_path / "d", "--scans", "6", "--no-progress")
     assert_user_error(r, f"scan {fail_at} was refused", "coarser resolution (-r 0.4)", code=1)
     assert "--memory-limit" not in r.output and "--max-range" not in r.output and "--max-scans" not in r.output
