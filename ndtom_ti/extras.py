@@ -45,6 +45,27 @@ def available(module: str) -> bool:
         return False
 
 
+def import_error(module: str) -> str | None:
+    """Why ``module`` cannot be imported (it is imported now), or None when it can: an
+    installed package whose own libraries are missing or broken fails here, where
+    :func:`available` only finds it."""
+    try:
+        importlib.import_module(module)
+    except Exception as exc:  # noqa: BLE001 - a broken package raises anything (ImportError, OSError, ...)
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        return f"{type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+    return None
+
+
+def broken_message(module: str, purpose: str, error: str) -> str:
+    """'<module> is installed but cannot be imported: <error>; <purpose> needs it'."""
+    return f"{module} is installed but cannot be imported ({error}); {purpose} needs it"
+
+
+def reinstall_hint(module: str) -> str:
+    return f"reinstall it: pip install --force-reinstall {module} (part of the [{extra_of(module)}] extra)"
+
+
 def extra_of(module: str) -> str:
     return next(extra for extra, mods in EXTRAS.items() if module in mods)
 
@@ -56,8 +77,11 @@ def missing_message(module: str, purpose: str) -> str:
 
 def require(module: str, purpose: str) -> None:
     """Raise :class:`ExtraMissingError` (naming the extra and how to install it) when
-    ``module`` is not installed."""
+    ``module`` is not installed, or installed but cannot be imported."""
     if not available(module):
         raise ExtraMissingError(
             f"{missing_message(module, purpose)}; install it with: {install_hint(extra_of(module))}"
         )
+    error = import_error(module)
+    if error is not None:
+        raise ExtraMissingError(f"{broken_message(module, purpose, error)}; {reinstall_hint(module)}")

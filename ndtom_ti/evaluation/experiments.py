@@ -45,13 +45,14 @@ the fly by a simworld.py whose path is given). The run is in steps: the scans ar
 (:mod:`.sources`), inserted into the mappers one at a time with the per-scan rows
 (:class:`_Run`), then the final comparisons (:func:`_ndtom_vs_batch`, :func:`_self_test`,
 :func:`_final_conflicts`, :func:`_coarsened`), the files (:mod:`.report`, :mod:`.plots`)
-and the optional sweep (:func:`_fig5`).
+and the optional sweep (:func:`_fig5_rows`, :func:`_fig5_files`).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -63,7 +64,9 @@ import numpy as np
 from ..cellkeys import isin_rows
 from ..config import MapConfig, check_resolution
 from ..frames import far_origin, shifted
+from ..runtime import MapMemoryError
 from ..scan import Scan
+from ..signals import signal_name
 from .er_baseline import UPDATE_RULE, ErrorRefinementMap
 from .metrics import batch_ndt, l2_similarity, mean_l2_score, regularize_cov
 from .report import (
@@ -78,10 +81,19 @@ from .report import (
     write_csv,
 )
 from .sources import ScanSet
+from .stops import mark_written, writing
+from .sweep import check_grid
 
 __all__ = ["run_experiments"]
 
 Progress = Callable[[str], None]
+
+
+FRAME_ORIGIN_NOTE = (
+    "the poses lie far from their frame's origin: the maps were made in a frame shifted by frame_origin "
+    "(metres of the poses' frame), and the coordinates written (x, y, z of conflicting_cells.csv, the "
+    "plots' axes) are relative to it: add frame_origin to return to the poses' frame"
+)
 
 
 # ============================================================================ helpers
@@ -424,28 +436,42 @@ def _summary(
     }
 
 
-def _fig5(
-    data: ScanSet, resolutions: Sequence[float], out: Path, plots: bool, points_per_scan: float, say: Progress
-) -> tuple[dict, list[Path]]:
+def _fig5_rows(data: ScanSet, resolutions: Sequence[float], say: Progress, on_row: Callable) -> str | None:
     """Fig. 5: time per scan against resolution on the same scans (OctoMap beside NDT-OM
-    when pyoctomap is importable); returns the summary's ``fig5`` and the files written."""
-    from .. import runtime
+    when pyoctomap imports); each row goes to ``on_row`` as it is finished. Returns the
+    baseline used."""
     from . import sweep as sw
 
     baseline = "octomap" if sw.octomap_available() else None
     say(f"Fig. 5: sweep over {list(resolutions)} ({'with OctoMap' if baseline else 'no pyoctomap: floor only'})")
-    rows = sw.run_sweep(data.scans, list(resolutions), baseline=baseline, progress=say)
-    files = [sw.write_csv(rows, out / "fig5_sweep.csv", sw.machine_tags(runtime.current_arch() or "cpu"))]
-    if plots:
-        files.append(
-            sw.plot(
-                rows,
-                out / "fig5_time_per_scan.png",
-                f"Fig. 5: {len(data.scans)} scans, {points_per_scan:.0f} points/scan",
-            )
-        )
+    sw.run_sweep(data.scans, list(resolutions), baseline=baseline, progress=say, on_row=on_row)
+    return baseline
+
+
+def _fig5_files(
+    rows: list,
+    baseline: str | None,
+    out: Path,
+    plots: bool,
+    title: str,
+    stopped: tuple[str, float] | None = None,
+) -> tuple[dict, list[Path]]:
+    """The summary's ``fig5`` and the files of the sweep's ``rows`` (``stopped``: why and at
+    which resolution the sweep stopped; the files hold the rows finished, marked partial)."""
+    from .. import runtime
+    from . import sweep as sw
+
+    tags = {**sw.machine_tags(runtime.current_arch() or "cpu"), "complete": "false" if stopped else "true"}
+    if stopped:
+        tags["stopped"] = f"{stopped[0]} at {stopped[1]:g} m"
+    files = []
+    if rows:
+        files.append(sw.write_csv(rows, out / "fig5_sweep.csv", tags))
+        if plots:
+            files.append(sw.plot(rows, out / "fig5_time_per_scan.png", title + (" (partial)" if stopped else "")))
     fig5 = {
         "baseline": baseline,
+        "complete": stopped is None,
         "rows": [
             {
                 "mapper": r.mapper,
@@ -457,7 +483,17 @@ def _fig5(
             for r in rows
         ],
     }
+    if stopped:
+        fig5["stopped"], fig5["stopped_at"] = stopped
     return fig5, files
+
+
+def _write_json(path: Path, data: dict) -> Path:
+    """Written whole or not at all (a file beside it, then renamed)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=json_default) + "\n")
+    os.replace(tmp, path)
+    return path
 
 
 # ============================================================================ the run
@@ -505,7 +541,16 @@ def run_experiments(
     ``fig2_mean_coverage``, ``fig3_final``, ``conflicting_cells`` {count, fraction,
     fraction_of_rcu, count_empty, ...}, ``fig4d`` {fine_resolution, fine_gaussians,
     coarse_resolution, coarse_gaussians, ...}, ``time_per_scan_ms``, ``fig5`` (or None),
-    ``er_update_rule``, ``definitions``, ``paper``, ``files``, ``seconds``.
+    ``er_update_rule``, ``definitions``, ``paper``, ``files``, ``seconds``, ``frame_origin``
+    (where the maps' (0, 0, 0) lies in the poses' frame, None when not shifted; with
+    ``frame_origin_note``), ``complete``.
+
+    ``summary.json`` is written once the main figures are, with ``complete`` false while a
+    sweep follows, and again after the sweep. A stop during the sweep (KeyboardInterrupt,
+    MapMemoryError) writes the rows finished, marked partial, then propagates; the files
+    written are on the exception (:func:`~ndtom_ti.evaluation.stops.written_before`).
+    Resolutions (``resolution``, ``sweep``) whose grid cannot hold the scans are refused
+    before any mapping (:class:`~ndtom_ti.evaluation.sweep.ResolutionTooFineError`).
     """
     from .. import runtime
     from . import sources
@@ -542,6 +587,9 @@ def run_experiments(
     data.scans, origin = _near_origin(data.scans, resolution)
     if origin is not None:
         say(f"poses far from their frame's origin: mapped relative to {origin.tolist()} m (frame_origin)")
+    check_grid(data.scans, [resolution], "resolution")
+    if sweep:  # before any work: a resolution too fine would stop the sweep at the end
+        check_grid(data.scans, sweep, "sweep")
 
     run = _Run(resolution, cfg, er_eps_min)
     try:
@@ -559,36 +607,73 @@ def run_experiments(
     summary = _summary(
         data, run, ndtom_vs_batch=ndtom_vs_batch, fig2=fig2, conflicting=conflicting, fig4d=fig4d, er_eps_min=er_eps_min
     )
-
-    files = [
-        write_csv(out / "fig1_vs_batch.csv", run.fig1),
-        write_csv(out / "fig2_self_test.csv", fig2),
-        write_csv(out / "fig3_logodds.csv", run.fig3),
-        write_csv(out / "fig4b_conflicting.csv", run.fig4b),
-        write_csv(out / "conflicting_cells.csv", conflict_rows, conflict_columns),
-    ]
-    if plots:
-        from .plots import plot_figures
-
-        say("plots")
-        files += plot_figures(
-            out,
-            run.fig1,
-            fig2,
-            run.fig3,
-            run.fig4b,
-            run.gauss,
-            conflict_idx,
-            coarse_gauss,
-            resolution,
-            fig4d,
-            data.description,
-        )
+    summary["frame_origin"] = None if origin is None else origin.tolist()
+    if origin is not None:
+        summary["frame_origin_note"] = FRAME_ORIGIN_NOTE
     if sweep:
-        summary["fig5"], more = _fig5(data, sweep, out, plots, summary["points_per_scan"], say)
-        files += more
+        summary["fig5"] = {"complete": False, "resolutions": list(sweep), "rows": []}  # until the sweep is done
 
-    summary["seconds"] = time.perf_counter() - t_start
-    summary["files"] = sorted([p.name for p in files] + ["summary.json"])
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=json_default) + "\n")
+    files: list[Path] = []
+
+    def save_summary(complete: bool) -> None:
+        summary["complete"] = complete
+        summary["seconds"] = time.perf_counter() - t_start
+        summary["files"] = sorted([p.name for p in files] + ["summary.json"])
+        _write_json(out / "summary.json", summary)
+
+    try:
+        # whole files: a stop signal waits for them (and then stops the run before the sweep)
+        with writing(then_stop=bool(sweep)):
+            files += [
+                write_csv(out / "fig1_vs_batch.csv", run.fig1),
+                write_csv(out / "fig2_self_test.csv", fig2),
+                write_csv(out / "fig3_logodds.csv", run.fig3),
+                write_csv(out / "fig4b_conflicting.csv", run.fig4b),
+                write_csv(out / "conflicting_cells.csv", conflict_rows, conflict_columns),
+            ]
+            if plots:
+                from .plots import plot_figures
+
+                say("plots")
+                files += plot_figures(
+                    out,
+                    run.fig1,
+                    fig2,
+                    run.fig3,
+                    run.fig4b,
+                    run.gauss,
+                    conflict_idx,
+                    coarse_gauss,
+                    resolution,
+                    fig4d,
+                    data.description,
+                )
+            save_summary(complete=not sweep)
+    except (KeyboardInterrupt, MapMemoryError) as exc:
+        if (out / "summary.json").exists():
+            mark_written(exc, [*files, out / "summary.json"])
+        raise
+    if not sweep:
+        return summary
+
+    rows: list = []
+    title = f"Fig. 5: {len(data.scans)} scans, {summary['points_per_scan']:.0f} points/scan"
+    try:
+        baseline = _fig5_rows(data, sweep, say, rows.append)
+    except (KeyboardInterrupt, MapMemoryError) as exc:
+        from . import sweep as sw
+
+        why = signal_name(getattr(exc, "signum", None)) if isinstance(exc, KeyboardInterrupt) else "memory"
+        mappers = 3 if sw.octomap_available() else 2
+        at = next((r for r in sweep if sum(row.resolution == r for row in rows) < mappers), sweep[-1])
+        with writing(then_stop=False):
+            summary["fig5"], more = _fig5_files(rows, "octomap" if mappers == 3 else None, out, plots, title, (why, at))
+            files += more
+            save_summary(complete=False)
+        mark_written(exc, [*files, out / "summary.json"])
+        raise
+    with writing(then_stop=False):
+        summary["fig5"], more = _fig5_files(rows, baseline, out, plots, title)
+        files += more
+        save_summary(complete=True)
     return summary

@@ -119,5 +119,11 @@ def format_summary(s: dict) -> str:
             "Fig. 5: median ms per scan: "
             + ", ".join(f"{r['mapper']} {r['resolution']:g} m {num(r['ms_median'], '.1f')}" for r in rows)
         )
+    if s.get("frame_origin") is not None:
+        lines.append(f"frame origin {s['frame_origin']} m: the coordinates written are relative to it")
+    if s.get("complete") is False:
+        f5 = s.get("fig5") or {}
+        at = f" ({f5['stopped']} at {f5['stopped_at']:g} m)" if "stopped_at" in f5 else ""
+        lines.append(f"partial: the Fig. 5 sweep did not finish{at}; summary.json says complete = false")
     lines.append(f"files: {', '.join(s['files'])}  ({s['seconds']:.1f} s)")
     return "\n".join(lines)

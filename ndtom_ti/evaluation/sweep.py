@@ -51,6 +51,58 @@ def _near_origin(scans: list, finest: float) -> list:
     return scans if origin is None else [(pts, shifted(T, origin)) for pts, T in scans]
 
 
+class ResolutionTooFineError(ValueError):
+    """Resolutions whose map grid cannot hold the scans' sensor path: ``resolutions`` (the
+    ones refused), ``finest`` (the finest resolution that holds the path, metres) and
+    ``what`` (which resolutions of the caller they are)."""
+
+    def __init__(self, message: str, resolutions: list[float], finest: float, what: str) -> None:
+        super().__init__(message)
+        self.resolutions = resolutions
+        self.finest = finest
+        self.what = what
+
+
+def check_grid(scans: Sequence[Any], resolutions: Sequence[float], what: str = "resolutions") -> None:
+    """Refuse, before any work, resolutions whose map grid (the default Layout, centred on
+    the origin) cannot hold every scan's sensor origin, once shifted as :func:`run_sweep`
+    shifts them: the first such scan would stop the sweep. ResolutionTooFineError."""
+    from ..kernels.layout import Layout
+
+    if not scans or not resolutions:
+        return
+    res = [check_resolution(r) for r in resolutions]
+    poses = [as_pose(T) for _, T in map(scan_parts, scans)]
+    origin = far_origin(poses[0], Layout().cells, min(res))
+    pos = np.array([T[:3, 3] for T in poses], np.float64)
+    if origin is not None:
+        pos = pos - origin
+    layout = Layout()
+    lo, hi = np.asarray(layout.lo, np.float64), np.asarray(layout.hi, np.float64)
+    cells = np.asarray(layout.cells, np.float64)
+    bad = []
+    for r in res:
+        c = np.floor(pos / r)
+        if ((c < lo) | (c >= hi)).any():
+            bad.append(r)
+    if not bad:
+        return
+    # the finest resolution whose grid holds the path: |p| / r within the half grid, with a margin
+    finest = float(np.max(np.abs(pos).max(axis=0) / (cells / 2.0 - 1.0)))
+    nice = float(f"{finest * 1.01:.2g}")
+    span = " x ".join(f"{v:g}" for v in np.round(cells * min(bad), 6))
+    raise ResolutionTooFineError(
+        f"{', '.join(f'{r:g}' for r in bad)} m {'is' if len(bad) == 1 else 'are'} too fine for these scans: "
+        f"the map's grid holds {layout.cells[0]} x {layout.cells[1]} x {layout.cells[2]} cells "
+        f"({span} m at {min(bad):g} m, centred on the origin), and the sensor goes to "
+        f"{np.round(pos.min(axis=0), 3).tolist()} .. {np.round(pos.max(axis=0), 3).tolist()} m; "
+        f"{nice:g} m or coarser holds it",
+        bad,
+        nice,
+        what,
+    )
+
+
 def _sync() -> None:
     import taichi as ti
 
@@ -97,11 +149,10 @@ def _row(
 
 
 def octomap_available() -> bool:
-    try:
-        import pyoctomap  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether pyoctomap imports (installed and whole)."""
+    from ..extras import available, import_error
+
+    return available("pyoctomap") and import_error("pyoctomap") is None
 
 
 def run_sweep(
@@ -114,13 +165,16 @@ def run_sweep(
     max_range: float = -1.0,
     progress: Callable[[str], None] | None = None,
     config: MapConfig | None = None,
+    on_row: Callable[[SweepRow], None] | None = None,
 ) -> list[SweepRow]:
     """Time every resolution on the same scans (:class:`~ndtom_ti.scan.Scan` objects or
     (points, T_world_sensor) pairs). Before timing, ``warmup`` scans go into
     a throwaway map so that kernels are compiled. NDT-OM maps with ``config`` (default:
     ``MapConfig()``; e.g. ``MapConfig(miss_model="paper")`` to time the paper's eq. (12)).
     Returns one row per mapper and resolution; ``ratio_to_ndtom`` compares medians within
-    this run."""
+    this run. ``on_row`` gets each row as it is finished: a caller keeps them when the sweep
+    stops early (Ctrl-C, a resolution that does not fit in memory). Resolutions whose grid
+    cannot hold the scans are refused before any work (:func:`check_grid`)."""
     if not scans:
         raise ValueError("a sweep needs at least one scan")
     if baseline not in (None, "octomap"):
@@ -130,9 +184,16 @@ def run_sweep(
 
         require("pyoctomap", "the OctoMap baseline")
     scans = [(np.ascontiguousarray(p, np.float32), as_pose(T)) for p, T in map(scan_parts, scans)]
+    check_grid(scans, resolutions)
     scans = _near_origin(scans, min(check_resolution(r) for r in resolutions))
     say = progress or (lambda s: None)
     rows: list[SweepRow] = []
+
+    def done(row: SweepRow) -> None:
+        rows.append(row)
+        if on_row is not None:
+            on_row(row)
+
     for res in [check_resolution(r) for r in resolutions]:
         say(f"{res:g} m: warm-up")
         with NdtOmMap(res, config=config) as w:  # each map gives its slot back at once
@@ -145,7 +206,7 @@ def run_sweep(
             times, reps = _time_scans(m.insert_scan, scans)
             visits = sum(r.ray_cell_visits for r in reps)
             full = _row("ndtom", res, scans, times, visits, m.known_cell_count(), len(m), m.memory_bytes())
-        rows.append(full)
+        done(full)
         if floor:
             say(f"{res:g} m: floor")
             with NdtOmMap(res) as f:
@@ -154,10 +215,10 @@ def run_sweep(
                     "ndtom-floor", res, scans, times, sum(x.ray_cell_visits for x in reps), None, None, f.memory_bytes()
                 )
             r.ratio_to_ndtom = r.ms_median / full.ms_median
-            rows.append(r)
+            done(r)
         if baseline == "octomap":
             say(f"{res:g} m: OctoMap")
-            rows.append(_octomap_row(scans, res, full, max_range))
+            done(_octomap_row(scans, res, full, max_range))
     return rows
 
 
@@ -194,12 +255,10 @@ def machine_tags(arch: str) -> dict:
         "numpy": np.__version__,
         "pinned_threads": len(runtime.pinned_threads()),  # Taichi workers fixed to a CPU (affinity.py)
     }
-    try:
+    if octomap_available():
         import pyoctomap
 
         tags["pyoctomap"] = getattr(pyoctomap, "__version__", "?")
-    except ImportError:
-        pass
     return tags
 
 
