@@ -263,7 +263,12 @@ def test_ray_workers_give_the_one_process_map_and_survive_a_lost_worker(ray_clus
             if i == 6:
                 tm.kill_worker(1)
         assert tm.restarts == 1
+        tm.kill_worker(0)  # lost at a checkpoint, then at the end: recovered as during a scan
+        tm.checkpoint()
+        tm.kill_worker(1)
         assert_same_map(one_process(scans, "ndt"), tm.snapshot())
+        assert tm.restarts == 3
+        assert_same_map(one_process(scans, "ndt"), MapSnapshot.load(tmp_path / "t"))
         with NdtOmMap.from_snapshot(one_process(scans, "ndt")) as m:
             assert tm.memory_report()["gaussians"] == m.memory_report()["gaussians"]
     # the paper's miss model on the same cluster, tiles of 16 m

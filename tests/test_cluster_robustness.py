@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -21,6 +22,7 @@ from test_cluster_cli import assert_same_cells, assert_user_error, run
 from ndtom_ti import pipeline
 from ndtom_ti.cluster import TiledMap
 from ndtom_ti.mapfile import MapFileError
+from ndtom_ti.snapshot import MapSnapshot
 from ndtom_ti.tiledfile import MANIFEST
 
 local_engine = cli.local_engine  # the workers in this process
@@ -126,3 +128,61 @@ def test_resume_from_a_damaged_tile_is_refused_before_any_worker(tmp_path: Path,
     assert "internal error" not in r.output and "please report" not in r.output
     with pytest.raises(MapFileError, match=f"{tile} is corrupt"):  # the API: before any worker starts
         TiledMap(pb.RES, workers=2, tile_size=1.0, engine="local", probe=False, folder=t, resume=True)
+
+
+# ---------------------------------------------------------------------------- E: a worker lost at a checkpoint
+def test_a_worker_lost_at_a_checkpoint_or_the_end_is_recovered(tmp_path: Path, monkeypatch) -> None:
+    """A worker lost while the map is saved or checkpointed: the job goes back to the last
+    checkpoint, replays the scans since and saves again (the same map, one restart more).
+    Lost again: WorkerLost naming the checkpoint and --resume."""
+    from ndtom_ti import NdtOmMap
+    from ndtom_ti.cluster import WorkerLost
+    from ndtom_ti.cluster.engines import LocalEngine
+
+    rng = np.random.default_rng(0)
+    scans = [(pb.sensor_points(k, rng), pb.T_map_lidar(k)) for k in range(4)]
+    with NdtOmMap(0.25) as m:
+        for p, T in scans:
+            m.insert_scan(p, T)
+        m.save(tmp_path / "ref.ndtom")
+    lose = {"save": 0, "snapshots": 0}
+    for name in lose:
+        real = getattr(LocalEngine, name)
+
+        def failing(self, *args, _real=real, _name=name):
+            if lose[_name]:
+                lose[_name] -= 1
+                raise WorkerLost("a worker process was lost: (test)")
+            return _real(self, *args)
+
+        monkeypatch.setattr(LocalEngine, name, failing)
+    kw = {"workers": 2, "tile_size": 2.0, "engine": "local", "probe": False, "folder": tmp_path / "t"}
+    with TiledMap(0.25, **kw) as tm:
+        tm.insert_scan(*scans[0])
+        tm.checkpoint()
+        for p, T in scans[1:]:
+            tm.insert_scan(p, T)
+        lose["save"] = 1
+        tm.checkpoint()
+        assert tm.restarts == 1 and MapSnapshot.load(tmp_path / "t").scans_inserted == 4
+        lose["snapshots"] = 1
+        tm.save(tmp_path / "m.ndtom")
+        assert tm.restarts == 2
+        assert_same_cells(tmp_path / "m.ndtom", tmp_path / "t")
+        lose["snapshots"] = 2  # lost again after the restart
+        with pytest.raises(WorkerLost, match="lost again") as err:
+            tm.snapshot()
+        assert "holds the first 4 scans" in err.value.hint and "--resume" in err.value.hint
+    assert_same_cells(tmp_path / "ref.ndtom", tmp_path / "m.ndtom")
+
+
+def test_a_worker_lost_for_good_is_a_clear_error(tmp_path: Path, bag: Path, local_engine, monkeypatch) -> None:
+    from ndtom_ti.cluster import WorkerLost
+
+    def lost(self, points, T):
+        raise WorkerLost("a worker process was lost: (test)", "carry on with --resume (test)")
+
+    monkeypatch.setattr(TiledMap, "insert_scan", lost)
+    r = map_bag(bag, "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "a worker process was lost: (test)", "carry on with --resume (test)", code=1)
+    assert "internal error" not in r.output and "please report" not in r.output

@@ -124,6 +124,10 @@ def user_errors(*, recording: str | None = None, map_file: str | None = None) ->
         signum = getattr(exc, "signum", signal.SIGINT)
         fail(f"interrupted ({signal_name(signum)}); nothing was written", None, signal_exit_code(signum))
     except Exception as exc:  # the last line of defence: no traceback for users
+        from ..cluster.engines import ClusterError  # (--workers: a lost worker, no cluster to join)
+
+        if isinstance(exc, ClusterError):
+            fail(str(exc), exc.hint, EXIT_FAILURE)
         if os.environ.get("NDTOM_DEBUG"):
             raise
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
@@ -161,8 +165,8 @@ def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
     return used
 
 
-def check_writable(path: Path, what: str = "output", option: str = "-o") -> Path:
-    """Fail now (before any mapping) when ``path`` cannot be written; the hints name ``option``."""
+def check_writable(path: Path, what: str = "output") -> Path:
+    """Fail now (before any mapping) when ``path`` cannot be written."""
     path = path.expanduser()
     if path.is_dir():
         fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
@@ -170,24 +174,18 @@ def check_writable(path: Path, what: str = "output", option: str = "-o") -> Path
     if not folder.exists():
         fail(
             f"cannot write the {what} {path}: folder {folder} does not exist",
-            f"create the folder first or choose another path with {option}",
+            "create the folder first or choose another path with -o",
         )
     if not folder.is_dir():
-        fail(f"cannot write the {what} {path}: {folder} is not a folder", f"choose another path with {option}")
+        fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
     try:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".check", dir=folder)
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:  # a read-only or full file system: "could not write" is exit 1 however found
-        fail(
-            f"cannot write the {what} {path}: {exc.strerror or exc}",
-            f"choose a writable folder with {option}",
-            EXIT_FAILURE,
-        )
+        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o", EXIT_FAILURE)
     if path.exists() and not path.is_file():
-        fail(
-            f"cannot write the {what} {path}: it exists and is not a regular file", f"choose another path with {option}"
-        )
+        fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
     kind = kept_kind(path)
     if kind is not None and not (what == "map file" and kind == MAP_KIND):  # (maps replace maps)
         fail(f"cannot write the {what} {path}: {kind}, which writing it would destroy", "choose another path")

@@ -41,7 +41,15 @@ class Start:
     points: int
 
 
-class WorkerLost(RuntimeError):
+class ClusterError(RuntimeError):
+    """A fault of the workers or of their cluster that a user can act on: ``hint`` says how."""
+
+    def __init__(self, message: str, hint: str | None = None):
+        super().__init__(message)
+        self.hint = hint
+
+
+class WorkerLost(ClusterError):
     """A worker process died (its cells are lost until the job resumes from a checkpoint)."""
 
 

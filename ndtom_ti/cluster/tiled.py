@@ -6,9 +6,10 @@ from __future__ import annotations
 import copy
 import json
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from .engines import LocalEngine, RayEngine, Start, WorkerLost, WorkerSpec
 from .tiling import Tiling
 
 ENGINES = ("ray", "local")
+_T = TypeVar("_T")
 # Report fields each worker counts for its own cells (summed); the rest every worker
 # counts alike for the whole scan.
 _OWN_FIELDS = ("cells_hit", "cells_passed", "gaussians_erased")
@@ -190,11 +192,32 @@ class TiledMap:
         return rep
 
     def _step(self, scan: tuple) -> list[dict]:
+        return self._surviving(lambda: self.engine.step(scan))
+
+    def _surviving(self, call: Callable[[], _T]) -> _T:
+        """``call()`` on the workers; a worker lost on the way makes every worker go back to
+        the last checkpoint and replay the scans since, then ``call()`` again. Lost again:
+        WorkerLost saying where the last checkpoint is and how to carry on from it."""
         try:
-            return self.engine.step(scan)
+            return call()
         except WorkerLost:
+            pass
+        try:
             self._recover()
-            return self.engine.step(scan)
+            return call()
+        except WorkerLost as exc:
+            raise self._lost(exc) from None
+
+    def _lost(self, exc: WorkerLost) -> WorkerLost:
+        held = self._starts[0].scans if self._starts[0] is not None else 0
+        if self.folder is not None and held:
+            hint = (
+                f"the checkpoint in {self.folder} holds the first {held} scans: carry on from it with the same command "
+                "and --resume (TiledMap(..., resume=True))"
+            )
+        else:
+            hint = "no checkpoint was written yet: map again (checkpoints every K scans: --checkpoint-every K)"
+        return WorkerLost(f"{exc}; it was lost again after the job restarted its workers", hint)
 
     def _recover(self) -> None:
         """Every worker back to the last checkpoint, then the scans since replayed."""
@@ -209,7 +232,8 @@ class TiledMap:
         if self.folder is None:
             raise ValueError("this map has no checkpoint folder")
         self.folder.mkdir(parents=True, exist_ok=True)
-        names = self.engine.save(self.folder, self.scans_inserted)
+        folder = self.folder
+        names = self._surviving(lambda: self.engine.save(folder, self.scans_inserted))
         info = {
             "resolution": self.resolution,
             "tile_size": self.tiling.tile_size,
@@ -245,7 +269,7 @@ class TiledMap:
 
     def snapshot(self) -> MapSnapshot:
         """The whole map (every worker's cells joined), as one process would have made it."""
-        s = MapSnapshot.join(self.engine.snapshots())
+        s = MapSnapshot.join(self._surviving(self.engine.snapshots))
         return replace(s, metadata=copy.deepcopy(self.metadata))
 
     def save(self, path: str | Path, *, compact: bool = False) -> Path:
@@ -254,14 +278,14 @@ class TiledMap:
 
     def memory_report(self) -> dict:
         """The workers' memory reports, summed (``workers``: each one's)."""
-        each = self.engine.memory()
+        each = self._surviving(self.engine.memory)
         total: dict[str, Any] = {k: sum(r[k] for r in each) for k in each[0] if isinstance(each[0][k], int)}
         total["workers"] = each
         return total
 
     def stats(self) -> list[dict]:
         """Per worker: its process's CPU seconds so far and the erasure events it sent."""
-        return self.engine.stats()
+        return self._surviving(self.engine.stats)
 
     def kill_worker(self, worker: int) -> None:
         """Kill one worker's process (to test recovery): the next scan restarts the job
