@@ -165,8 +165,8 @@ def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
     return used
 
 
-def check_writable(path: Path, what: str = "output") -> Path:
-    """Fail now (before any mapping) when ``path`` cannot be written."""
+def check_writable(path: Path, what: str = "output", option: str = "-o") -> Path:
+    """Fail now (before any mapping) when ``path`` cannot be written; the hints name ``option``."""
     path = path.expanduser()
     if path.is_dir():
         fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
@@ -174,18 +174,24 @@ def check_writable(path: Path, what: str = "output") -> Path:
     if not folder.exists():
         fail(
             f"cannot write the {what} {path}: folder {folder} does not exist",
-            "create the folder first or choose another path with -o",
+            f"create the folder first or choose another path with {option}",
         )
     if not folder.is_dir():
-        fail(f"cannot write the {what} {path}: {folder} is not a folder", "choose another path with -o")
+        fail(f"cannot write the {what} {path}: {folder} is not a folder", f"choose another path with {option}")
     try:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".check", dir=folder)
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:  # a read-only or full file system: "could not write" is exit 1 however found
-        fail(f"cannot write the {what} {path}: {exc.strerror or exc}", "choose a writable folder with -o", EXIT_FAILURE)
+        fail(
+            f"cannot write the {what} {path}: {exc.strerror or exc}",
+            f"choose a writable folder with {option}",
+            EXIT_FAILURE,
+        )
     if path.exists() and not path.is_file():
-        fail(f"cannot write the {what} {path}: it exists and is not a regular file", "choose another path with -o")
+        fail(
+            f"cannot write the {what} {path}: it exists and is not a regular file", f"choose another path with {option}"
+        )
     kind = kept_kind(path)
     if kind is not None and not (what == "map file" and kind == MAP_KIND):  # (maps replace maps)
         fail(f"cannot write the {what} {path}: {kind}, which writing it would destroy", "choose another path")
