@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -186,3 +187,60 @@ def test_a_worker_lost_for_good_is_a_clear_error(tmp_path: Path, bag: Path, loca
     r = map_bag(bag, "-o", tmp_path / "m.ndtom")
     assert_user_error(r, "a worker process was lost: (test)", "carry on with --resume (test)", code=1)
     assert "internal error" not in r.output and "please report" not in r.output
+
+
+# ---------------------------------------------------------------------------- F, H: a resumed run of other scans
+def test_a_tiled_map_of_the_api_records_its_job(tmp_path: Path, bag: Path) -> None:
+    """TiledMap made by the mapping loop records the recording and selection as `ndtom map`
+    does: a CLI --resume with another recording is refused."""
+    import functools
+
+    t = tmp_path / "api.tiles"
+    make = functools.partial(TiledMap, workers=2, tile_size=1.0, engine="local", probe=False, folder=t)
+    m, _ = pipeline.map_recording(bag, pb.RES, max_scans=2, make_map=make)
+    m.checkpoint(complete=True)
+    m.close()
+    job = json.loads((t / MANIFEST).read_text())["job"]
+    assert job["recording"] == str(bag.resolve()) and job["recording_id"]["bytes"] == bag.stat().st_size
+    (tmp_path / "o").mkdir()
+    other = pb.write_plane_bag(tmp_path / "o", name="other", n_clouds=pb.N_CLOUDS - 1)
+    r = map_bag(other, "--tiled", t, "--resume", "-o", tmp_path / "x.ndtom")
+    assert_user_error(r, "other scans or settings", "the recording was")
+
+
+def test_a_cli_resume_of_an_api_folder_without_a_job_is_refused(tmp_path: Path, bag: Path, no_mapping) -> None:
+    t = tmp_path / "api.tiles"
+    rng = np.random.default_rng(0)
+    with TiledMap(pb.RES, workers=2, tile_size=1.0, engine="local", probe=False, folder=t) as tm:
+        tm.insert_scan(pb.sensor_points(0, rng), pb.T_map_lidar(0))
+        tm.checkpoint()
+    assert json.loads((t / MANIFEST).read_text())["job"] is None
+    r = map_bag(bag, "--tiled", t, "--resume", "-o", tmp_path / "x.ndtom")
+    assert_user_error(r, "written by the Python API", "resume=True", "new --tiled folder")
+
+
+def test_a_recording_replaced_at_the_same_path_is_refused(tmp_path: Path, local_engine) -> None:
+    (tmp_path / "a").mkdir()
+    bag = pb.write_plane_bag(tmp_path / "a")
+    t = tmp_path / "T"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "2", "-o", tmp_path / "m.ndtom").exit_code == 0
+    (tmp_path / "b").mkdir()
+    shutil.copy(pb.write_plane_bag(tmp_path / "b", n_clouds=pb.N_CLOUDS - 1), bag)  # another recording there
+    r = map_bag(bag, "--tiled", t, "--resume", "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "the recording's contents (its size and first bytes) was")
+
+
+def test_resume_with_fewer_scans_than_the_checkpoint_holds_is_refused(tmp_path: Path, bag: Path, local_engine):
+    t = tmp_path / "T"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "3", "-o", tmp_path / "m.ndtom").exit_code == 0
+    r = map_bag(bag, "--tiled", t, "--resume", "--max-scans", "2", "-o", tmp_path / "m2.ndtom")
+    assert_user_error(r, "already holds 3 scans, more than the 2 asked for", "--max-scans 3 or more")
+    assert not (tmp_path / "m2.ndtom").exists()
+
+
+def test_a_resume_with_another_option_names_it(tmp_path: Path, bag: Path, local_engine) -> None:
+    t = tmp_path / "T"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "2", "-o", tmp_path / "m.ndtom").exit_code == 0
+    r = map_bag(bag, "--tiled", t, "--resume", "--every", "2", "-o", tmp_path / "m2.ndtom")
+    assert_user_error(r, "--every (selection.every) was 1, now 2")
+    assert "{" not in r.output.split("Hint:")[0]  # no dicts dumped

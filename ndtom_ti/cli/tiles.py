@@ -65,12 +65,20 @@ class TiledRun:
 
     def set_job(self, job: dict) -> None:
         """What this run maps; with --resume, the stopped run must have mapped the same."""
-        from ..cluster.tiled import check_job
+        from ..cluster.tiled import check_job, recording_id
 
-        self.job = job
+        self.job = {**job, "recording_id": recording_id(job["recording"])}
         if self.resume:
+            doc = read_manifest(self.folder)
+            if doc.get("job") is None:
+                fail(
+                    f"--resume: {self.folder} was written by the Python API (TiledMap) without a record of its "
+                    "recording and selection, so ndtom map cannot tell whether these scans carry it on",
+                    "carry it on from Python (TiledMap(..., folder=DIR, resume=True) with the same scans after the "
+                    f"{doc['scans']} it holds), or map into a new --tiled folder",
+                )
             try:
-                check_job(self.folder, read_manifest(self.folder), self.job)
+                check_job(self.folder, doc, self.job)
             except ValueError as exc:
                 fail(f"--resume: {exc}", "resume with the stopped run's recording, options and map settings")
 

@@ -4,6 +4,7 @@ of the same scans in the same order."""
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -31,6 +32,45 @@ _T = TypeVar("_T")
 _OWN_FIELDS = ("cells_hit", "cells_passed", "gaussians_erased")
 
 
+# What `ndtom map` calls the job's fields (selection.K, config.K), where the name is not --K.
+_OPTION_NAMES = {
+    "recording": "the recording",
+    "recording_id": "the recording's contents (its size and first bytes)",
+    "occupancy": "--occupancy/--no-occupancy",
+    "selection.poses_file": "--poses",
+    "selection.sensor_frame_only": "--sensor-frame",
+    "selection.static_transforms": "--static-transform",
+}
+_CONFIG_OPTIONS = ("min_range", "max_range", "miss_model")
+
+
+def _option_name(key: str) -> str:
+    """A job field as `ndtom map` names it: ``selection.every`` -> ``--every (selection.every)``."""
+    if key in _OPTION_NAMES:
+        return _OPTION_NAMES[key] + (f" ({key})" if "." in key else "")
+    group, _, field = key.partition(".")
+    if group == "selection" or (group == "config" and field in _CONFIG_OPTIONS):
+        return f"--{field.replace('_', '-')} ({key})"
+    return f"{key} (a config file's {field})" if group == "config" else key
+
+
+def _differences(then: dict, now: dict, prefix: str = "") -> list[str]:
+    """The fields of two job records that differ, each as `--every (selection.every) was 1,
+    now 2`. Fields a record made before they were recorded lacks are not compared."""
+    out = []
+    for k in sorted(set(then) | set(now)):
+        if k not in then:  # (an older record)
+            continue
+        a, b = then.get(k), now.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict) and k in ("selection", "config"):
+            out += _differences(a, b, f"{k}.")
+        else:
+            out.append(f"{_option_name(prefix + k)} was {json.dumps(a)}, now {json.dumps(b)}")
+    return out
+
+
 def check_job(folder: Path, doc: dict, job: dict | None) -> None:
     """A resumed run must map the scans of the stopped one (``job``: their source, selection
     and map settings, as the stopped run gave them; None: not checked)."""
@@ -38,14 +78,48 @@ def check_job(folder: Path, doc: dict, job: dict | None) -> None:
     if job is None or then is None:
         return
     now: dict = json.loads(json.dumps(job))  # as the manifest holds it: tuples become lists
-    if then == now:
-        return
-    keys = sorted(k for k in set(then) | set(now) if then.get(k) != now.get(k))
-    raise ValueError(
-        f"{folder} holds a run of other scans or settings ({', '.join(keys)} differ: "
-        f"{ {k: then.get(k) for k in keys} } then, { {k: now.get(k) for k in keys} } now); "
-        "resume with the stopped run's recording, selection and map options"
-    )
+    diffs = _differences(then, now)
+    if diffs:
+        raise ValueError(
+            f"{folder} holds a run of other scans or settings: {'; '.join(diffs)}. Resume with the stopped run's "
+            "recording, selection and map options"
+        )
+
+
+def recording_id(path: str | Path) -> dict | None:
+    """What identifies a recording besides its path (a file replaced at the same path has
+    another): its bytes and a digest of each file's name, size and first MiB (a ROS2 bag's
+    folder: of each of its files). None when there is no such file or folder."""
+    p = Path(path)
+    try:
+        files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p] if p.is_file() else []
+        if not files:
+            return None
+        h, total = hashlib.sha256(), 0
+        for f in files[:1000]:
+            size = f.stat().st_size
+            total += size
+            h.update(f"{f.relative_to(p) if f != p else ''}:{size}\n".encode())
+            with open(f, "rb") as fh:
+                h.update(fh.read(1 << 20))
+    except OSError:
+        return None
+    return {"bytes": total, "head_sha256": h.hexdigest()}
+
+
+def job_of(metadata: dict, occupancy: bool, config: MapConfig) -> dict | None:
+    """The job record of a map the mapping loop makes (``pipeline.map_recording``'s metadata:
+    the recording and its selection), as `ndtom map` records it; None for other scans."""
+    source, options = metadata.get("source"), metadata.get("options")
+    if not isinstance(source, str) or not isinstance(options, dict) or not Path(source).exists():
+        return None
+    return {
+        "recording": source,
+        # where a run stops (max_scans, end) may change when it is resumed
+        "selection": {k: v for k, v in options.items() if k not in ("max_scans", "end")},
+        "occupancy": occupancy,
+        "config": config.to_dict(),
+    }
 
 
 class TiledMap:
@@ -100,6 +174,10 @@ class TiledMap:
         self.metadata: dict = dict(metadata or {})
         # What the scans are (their source and selection): saved with checkpoints, and a
         # resumed run must name the same (JSON's form: tuples become lists).
+        if job is None:  # made by the mapping loop (pipeline.map_recording): its recording and selection
+            job = job_of(self.metadata, self.occupancy_enabled, self.config)
+        if job is not None and "recording" in job and "recording_id" not in job:
+            job = {**job, "recording_id": recording_id(job["recording"])}
         self.job = json.loads(json.dumps(job)) if job is not None else None
         self.folder = Path(folder) if folder is not None else None
         self.checkpoint_every = checkpoint_every
@@ -144,6 +222,14 @@ class TiledMap:
         check_job(self.folder, doc, self.job)
         check_tiles(self.folder, doc)  # a damaged tile: MapFileError here, not in a worker
         self.scans_inserted = int(doc["scans"])
+        stop = (self.metadata.get("options") or {}).get("max_scans")
+        if isinstance(stop, int) and stop < self.scans_inserted:
+            raise ValueError(
+                f"{self.folder} already holds {self.scans_inserted} scans, more than the {stop} asked for "
+                f"(--max-scans, max_scans): a resumed run only adds scans. Give --max-scans {self.scans_inserted} "
+                f"or more (or none) to carry on; `ndtom merge {self.folder}` writes the map of the "
+                f"{self.scans_inserted} it holds"
+            )
         self.points_inserted = int(doc.get("points", 0))
         kept = doc.get("frame_origin")
         if kept is not None:  # the resumed scans are shifted as the stopped run's were
