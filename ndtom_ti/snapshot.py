@@ -191,7 +191,7 @@ class MapSnapshot:
             doc = tiledfile.read_manifest(path)
             if not doc["tiles"]:
                 raise mapfile.MapFileError(f"{path} is a tiled map of {doc['scans']} scans without a known cell yet")
-            joined = cls.join([cls.load(Path(path) / name) for name in doc["tiles"]])
+            joined = cls.join([cls.adopt(*tile) for tile in tiledfile.read_tiles(path, doc)])  # each checked
             if doc.get("frame_origin") is not None:  # the run's shift of the poses (pipeline.frame_origin)
                 joined.metadata["frame_origin"] = doc["frame_origin"]
             joined.metadata["complete"] = bool(doc.get("complete"))  # a checkpoint of a run not finished: False

@@ -144,6 +144,14 @@ def read_tile(folder: str | Path, doc: dict, i: int) -> tuple[dict, dict]:
         bad(f"it was mapped with other map options than the {MANIFEST}'s run")
     if "occupancy" in job and settings["occupancy_enabled"] != job["occupancy"]:
         bad(f"its occupancy setting differs from the {MANIFEST}'s run")
+    md = settings["metadata"]  # the run's record in the tile (the mapping loop's metadata)
+    if "recording" in job and isinstance(md.get("source"), str) and md["source"] != job["recording"]:
+        bad(f"it is a map of {md['source']}, the {MANIFEST}'s run of {job['recording']}")
+    options = md.get("options")
+    if "selection" in job and isinstance(options, dict):
+        mine = {k: v for k, v in options.items() if k not in ("max_scans", "end")}
+        if json.loads(json.dumps(mine)) != job["selection"]:
+            bad(f"it was mapped with another selection of scans than the {MANIFEST}'s run")
     cells = doc["tile_cells"]
     for key in ("occ_index", "g_index"):
         idx = arrays[key]

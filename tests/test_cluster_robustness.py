@@ -244,3 +244,40 @@ def test_a_resume_with_another_option_names_it(tmp_path: Path, bag: Path, local_
     r = map_bag(bag, "--tiled", t, "--resume", "--every", "2", "-o", tmp_path / "m2.ndtom")
     assert_user_error(r, "--every (selection.every) was 1, now 2")
     assert "{" not in r.output.split("Hint:")[0]  # no dicts dumped
+
+
+# ---------------------------------------------------------------------------- G: tiles of another run
+def test_merge_refuses_a_tile_of_another_run(tmp_path: Path, bag: Path, local_engine) -> None:
+    """Same resolution and scan count, other selection: the tile file is not the one the
+    manifest names (its digest); without digests (an older manifest) its selection differs
+    from the manifest's job; a tile under another tile's name holds cells outside it."""
+    a, b = tmp_path / "a.tiles", tmp_path / "b.tiles"
+    assert map_bag(bag, "--tiled", a, "--max-scans", "2", "-o", tmp_path / "a.ndtom").exit_code == 0
+    assert map_bag(bag, "--tiled", b, "--max-scans", "2", "--every", "2", "-o", tmp_path / "b.ndtom").exit_code == 0
+    doc = json.loads((a / MANIFEST).read_text())
+    shared = sorted(set(doc["tiles"]) & set(json.loads((b / MANIFEST).read_text())["tiles"]))
+    assert shared
+    mix = tmp_path / "mix.tiles"
+    shutil.copytree(a, mix)
+    shutil.copy(b / shared[0], mix / shared[0])
+    r = run("merge", mix, "-o", tmp_path / "mix.ndtom")
+    assert_user_error(r, shared[0], "is not the file its manifest.json names", "damaged")
+    assert not (tmp_path / "mix.ndtom").exists()
+    old = {k: v for k, v in doc.items() if k != "tile_sha256"}  # a manifest without digests
+    (mix / MANIFEST).write_text(json.dumps(old))
+    assert_user_error(run("merge", mix, "-o", tmp_path / "mix.ndtom"), shared[0], "another selection of scans")
+    src = next(n for n in doc["tiles"] if n != shared[0])
+    shutil.copy(a / src, mix / shared[0])  # another tile's cells under this name
+    assert_user_error(run("merge", mix, "-o", tmp_path / "mix.ndtom"), "holds cells outside tile")
+    with pytest.raises(MapFileError, match="cells outside tile"):  # the folder read as a map: the same checks
+        MapSnapshot.load(mix)
+
+
+def test_merge_of_a_folder_missing_a_tile_says_it_is_damaged(tmp_path: Path, bag: Path, local_engine) -> None:
+    t = tmp_path / "t.tiles"
+    assert map_bag(bag, "--tiled", t, "-o", tmp_path / "m.ndtom").exit_code == 0
+    gone = json.loads((t / MANIFEST).read_text())["tiles"][0]
+    (t / gone).unlink()
+    r = run("merge", t)
+    assert_user_error(r, f"its tile file {gone} is missing", "the tiled map is damaged")
+    assert "give the folder that" not in r.output

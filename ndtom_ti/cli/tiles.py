@@ -40,6 +40,12 @@ TILES_SUFFIX = ".tiles"  # the checkpoint folder beside the map file without --t
 RESUME_HINT = "give the folder of the stopped run with --tiled DIR (without --tiled: OUT.ndtom.tiles beside -o OUT)"
 
 
+DAMAGED_HINT = (
+    "the tiled map is damaged (a tile file missing, corrupt or of another run): put back the files of its last "
+    "checkpoint from a copy, or map again into a new --tiled folder"
+)
+
+
 def default_folder(output: Path) -> Path:
     """Where checkpoints go without --tiled: beside the map file, removed after success."""
     return output.with_name(output.name + TILES_SUFFIX)
@@ -355,12 +361,17 @@ def merge(
             fail(f"no tiled map at {folder}: it does not exist", hint)
         if not folder.is_dir():
             fail(f"{folder} is a file, not a tiled map's folder", f"{hint}; a map file needs no merge")
-        doc = read_manifest(folder)
-        out_path = output if output is not None else default_merged(folder)
-        check_not_input(out_path, {"tiled map": folder})
-        out_path = check_writable(out_path, "map file")
-        check_map_output(out_path)
-        snap = MapSnapshot.load(folder)
+        try:
+            doc = read_manifest(folder)
+            out_path = output if output is not None else default_merged(folder)
+            check_not_input(out_path, {"tiled map": folder})
+            out_path = check_writable(out_path, "map file")
+            check_map_output(out_path)
+            snap = MapSnapshot.load(folder)  # each tile checked against the manifest (tiledfile.read_tile)
+        except MapFileError as exc:
+            if not (folder / MANIFEST).is_file():
+                raise
+            fail(str(exc), DAMAGED_HINT)
         md = dict(snap.metadata)
         md["merged_from"] = str(folder.expanduser().resolve())
         md["complete"] = bool(doc.get("complete"))
