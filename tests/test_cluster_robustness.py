@@ -281,3 +281,32 @@ def test_merge_of_a_folder_missing_a_tile_says_it_is_damaged(tmp_path: Path, bag
     r = run("merge", t)
     assert_user_error(r, f"its tile file {gone} is missing", "the tiled map is damaged")
     assert "give the folder that" not in r.output
+
+
+# ---------------------------------------------------------------------------- I: memory of the workers
+def test_local_workers_share_the_machines_memory(tmp_path: Path, bag: Path, no_mapping, monkeypatch) -> None:
+    """On a local cluster the default budget (half the machine) is divided among the workers,
+    and an explicit --memory-limit is each worker's: their total must fit the machine."""
+    from ndtom_ti import hostpool
+    from ndtom_ti.cli import tiles
+
+    monkeypatch.setattr(hostpool, "physical_memory", lambda: 23 * 2**30)
+    assert tiles.share_memory(2, None) == pytest.approx(5.75)
+    assert tiles.share_memory(2, 11.0) == 11.0
+    r = map_bag(bag, "--memory-limit", "20", "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "--memory-limit 20 GiB for each of 2 workers on this machine is 40 GiB", "at most 11.5")
+    run_plan = tiles.plan(
+        resolution=pb.RES,
+        workers=2,
+        tile_size=None,
+        cluster=None,
+        tiled=None,
+        checkpoint_every=None,
+        resume=False,
+        worker_threads=1,
+        memory_limit=None,
+        output=tmp_path / "m.ndtom",
+        view=False,
+    )
+    assert run_plan is not None and run_plan.memory_limit == pytest.approx(5.75)
+    assert "a memory budget of 5.75 GiB each" in run_plan.describe()

@@ -112,7 +112,8 @@ class TiledRun:
         every = f"every {self.checkpoint_every} scans" if self.checkpoint_every else "at the end"
         text = (
             f"Workers: {self.workers} processes on {where}{threads}; tiles of {self.tile_size:g} m; "
-            f"checkpoints {every} to {self.folder}"
+            + (f"a memory budget of {self.memory_limit:.3g} GiB each; " if self.memory_limit is not None else "")
+            + f"checkpoints {every} to {self.folder}"
         )
         if self.resume:
             text += f"; resuming after the {self.resumed_scans} scans it holds (read and skipped)"
@@ -261,6 +262,17 @@ def plan(
         )
     if worker_threads is None and cluster is None:
         worker_threads = max(1, (os.cpu_count() or 1) // workers)  # a local cluster: the CPUs shared
+    if cluster is None:
+        memory_limit = share_memory(workers, memory_limit)
+        cpus = os.cpu_count() or 1
+        if workers * (worker_threads or 1) > cpus:
+            console_err().print(
+                Text(
+                    f"note: {workers} workers of {worker_threads or 1} thread{'s' if worker_threads != 1 else ''} "
+                    f"on this machine's {cpus} CPUs: they take turns (slower, the same map)",
+                    style="yellow",
+                )
+            )
     return TiledRun(
         workers=workers,
         tile_size=size,
@@ -273,6 +285,25 @@ def plan(
         memory_limit=memory_limit,
         resumed_scans=resumed,
     )
+
+
+def share_memory(workers: int, memory_limit: float | None) -> float:
+    """Each worker's memory budget on a local cluster (all on this machine): the default
+    budget of one process (a share of the machine's memory) divided among them, or
+    ``--memory-limit``, whose total must fit the machine."""
+    from ..hostpool import physical_memory
+    from ..runtime import CPU_DEFAULT_SHARE
+
+    machine = physical_memory() / 2**30
+    if memory_limit is None:
+        return CPU_DEFAULT_SHARE * machine / workers
+    if memory_limit * workers > machine:
+        raise ValueError(
+            f"--memory-limit {memory_limit:g} GiB for each of {workers} workers on this machine is "
+            f"{memory_limit * workers:g} GiB, more than its {machine:.1f} GiB of memory; give at most "
+            f"{math.floor(machine / workers * 100) / 100:g} (--memory-limit is each worker's budget)"
+        )
+    return memory_limit
 
 
 def check_folder_writable(folder: Path, what: str) -> None:
