@@ -310,3 +310,48 @@ def test_local_workers_share_the_machines_memory(tmp_path: Path, bag: Path, no_m
     )
     assert run_plan is not None and run_plan.memory_limit == pytest.approx(5.75)
     assert "a memory budget of 5.75 GiB each" in run_plan.describe()
+
+
+# ---------------------------------------------------------------------------- J: messages
+def test_cluster_auto_without_a_running_cluster_says_so(tmp_path: Path, bag: Path, monkeypatch) -> None:
+    ray = pytest.importorskip("ray")
+
+    def no_cluster(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance. Please specify ... RAY_ADDRESS")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_cluster)
+    r = map_bag(bag, "--cluster", "auto", "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "no running Ray cluster found on this machine (--cluster auto)", "ray start --head", code=1)
+    assert "RAY_ADDRESS" not in r.output and "permissions" not in r.output
+
+
+def test_a_recovered_worker_loss_is_reported(tmp_path: Path, bag: Path, local_engine, monkeypatch) -> None:
+    from ndtom_ti.cluster import WorkerLost
+    from ndtom_ti.cluster.engines import LocalEngine
+
+    real, lose = LocalEngine.step, {"n": 1}
+
+    def step(self, scan):
+        if lose["n"] and self.workers[0].w.map.scans_inserted == 2:
+            lose["n"] = 0
+            raise WorkerLost("a worker process was lost: (test)")
+        return real(self, scan)
+
+    monkeypatch.setattr(LocalEngine, "step", step)
+    ref = tmp_path / "ref.ndtom"
+    assert run("map", bag, "-r", pb.RES, "-o", ref, "--no-progress").exit_code == 0
+    r = map_bag(bag, "--checkpoint-every", "1", "-o", tmp_path / "m.ndtom")
+    assert r.exit_code == 0, r.output
+    assert "a worker process was lost 1 time" in r.output
+    assert MapSnapshot.load(tmp_path / "m.ndtom").metadata["worker_restarts"] == 1
+    assert_same_cells(ref, tmp_path / "m.ndtom")
+
+
+def test_resume_of_a_folder_missing_a_tile_says_it_is_damaged(tmp_path: Path, bag: Path, local_engine) -> None:
+    t = tmp_path / "T"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "2", "-o", tmp_path / "m.ndtom").exit_code == 0
+    (t / json.loads((t / MANIFEST).read_text())["tiles"][0]).unlink()
+    r = map_bag(bag, "--tiled", t, "--resume", "-o", tmp_path / "m.ndtom")
+    assert_user_error(r, "--resume: the tiled map", "is missing", "the tiled map is damaged")
+    assert "give a map file" not in r.output

@@ -124,6 +124,15 @@ class TiledRun:
         folder is marked complete (--tiled) or goes away later (:meth:`clean`); a stopped
         run's last scans are checkpointed so that --resume carries on from them."""
         err = console_err()
+        if m.restarts:
+            err.print(
+                Text(
+                    f"note: a worker process was lost {m.restarts} time{'s' if m.restarts != 1 else ''}; each time "
+                    "the job restarted its workers from the last checkpoint and replayed the scans since (the map is "
+                    "the same; its metadata counts them: worker_restarts)",
+                    style="yellow",
+                )
+            )
         if summary.complete and not self.keep:
             return
         if not m.scans_inserted:
@@ -227,7 +236,10 @@ def plan(
     if resume:
         if not is_tiled(folder):
             fail(f"--resume: no checkpoint to carry on from at {folder} (it has no {MANIFEST})", RESUME_HINT)
-        doc = read_manifest(folder)
+        try:
+            doc = read_manifest(folder)
+        except MapFileError as exc:
+            fail(f"--resume: {exc}", DAMAGED_HINT)
         resumed = int(doc["scans"])
         from ..cluster.tiling import Tiling
 
@@ -249,7 +261,10 @@ def plan(
                 "(without --resume)",
             )
     elif is_tiled(folder):
-        doc = read_manifest(folder)
+        try:
+            doc = read_manifest(folder)
+        except MapFileError as exc:
+            fail(f"{what} {folder} holds a damaged tiled map: {exc}", "give a new or empty folder with --tiled DIR")
         state = "a complete run" if doc.get("complete") else "a stopped run"
         fail(
             f"{folder} already holds a tiled map ({state} of {doc['scans']} scans)",
@@ -330,7 +345,7 @@ def check_reachable(address: str) -> None:
     """Fail at once when nothing listens at a Ray cluster's ``HOST:PORT`` (``ray://`` too;
     "auto" is Ray's to find): Ray itself would retry for minutes, printing as it goes."""
     if address == "auto":
-        return
+        return  # (Ray finds it; none running: RayEngine says so)
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit():
         raise ValueError(

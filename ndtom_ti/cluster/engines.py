@@ -228,7 +228,15 @@ class RayEngine:
                 if address is None:
                     ray.init(num_cpus=max(self.n * threads, 1), **quiet)
                 else:
-                    ray.init(address=address, **quiet)
+                    try:
+                        ray.init(address=address, **quiet)
+                    except ConnectionError as exc:
+                        raise ClusterError(
+                            f"no running Ray cluster found at {address} ({exc})"
+                            if address != "auto"
+                            else "no running Ray cluster found on this machine (--cluster auto)",
+                            "start one with `ray start --head`, or drop --cluster to start a local one for this run",
+                        ) from None
             self._owns_ray = True
         else:
             self._owns_ray = False

@@ -356,7 +356,10 @@ class TiledMap:
     def snapshot(self) -> MapSnapshot:
         """The whole map (every worker's cells joined), as one process would have made it."""
         s = MapSnapshot.join(self._surviving(self.engine.snapshots))
-        return replace(s, metadata=copy.deepcopy(self.metadata))
+        md = copy.deepcopy(self.metadata)
+        if self.restarts:  # recovered losses of a worker (the map is the same)
+            md["worker_restarts"] = self.restarts
+        return replace(s, metadata=md)
 
     def save(self, path: str | Path, *, compact: bool = False) -> Path:
         """Write the whole map to one map file (as ``NdtOmMap.save``)."""
