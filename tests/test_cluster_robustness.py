@@ -227,7 +227,7 @@ def test_a_recording_replaced_at_the_same_path_is_refused(tmp_path: Path, local_
     (tmp_path / "b").mkdir()
     shutil.copy(pb.write_plane_bag(tmp_path / "b", n_clouds=pb.N_CLOUDS - 1), bag)  # another recording there
     r = map_bag(bag, "--tiled", t, "--resume", "-o", tmp_path / "m.ndtom")
-    assert_user_error(r, "the recording's contents (its size and first bytes) was")
+    assert_user_error(r, "the recording at that path was replaced (")
 
 
 def test_resume_with_fewer_scans_than_the_checkpoint_holds_is_refused(tmp_path: Path, bag: Path, local_engine):

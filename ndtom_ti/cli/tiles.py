@@ -333,9 +333,9 @@ def check_folder_writable(folder: Path, what: str) -> None:
     try:
         os.rmdir(tempfile.mkdtemp(prefix=".ndtom-check-", dir=probe))
     except OSError as exc:
-        action = "write to" if probe == folder else f"make {what}"
+        action = f"write to {what}" if probe == folder else f"make {what}"
         fail(
-            f"cannot {action} {folder}: {exc.strerror or exc} (in {probe})",
+            f"cannot {action} {folder}: {exc.strerror or exc}" + ("" if probe == folder else f" (in {probe})"),
             "choose a writable folder for the checkpoints with --tiled DIR",
             EXIT_FAILURE,
         )

@@ -35,7 +35,6 @@ _OWN_FIELDS = ("cells_hit", "cells_passed", "gaussians_erased")
 # What `ndtom map` calls the job's fields (selection.K, config.K), where the name is not --K.
 _OPTION_NAMES = {
     "recording": "the recording",
-    "recording_id": "the recording's contents (its size and first bytes)",
     "occupancy": "--occupancy/--no-occupancy",
     "selection.poses_file": "--poses",
     "selection.sensor_frame_only": "--sensor-frame",
@@ -66,6 +65,13 @@ def _differences(then: dict, now: dict, prefix: str = "") -> list[str]:
             continue
         if isinstance(a, dict) and isinstance(b, dict) and k in ("selection", "config"):
             out += _differences(a, b, f"{k}.")
+        elif k == "recording_id":
+            if then.get("recording") == now.get("recording"):  # (another path says it already)
+                sizes = [r.get("bytes") if isinstance(r, dict) else None for r in (a, b)]
+                out.append(
+                    f"the recording at that path was replaced ({sizes[0]} bytes then, {sizes[1]} now, or other first "
+                    "bytes)"
+                )
         else:
             out.append(f"{_option_name(prefix + k)} was {json.dumps(a)}, now {json.dumps(b)}")
     return out
