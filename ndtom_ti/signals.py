@@ -25,6 +25,7 @@ __all__ = [
     "Interrupted",
     "LiveSignals",
     "StopSignals",
+    "current_stops",
     "deferred_interrupt",
     "loop_signals",
     "signal_name",
@@ -81,7 +82,10 @@ class StopSignals:
     another one stops a read that is under way, never an insert), "finished" (every scan
     is mapped: signals are only told that the complete map is being saved), "saving" (signals
     are counted and only told to wait until the map is on disk) or "done" (ignored). ``count`` and
-    ``signum`` (the first signal) say what arrived.
+    ``signum`` (the first signal) say what arrived. Runs whose maps are thrown away (``ndtom
+    sweep``, ``ndtom experiments``, :mod:`ndtom_ti.evaluation.stops`) use "working" (the first
+    signal raises :class:`Interrupted`, then the phase is "writing") and "writing" (signals are
+    only told to wait until the results are written).
     """
 
     def __init__(self, phase: str = "mapping", say: Callable[[str], None] | None = None) -> None:
@@ -111,12 +115,17 @@ class StopSignals:
         name = signal_name(signum)
         if self.phase == "idle":
             raise Interrupted(signum)
+        if self.phase == "working":  # nothing to keep in hand: stop it now, and only once
+            self.phase = "writing"
+            raise Interrupted(signum)
         if self.phase == "done":  # the map is on disk and the command is ending
             return
         if self.phase == "finished":  # every scan is in the map: nothing is cut short
             self.say(f"{name}: every scan is mapped; saving the complete map.")
         elif self.phase == "saving":
             self.say(f"{name}: saving the map; wait, it is on disk in a moment.")
+        elif self.phase == "writing":
+            self.say(f"{name}: writing the results finished so far; they are on disk in a moment.")
         elif self.count == 1:
             self.say(f"{name}: stopping after the scan in hand; what was mapped will be saved.")
         elif self.reading:
@@ -127,6 +136,11 @@ class StopSignals:
 
 
 _active: StopSignals | None = None  # installed by stop_signals(); loop_signals() uses it when set
+
+
+def current_stops() -> StopSignals | None:
+    """The StopSignals of the enclosing :func:`stop_signals` block (None: there is none)."""
+    return _active
 
 
 def _stderr(text: str) -> None:

@@ -216,7 +216,7 @@ def sweep(
             )
         except (KeyboardInterrupt, MapMemoryError) as exc:
             stopped = exc
-        stops.finishing()  # from here on a signal waits for the files
+        stops.phase = "writing"  # from here on a signal waits for the files
         mappers = 1 + floor + (baseline == "octomap")
         timed = [r for r in res if sum(row.resolution == r for row in rows) == mappers]
         in_hand = next((r for r in res if r not in timed), None)
@@ -379,7 +379,7 @@ def experiments(
             _too_fine(exc, "--sweep" if getattr(exc, "what", None) == "sweep" else "-r")
             raise
         except (KeyboardInterrupt, MapMemoryError) as exc:
-            stops.finishing()
+            stops.phase = "writing"
             _experiments_stopped(exc, folder, stops)
         if summary.get("frame_origin") is not None:
             console_err().print(Text(f"note: {summary['frame_origin_note']}", style="dim"), soft_wrap=True)

@@ -10,92 +10,27 @@ written. From the API (no :func:`catch_stops`), :func:`writing` defers Ctrl-C as
 
 from __future__ import annotations
 
-import os
-import signal
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
 
-from ..exitcodes import signal_exit_code
-from ..signals import Interrupted, deferred_interrupt, signal_name
+from ..signals import Interrupted, StopSignals, current_stops, deferred_interrupt, stop_signals
 
-__all__ = ["EvalSignals", "catch_stops", "mark_written", "writing", "written_before"]
-
-
-class EvalSignals:
-    """The state of :func:`catch_stops`: ``signum`` (the first signal), ``count``."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.count = 0
-        self.raised = False  # the stop has been raised: later signals wait for the writing
-        self.pending: int | None = None  # a signal that came while results were written
-        self.holding = 0
-        self.done = False
-
-    @property
-    def name(self) -> str:
-        return signal_name(self.signum)
-
-    @property
-    def exit_code(self) -> int:
-        return signal_exit_code(self.signum or signal.SIGINT)
-
-    def handler(self, signum: int, frame: Any) -> None:
-        self.count += 1
-        if self.signum is None:
-            self.signum = signum
-        if self.done:
-            return
-        name = signal_name(signum)
-        if self.raised or self.holding:
-            if not self.raised:
-                self.pending = self.pending or signum
-            _say(f"{name}: writing the results finished so far; they are on disk in a moment.")
-            return
-        self.raised = True
-        raise Interrupted(signum)
-
-    def finishing(self) -> None:
-        """The run is over (stopped or not): from now on signals only wait for the writing."""
-        self.raised = True
-
-
-def _say(text: str) -> None:
-    # os.write: a handler may run while the main thread is inside a print to stderr.
-    try:
-        os.write(2, (text + "\n").encode("utf-8", "replace"))
-    except OSError:
-        pass
-
-
-_active: EvalSignals | None = None
+__all__ = ["catch_stops", "mark_written", "writing", "written_before"]
 
 
 @contextmanager
-def catch_stops(restore: bool = True) -> Iterator[EvalSignals]:
-    """SIGINT and SIGTERM handled for the block (main thread only). ``restore=False`` (a
-    process that exits after the block) leaves the handler in place, ignoring late signals."""
-    global _active
-    state = EvalSignals()
-    old: dict = {}
-    if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            try:
-                old[signum] = signal.signal(signum, state.handler)
-            except (ValueError, OSError):  # pragma: no cover - embedded interpreters
-                pass
-    outer, _active = _active, state
-    try:
-        yield state
-    finally:
-        _active = outer
-        state.done = True
-        if restore:
-            for signum, handler in old.items():
-                signal.signal(signum, handler)
+def catch_stops(restore: bool = True) -> Iterator[StopSignals]:
+    """SIGINT and SIGTERM handled for the block (main thread only) by a
+    :class:`~ndtom_ti.signals.StopSignals` in phase "working"; the command sets phase "writing"
+    once the run is over (stopped or not). ``restore=False`` (a process that exits after the
+    block) leaves the handler in place, ignoring late signals."""
+    with stop_signals(phase="working", restore=restore) as state:
+        try:
+            yield state
+        finally:
+            # "done" also when the block raised: the exit after a stop must not be broken
+            state.phase = "done"
 
 
 @contextmanager
@@ -103,19 +38,24 @@ def writing(then_stop: bool = True) -> Iterator[None]:
     """Files written in the block are written whole: a stop signal waits for its end, then
     stops the run (unless the stop was already under way, or ``then_stop`` is False: the
     run has nothing left to stop)."""
-    state = _active
+    state = current_stops()
     if state is None:
         with deferred_interrupt():
             yield
         return
-    state.holding += 1
+    if state.phase != "working":  # a stop under way (or an outer block): signals already wait
+        yield
+        return
+    state.phase = "writing"
     try:
         yield
     finally:
-        state.holding -= 1
-    if then_stop and not state.holding and state.pending is not None and not state.raised:
-        state.raised = True
-        raise Interrupted(state.pending)
+        if state.phase == "writing":
+            state.phase = "working"
+    # "working" before the block: any signal so far came while it ran
+    if then_stop and state.signum is not None:
+        state.phase = "writing"
+        raise Interrupted(state.signum)
 
 
 _WRITTEN = "ndtom_written"
