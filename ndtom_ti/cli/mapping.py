@@ -413,6 +413,15 @@ def map_(
             show_default=False,
         ),
     ] = None,
+    tf_topic: Annotated[
+        str | None,
+        typer.Option(
+            help="The TF topic (or its namespace) of the robot carrying the sensor, where several robots' "
+            "namespaced TF topics (/robot1/tf, /robot2/tf) give the same frames; its tf_static comes with it. "
+            "Default: those of the cloud topic's namespace.",
+            show_default=False,
+        ),
+    ] = None,
     cloud_time: Annotated[
         CloudTime,
         typer.Option(
@@ -628,6 +637,7 @@ def map_(
             pose_child_frame=pose_child_frame,
             cloud_time=cloud_time.value,
             static_transforms=tuple(static_transform or ()),
+            tf_topic=tf_topic,
             every=every,
             every_distance=every_distance,
             t_start=start,

@@ -316,6 +316,7 @@ class Recording:
             for name, ti in sorted(self._reader.topics.items())
         }
         self._tf: TfBuffer | None = None
+        self._tf_bufs: dict[tuple[str, ...], TfBuffer] = {}
         self._poses = _PoseSources(self)  # pose topics' tracks and the choice of a pose source
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
@@ -409,17 +410,71 @@ class Recording:
         return [n for n, (t, c, _) in self._topics.items() if t in types]
 
     # -- TF and pose topics
-    def tf(self) -> TfBuffer:
-        """All /tf and /tf_static transforms (any TFMessage topic; names ending in tf_static are static)."""
-        if self._tf is None:
+    def _tf_buffer(self, topics: tuple[str, ...]) -> TfBuffer:
+        """The transforms of these TFMessage topics (names ending in tf_static are static)."""
+        buf = self._tf_bufs.get(topics)
+        if buf is None:
             buf = TfBuffer()
             # static first so that a child on both topics is known as static from the start
-            for topic in sorted(self._of_type(*TF_TYPES), key=lambda n: not n.endswith('tf_static')):
+            for topic in sorted(topics, key=lambda n: not n.endswith('tf_static')):
                 static = topic.endswith('tf_static')
                 for _, msgtype, raw in self._messages(topic):
                     buf.add_message(self._deserialize(raw, msgtype, topic), static=static)
-            self._tf = buf
+            self._tf_bufs[topics] = buf
+        return buf
+
+    def tf(self) -> TfBuffer:
+        """The transforms poses come from: every TFMessage topic's, or those :meth:`use_tf`
+        chose (one robot's of several with namespaced TF topics)."""
+        if self._tf is None:
+            self._tf = self._tf_buffer(tuple(self._of_type(*TF_TYPES)))
         return self._tf
+
+    def use_tf(self, cloud_topics: list[str], tf_topic: str | None = None) -> None:
+        """Choose the TF topics for these cloud topics. Namespaced TF topics that give the same
+        frames (each robot's /robotN/tf with map, base_link ..., as Nav2 runs several robots)
+        would mix the robots' poses in one tree: the clouds' namespace chooses, or
+        ``tf_topic`` (a TF topic or its namespace, with its tf_static); else RecordingError."""
+        topics = self._of_type(*TF_TYPES)
+        groups: dict[str, list[str]] = {}
+        for t in topics:
+            groups.setdefault(t.rsplit('/', 1)[0], []).append(t)
+        if tf_topic is not None:
+            name = '/' + tf_topic.strip('/')
+            ns = name.rsplit('/', 1)[0] if name in topics else name.rstrip('/')
+            if ns not in groups:
+                raise RecordingError(
+                    f'TF topic {tf_topic!r} is not in {self.path}; TF topics: {", ".join(topics) or "(none)"}'
+                )
+            self._tf = self._tf_buffer(tuple(groups[ns]))
+            self._tf.source_note = f'TF from {", ".join(groups[ns])} (tf_topic)'
+            return
+        if len(groups) < 2:
+            self._tf = None
+            return
+        children = {ns: set(self._tf_buffer(tuple(g)).tree()) for ns, g in groups.items()}
+        shared = sorted({f for a in children for b in children if a < b for f in children[a] & children[b]})
+        if not shared:  # namespaces of different frames: one tree
+            self._tf = None
+            return
+        which = {max((ns for ns in groups if c.startswith(ns + '/')), key=len, default=None) for c in cloud_topics}
+        listing = ', '.join(topics)
+        example = next((t for t in topics if t.rsplit('/', 1)[0] and not t.endswith('tf_static')), topics[0])
+        if len(which) == 1 and None not in which:
+            ns = which.pop()
+            assert ns is not None
+            self._tf = self._tf_buffer(tuple(groups[ns]))
+            self._tf.source_note = (
+                f'TF topics of several namespaces give the same frames ({", ".join(shared[:4])}): {listing}; '
+                f'using {", ".join(groups[ns])}, those of the cloud topic\'s namespace (--tf-topic chooses others)'
+            )
+            return
+        raise RecordingError(
+            f'TF topics of several namespaces give the same frames ({", ".join(shared[:4])}): {listing}. '
+            'Merged they would mix the poses of several robots, and the cloud topic '
+            f'{", ".join(cloud_topics)} is not in the namespace of one of them. Choose the TF topics of the '
+            f'robot that carries the sensor with tf_topic (--tf-topic {example}; its tf_static comes with it).'
+        )
 
     def pose_topics(self) -> list[str]:
         return self._of_type(*POSE_TYPES)
@@ -502,10 +557,19 @@ class Recording:
 
     # -- public API
     def info(self) -> RecordingInfo:
+        try:
+            default_topic: str | None = self._resolve_cloud_topic(None)[0]
+        except RecordingError:
+            default_topic = None
+        tf_error = None
+        try:  # the TF topics of the default cloud topic (one robot's of several)
+            self.use_tf([default_topic] if default_topic else [])
+        except RecordingError as err:
+            tf_error = str(err)
         tf = self.tf()
         mappable = self.mappable_topics()
         cloud_frames: dict[str, str] = {}
-        notes = list(tf.notes) + self.file_notes
+        notes = ([tf.source_note] if tf.source_note else []) + list(tf.notes) + self.file_notes
         if len(self.files) > 1:
             notes.append(
                 f'{len(self.files)} ROS1 bags in {self.path.name}, read as one recording in time order: '
@@ -565,6 +629,8 @@ class Recording:
         default_topic = pose_source = pose_error = None
         try:
             default_topic, _ = self._resolve_cloud_topic(None)
+            if tf_error:
+                raise RecordingError(tf_error)
             first = self._first_message(default_topic)
             assert first is not None
             choice = self._poses.choose(
@@ -636,13 +702,14 @@ class Recording:
             raise ValueError(f't_end ({t_end}) is before t_start ({t_start})')
         if depth_stride < 1:
             raise ValueError(f'depth_stride must be >= 1, got {depth_stride}')
+        names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
+        if len(names) > 1 and any(not n for n in names):
+            raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
+        self.use_tf([self._resolve_cloud_topic(n)[0] for n in names], sel.tf_topic)
         if sel.static_transforms:
             tf = self.tf()
             for parent, child, t, q in sel.static_transforms:  # (a recording without its /tf_static)
                 tf.give(parent, child, t, q)
-        names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
-        if len(names) > 1 and any(not n for n in names):
-            raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
         if len(names) > 1 and sel.poses_file is not None and not isinstance(sel.poses_file, PoseTrack):
             sel = replace(sel, poses_file=load_pose_file(sel.poses_file))  # read once for every topic
         parts = [self._stream_part(n, sel, round(extrapolation_s * 1e9)) for n in names]

@@ -33,6 +33,8 @@ class ScanSelection:
     not the clock of the poses); ``static_transforms``: mounts the recording lacks (its
     /tf_static was not recorded), each ``(parent, child, (x, y, z), (qx, qy, qz, qw))`` or a
     string as ``static_transform_publisher`` takes it (:func:`parse_static_transform`);
+    ``tf_topic``: the TF topic (or its namespace, with its tf_static) of the robot carrying the
+    sensor, where several robots' namespaced TF topics give the same frames;
     ``every`` keeps cloud
     indices divisible by k, ``every_distance`` a cloud once the sensor moved that far
     (metres); ``t_start``/``t_end`` are seconds from the recording's start; ``max_scans``
@@ -48,6 +50,7 @@ class ScanSelection:
     pose_child_frame: str | None = None
     cloud_time: str = "header"
     static_transforms: tuple = ()
+    tf_topic: str | None = None
     every: int = 1
     every_distance: float | None = None
     t_start: float | None = None
@@ -75,6 +78,7 @@ class ScanSelection:
             **({"ray_origin_frame": self.ray_origin_frame} if self.ray_origin_frame else {}),
             **({"pose_child_frame": self.pose_child_frame} if self.pose_child_frame else {}),
             **({"cloud_time": self.cloud_time} if self.cloud_time != "header" else {}),
+            **({"tf_topic": self.tf_topic} if self.tf_topic else {}),
             **(
                 {"static_transforms": [[p, c, list(t), list(q)] for p, c, t, q in self.static_transforms]}
                 if self.static_transforms

@@ -61,6 +61,7 @@ class TfBuffer:
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
         self._given: dict[str, None] = {}  # 'parent -> child' of mounts given, not recorded (give)
         self._restatic: dict[str, None] = {}  # notes of mounts /tf_static gave with different values
+        self.source_note = ''  # which TF topics these are, where a recording has several sets
 
     # ------------------------------------------------------------------ building
     def add(
@@ -156,7 +157,8 @@ class TfBuffer:
         per mount that /tf_static gave with different values, and one line per edge whose
         transforms were dropped (``add``), with their count."""
         return (
-            [f'static transform given: {e}' for e in self._given]
+            ([self.source_note] if self.source_note else [])
+            + [f'static transform given: {e}' for e in self._given]
             + list(self._restatic)
             + [
                 f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'

@@ -1,0 +1,73 @@
+"""Recordings that are unusual but real: several robots' TF, conflicting TF parents, clouds
+whose sizes or fields disagree, messages without their type definitions. Tiny bags written
+here with rosbags writers (io_fixtures)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import io_fixtures as fx  # noqa: E402
+
+from ndtom_ti.io import RecordingError, open_recording  # noqa: E402
+
+MS = fx.MS
+Q0 = (0.0, 0.0, 0.0, 1.0)
+TF = 'tf2_msgs/msg/TFMessage'
+PC2 = 'sensor_msgs/msg/PointCloud2'
+STAMPS = [fx.T0 + k * 100 * MS for k in range(5)]
+
+
+def _tf(topic: str, t: int, parent: str, child: str, xyz: tuple[float, float, float]) -> fx.Entry:
+    return (topic, TF, t, lambda m: m.tf([(t, parent, child, xyz, Q0)]))
+
+
+def _cloud(topic: str, t: int, frame: str = 'velodyne', packed: fx.PackedCloud | None = None) -> fx.Entry:
+    p = packed or fx.pack_cloud(np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]))
+    return (topic, PC2, t, lambda m: m.cloud(t, frame, p))
+
+
+def _write(tmp_path: Path, entries: list[fx.Entry], fmt: str = 'ros1', latched: tuple[str, ...] = ()) -> Path:
+    entries = sorted(entries, key=lambda e: e[2])
+    return fx.write_bag(fx.bag_path(tmp_path, fmt), fmt, entries, latched=latched or ('/tf_static',))
+
+
+# ----------------------------------------------------------------------------- several robots' TF
+def _two_robots(cloud_topic: str) -> list[fx.Entry]:
+    """/robot1/tf and /robot2/tf with the same frames; robot 2 is 6 m to the side."""
+    out = []
+    for ns, y in (('/robot1', 0.0), ('/robot2', 6.0)):
+        out.append(_tf(f'{ns}/tf_static', STAMPS[0], 'base_link', 'velodyne', (0.0, 0.0, 1.0)))
+        out += [_tf(f'{ns}/tf', t + 20 * MS * (y > 0), 'map', 'base_link', (k, y, 0.0)) for k, t in enumerate(STAMPS)]
+    return out + [_cloud(cloud_topic, t + 10 * MS) for t in STAMPS[:-1]]
+
+
+@pytest.mark.parametrize('fmt', ['ros1', 'mcap'])
+def test_namespaced_tf_of_several_robots_uses_the_clouds_namespace(tmp_path: Path, fmt: str) -> None:
+    bag = _write(tmp_path, _two_robots('/robot1/velodyne_points'), fmt, ('/robot1/tf_static', '/robot2/tf_static'))
+    with open_recording(bag) as rec:
+        info = rec.info()
+        assert info.pose_error is None
+        stream = rec.scans()
+        scans = list(stream)
+    assert len(scans) == 4
+    for s in scans:  # robot 1's poses only (merged, they were interpolated between both robots)
+        np.testing.assert_allclose(s.T_world_sensor[:3, 3], [s.index + 0.1, 0.0, 1.0], atol=1e-6)
+    note = 'using /robot1/tf, /robot1/tf_static, those of the cloud topic\'s namespace'
+    assert any(note in n for n in stream.notes) and any(note in n for n in info.notes)
+
+
+def test_namespaced_tf_outside_the_clouds_namespace_must_be_chosen(tmp_path: Path) -> None:
+    bag = _write(tmp_path, _two_robots('/velodyne_points'), 'ros1', ('/robot1/tf_static', '/robot2/tf_static'))
+    with open_recording(bag) as rec:
+        with pytest.raises(RecordingError, match=r'several namespaces give the same frames .*--tf-topic /robot1/tf'):
+            rec.scans()
+        assert 'same frames' in (rec.info().pose_error or '')
+        scans = list(rec.scans(tf_topic='/robot2'))
+        with pytest.raises(RecordingError, match="TF topic '/robot3/tf' is not in"):
+            rec.scans(tf_topic='/robot3/tf')
+    np.testing.assert_allclose(scans[1].T_world_sensor[:3, 3], [0.9, 6.0, 1.0], atol=1e-6)
