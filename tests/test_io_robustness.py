@@ -71,3 +71,42 @@ def test_namespaced_tf_outside_the_clouds_namespace_must_be_chosen(tmp_path: Pat
         with pytest.raises(RecordingError, match="TF topic '/robot3/tf' is not in"):
             rec.scans(tf_topic='/robot3/tf')
     np.testing.assert_allclose(scans[1].T_world_sensor[:3, 3], [0.9, 6.0, 1.0], atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- a frame with two parents
+def _two_parents(first_odom_only: bool) -> list[fx.Entry]:
+    """base_link under odom (drifting 0.5 m a cloud in y; or one early transform) and under world."""
+    out = [_tf('/tf_static', STAMPS[0], 'base_link', 'velodyne', (0.0, 0.0, 1.0))]
+    for k, t in enumerate(STAMPS):
+        if not first_odom_only:
+            out.append(_tf('/tf', t - MS, 'odom', 'base_link', (k, 0.5 * k, 0.0)))
+        out.append(_tf('/tf', t, 'world', 'base_link', (k, 0.0, 0.0)))
+    if first_odom_only:
+        out.append(_tf('/tf', STAMPS[0] - 100 * MS, 'odom', 'base_link', (0.0, 0.0, 0.0)))
+    return out + [_cloud('/points', t) for t in STAMPS]
+
+
+def test_a_frame_with_two_parents_is_noted_and_the_fixed_frame_chooses(tmp_path: Path) -> None:
+    with open_recording(_write(tmp_path, _two_parents(False))) as rec:
+        stream = rec.scans()
+        list(stream)
+        assert stream.fixed_frame == 'odom'
+        assert any(
+            "frame 'base_link' has two parents on TF: odom -> base_link (5 transforms) is used, "
+            'world -> base_link (5 transforms) ignored' in n
+            for n in stream.notes
+        )
+        stream = rec.scans(fixed_frame='world')
+        scans = list(stream)
+    assert len(scans) == 5 and "using 'world' (towards the fixed frame 'world'), not 'odom'" in stream.notes[0]
+    for s in scans:
+        np.testing.assert_allclose(s.T_world_sensor[:3, 3], [s.index, 0.0, 1.0], atol=1e-6)
+
+
+def test_an_early_second_parent_is_named_where_the_chain_fails(tmp_path: Path) -> None:
+    with open_recording(_write(tmp_path, _two_parents(True))) as rec:
+        with pytest.raises(RecordingError) as err:
+            rec.scans()
+        assert len(list(rec.scans(fixed_frame='world'))) == 5
+    assert "frame 'base_link' has two parents on TF: odom -> base_link (1 transform) is used" in str(err.value)
+    assert '--fixed-frame world' in str(err.value)

@@ -847,17 +847,21 @@ class _PoseSources:
                 None,
                 f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
             )
+        if fixed_frame:  # a frame with two parents: the one towards the fixed frame
+            tf.choose_parent(fixed_frame, frame)
+        # a frame of the chain with a second parent, ignored: said first where the chain fails
+        twice = ''.join(f'{n}; with it, ' for n in tf.parent_notes(tf._ancestors(frame)))
         fixed = normalize_frame(fixed_frame) if fixed_frame else tf.root_of(frame)
         if fixed not in tf:
             return _PoseChoice(
                 None,
-                f"TF: the fixed frame {fixed!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+                f"TF: {twice}the fixed frame {fixed!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
             )
         try:
             chain = tf.chain_str(fixed, frame)
             static = tf.chain_is_static(fixed, frame)
         except RecordingError as err:
-            return _PoseChoice(None, f'TF: {err}')
+            return _PoseChoice(None, f'TF: {twice}{err}')
         if fixed == frame and not fixed_frame:
             moving = [
                 f for f in tf.frames() if f != frame and tf.root_of(f) == frame and not tf.chain_is_static(frame, f)
@@ -875,7 +879,7 @@ class _PoseSources:
             return _PoseChoice(None, f'TF: the chain {chain} is static only (the sensor mounting, not its motion)')
         rng = tf.dynamic_range_ns(fixed, frame)
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
-            return _PoseChoice(None, 'TF: ' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
+            return _PoseChoice(None, f'TF: {twice}' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
         return _PoseChoice(
             _tf_fn(tf, fixed, None, tol),
             f'tf: {chain}' + (' (static)' if static else ''),

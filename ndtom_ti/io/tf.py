@@ -61,6 +61,9 @@ class TfBuffer:
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
         self._given: dict[str, None] = {}  # 'parent -> child' of mounts given, not recorded (give)
         self._restatic: dict[str, None] = {}  # notes of mounts /tf_static gave with different values
+        # (parent, child) -> ((T, count) if static, dynamic samples): a child's other parents
+        self._other: dict[tuple[str, str], tuple[tuple[np.ndarray, int] | None, list]] = {}
+        self._chosen: dict[str, str] = {}  # child -> note: its parent chosen by a fixed frame
         self.source_note = ''  # which TF topics these are, where a recording has several sets
 
     # ------------------------------------------------------------------ building
@@ -94,6 +97,13 @@ class TfBuffer:
                 f"frame {child!r} has parent {known!r} but a transform also names {parent!r} as its "
                 f"parent; kept {known!r}",
             )
+            # kept aside: a fixed frame above it chooses it (choose_parent)
+            held, samples = self._other.setdefault((parent, child), (None, []))
+            if static:
+                n = held[1] if held else 0
+                self._other[(parent, child)] = (make_transform(translation, rotation), n + 1), samples
+            else:
+                samples.append((int(stamp), tuple(translation), tuple(rotation)))
             return
         if known is None and self._creates_cycle(parent, child):
             self._note(('cycle', parent, child), f'ignored {parent!r} -> {child!r}: it would close a loop in the tree')
@@ -152,6 +162,62 @@ class TfBuffer:
         self.add(parent, child, 0, translation, rotation, static=True)
         self._given[f'{normalize_frame(parent)} -> {normalize_frame(child)}'] = None
 
+    def _edge_text(self, parent: str, child: str) -> str:
+        if (parent, child) in self._other:
+            held, samples = self._other[(parent, child)]
+            n, static = (held[1], True) if held else (len(samples), False)
+        else:
+            static = child in self._static
+            n = self._static_count[child] if static else len(self._samples.get(child, []))
+        return f'{parent} -> {child} ({"static" if static else f"{n} transform" + "s" * (n != 1)})'
+
+    def parent_notes(self, frames: list[str] | None = None) -> list[str]:
+        """One line per frame with two parents (of ``frames``, or all): which edge is used and
+        which ignored, and how to use the other."""
+        out = []
+        for parent, child in self._other:
+            if (frames is not None and child not in frames) or child in self._chosen:
+                continue
+            kept = self._parent[child]
+            out.append(
+                f'frame {child!r} has two parents on TF: {self._edge_text(kept, child)} is used, '
+                f'{self._edge_text(parent, child)} ignored (a frame has one parent in TF); '
+                f'--fixed-frame {self.root_of(parent)} uses {parent!r}'
+            )
+        return out
+
+    def choose_parent(self, fixed: str, frame: str) -> str | None:
+        """Where ``frame`` reaches ``fixed`` only through a parent ignored for another (a frame
+        with two parents), use that one; a note saying so, or None when nothing changed."""
+        fixed, frame = normalize_frame(fixed), normalize_frame(frame)
+        if self.connects(fixed, frame):
+            return None
+        for parent, child in list(self._other):
+            if child not in self._ancestors(frame) or self._creates_cycle(parent, child):
+                continue
+            old = self._swap(parent, child)
+            if self.connects(fixed, frame):
+                self._chosen[child] = (
+                    f'frame {child!r} has two parents on TF: using {parent!r} (towards the fixed frame {fixed!r}), not {old!r}'
+                )
+                return self._chosen[child]
+            self._swap(old, child)
+        return None
+
+    def _swap(self, parent: str, child: str) -> str:
+        """Make the ignored edge parent -> child the used one; the used one is set aside."""
+        old = self._parent[child]
+        held = (self._static.pop(child), self._static_count.pop(child)) if child in self._static else None
+        self._other[(old, child)] = held, self._samples.pop(child, [])
+        self._tracks.pop(child, None)
+        held, samples = self._other.pop((parent, child))
+        self._parent[child] = parent
+        if held:
+            self._static[child], self._static_count[child] = held
+        if samples:
+            self._samples[child] = samples
+        return old
+
     def run_notes(self) -> list[str]:
         """What a mapping run with these transforms should say: the mounts given (``give``),
         per mount that /tf_static gave with different values, and one line per edge whose
@@ -159,6 +225,8 @@ class TfBuffer:
         return (
             ([self.source_note] if self.source_note else [])
             + [f'static transform given: {e}' for e in self._given]
+            + list(self._chosen.values())
+            + self.parent_notes()
             + list(self._restatic)
             + [
                 f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
