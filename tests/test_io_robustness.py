@@ -110,3 +110,48 @@ def test_an_early_second_parent_is_named_where_the_chain_fails(tmp_path: Path) -
         assert len(list(rec.scans(fixed_frame='world'))) == 5
     assert "frame 'base_link' has two parents on TF: odom -> base_link (1 transform) is used" in str(err.value)
     assert '--fixed-frame world' in str(err.value)
+
+
+# ----------------------------------------------------------------------------- PointCloud2 sizes and fields
+def _scene_tf() -> list[fx.Entry]:
+    return [_tf('/tf_static', STAMPS[0], 'base_link', 'velodyne', (0.0, 0.0, 1.0))] + [
+        _tf('/tf', t, 'map', 'base_link', (k, 0.0, 0.0)) for k, t in enumerate(STAMPS)
+    ]
+
+
+def _edited_cloud(t: int, edit: object, pts: np.ndarray | None = None) -> fx.Entry:
+    """A cloud of 4 points whose message ``edit`` changes (a driver's wrong header)."""
+    p = fx.pack_cloud(np.arange(12, dtype=float).reshape(4, 3) + 1 if pts is None else pts)
+
+    def build(m: fx.Msgs) -> object:
+        msg = m.cloud(t, 'velodyne', p)
+        edit(msg)  # type: ignore[operator]
+        return msg
+
+    return ('/points', PC2, t, build)
+
+
+def _half_width(msg: object) -> None:
+    msg.width, msg.row_step = 2, 24  # type: ignore[attr-defined]
+
+
+def _height0(msg: object) -> None:
+    msg.height = 0  # type: ignore[attr-defined]
+
+
+def test_cloud_data_longer_than_its_header_is_noted_and_height0_skipped(tmp_path: Path) -> None:
+    entries = _scene_tf() + [
+        _edited_cloud(STAMPS[0], lambda m: None),
+        _edited_cloud(STAMPS[1], _half_width),
+        _edited_cloud(STAMPS[2], _height0),
+        _edited_cloud(STAMPS[3], _half_width),
+    ]
+    with open_recording(_write(tmp_path, entries)) as rec:
+        stream = rec.scans()
+        scans = list(stream)
+    assert [len(s.points) for s in scans] == [4, 2, 2]
+    assert stream.skipped == {'data size disagrees with width x height x point_step': 1}
+    notes = '\n'.join(stream.notes)
+    assert '2 clouds hold more data than the header says (cloud #1: height 1 x width 2 x point_step 12' in notes
+    assert "(2 more points' worth)): only the header's points are read" in notes
+    assert "cloud #2: height 0 x width 4 x point_step 12 = 0 bytes but 48 bytes of data" in notes

@@ -8,7 +8,13 @@ import numpy as np
 
 from .errors import RecordingError
 
-__all__ = ['DEPTH_ENCODINGS', 'camera_intrinsics', 'decode_pointcloud2', 'depth_image_to_points']
+__all__ = [
+    'DEPTH_ENCODINGS',
+    'camera_intrinsics',
+    'decode_pointcloud2',
+    'depth_image_to_points',
+    'pointcloud2_size_mismatch',
+]
 
 # sensor_msgs/PointField datatypes
 _PF_CODE = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
@@ -34,6 +40,22 @@ def _describe_fields(fields: Any) -> str:
         )
         or '(no fields)'
     )
+
+
+def pointcloud2_size_mismatch(msg: Any) -> tuple[bool, str] | None:
+    """Where a PointCloud2's data holds points beyond what its height, width and point_step
+    say (a driver's wrong width, or height 0): (no points in the header, what disagrees);
+    None where they agree (a last partial point or row padding is not a disagreement)."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.point_step)
+    size = _as_bytes(msg.data).size
+    row_step = int(msg.row_step) or w * step
+    have = h * row_step if h * w else 0
+    if step <= 0 or size - have < step:
+        return None
+    said = f'height {h} x width {w} x point_step {step} = {h * w * step:,} bytes'
+    if not have:
+        return True, f'{said} but {size:,} bytes of data ({size // step:,} points\' worth): its header gives no points'
+    return False, f'{said} but {size:,} bytes of data ({(size - have) // step:,} more points\' worth)'
 
 
 def decode_pointcloud2(msg: Any) -> np.ndarray:

@@ -19,7 +19,13 @@ from rosbags.typesys import Stores, get_typestore
 from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
 from .livox import LIVOX_TYPES, decode_livox_raw, livox_points
-from .pointcloud import DEPTH_ENCODINGS, decode_pointcloud2, depth_image_to_points, laserscan_to_points
+from .pointcloud import (
+    DEPTH_ENCODINGS,
+    decode_pointcloud2,
+    depth_image_to_points,
+    laserscan_to_points,
+    pointcloud2_size_mismatch,
+)
 from .posefile import load_pose_file
 from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
@@ -81,6 +87,8 @@ class PoseSourceInfo:
     last_ns: int | None
     constant: bool  # every pose identical (a fixed pose, not a trajectory)
 
+
+SIZE_DISAGREES = 'data size disagrees with width x height x point_step'  # a skip reason
 
 # Messages of a topic read for the first one that names its frame (Recording._first_message).
 _FRAME_LOOKAHEAD = 50
@@ -1190,6 +1198,17 @@ class ScanStream:
     def _which(self, topic: str, index: int) -> str:
         return f'cloud #{index}' + (f' of {topic}' if len(self._parts) > 1 else '')
 
+    def _count_note(self, key: str, first: str) -> None:
+        """A note of clouds read despite a fault, counted: its line in ``notes`` is rewritten."""
+        n, at, text = self._counted.get(key, (0, len(self.notes), first))
+        if not n:
+            self.notes.append('')
+        self._counted[key] = (n + 1, at, text)
+        self.notes[at] = (
+            f'{n + 1} cloud{"s" if n else ""} hold{"" if n else "s"} more data than the header says ({text}): only '
+            "the header's points are read, as rviz and PCL read them (a driver's width or height may be wrong)"
+        )
+
     def _skip(self, reason: str, detail: str | None = None) -> None:
         if detail and reason not in self.skipped:
             self.notes.append(f'{reason}: {detail}')
@@ -1237,6 +1256,7 @@ class ScanStream:
         self.skipped = Counter()
         self.total_seen = self.kept = 0
         self.notes = list(self._rec.file_notes)
+        self._counted: dict[str, tuple[int, int, str]] = {}
         for part in self._parts.values():
             self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
@@ -1274,6 +1294,12 @@ class ScanStream:
                         empty = len(msg.ranges) == 0
                     else:
                         empty = msg.height * msg.width == 0
+                        size = pointcloud2_size_mismatch(msg) if kind == 'pointcloud2' else None
+                        if size is not None and size[0]:
+                            self._skip(SIZE_DISAGREES, f'{self._which(topic, index)}: {size[1]}')
+                            continue
+                        if size is not None:  # the header's points are read, as rviz and PCL read them
+                            self._count_note('data', f'{self._which(topic, index)}: {size[1]}')
                 if empty:
                     self._skip('empty cloud', f'{self._which(topic, index)} at {_s(stamp)} has no points')
                     continue
