@@ -155,3 +155,18 @@ def test_cloud_data_longer_than_its_header_is_noted_and_height0_skipped(tmp_path
     assert '2 clouds hold more data than the header says (cloud #1: height 1 x width 2 x point_step 12' in notes
     assert "(2 more points' worth)): only the header's points are read" in notes
     assert "cloud #2: height 0 x width 4 x point_step 12 = 0 bytes but 48 bytes of data" in notes
+
+
+def test_a_field_named_twice_is_refused(tmp_path: Path) -> None:
+    def dup_x(msg: object) -> None:
+        pf = type(msg.fields[0])  # type: ignore[attr-defined]
+        msg.fields.insert(0, pf(name='x', offset=12, datatype=7, count=1))  # type: ignore[attr-defined]
+        msg.point_step, msg.row_step = 16, 16 * msg.width  # type: ignore[attr-defined]
+        msg.data = np.zeros(16 * msg.width, np.uint8)  # type: ignore[attr-defined]
+
+    entries = _scene_tf() + [_edited_cloud(t, dup_x) for t in STAMPS[:2]]
+    with open_recording(_write(tmp_path, entries)) as rec:
+        with pytest.raises(
+            RecordingError, match="two fields named 'x', at offsets 12 and 0: which holds x is ambiguous"
+        ):
+            list(rec.scans())

@@ -70,7 +70,14 @@ def decode_pointcloud2(msg: Any) -> np.ndarray:
     """
     fields: dict[str, Any] = {}
     for f in msg.fields:
-        fields.setdefault(f.name, f)
+        first = fields.setdefault(f.name, f)
+        if f.name in ('x', 'y', 'z') and (first.offset, first.datatype) != (f.offset, f.datatype):
+            raise RecordingError(
+                f'PointCloud2 (frame {msg.header.frame_id!r}) has two fields named {f.name!r}, at offsets '
+                f'{first.offset} and {f.offset}: which holds {f.name} is ambiguous. Fields present: '
+                f'{_describe_fields(msg.fields)}. The driver writing it needs fixing (or rename the field '
+                'in the bag).'
+            )
     missing = [n for n in 'xyz' if n not in fields]
     if missing:
         raise RecordingError(
