@@ -170,3 +170,20 @@ def test_a_field_named_twice_is_refused(tmp_path: Path) -> None:
             RecordingError, match="two fields named 'x', at offsets 12 and 0: which holds x is ambiguous"
         ):
             list(rec.scans())
+
+
+def test_info_says_why_the_first_clouds_cannot_be_mapped(tmp_path: Path) -> None:
+    upper = fx.pack_cloud(np.ones((3, 3)))
+    upper.fields = [(n.upper(), o, d) for n, o, d in upper.fields]
+    int16 = fx.pack_cloud(np.ones((3, 3)), layout={'x': (0, 'i2'), 'y': (2, 'i2'), 'z': (4, 'i2')}, point_step=6)
+    empty = fx.pack_cloud(np.empty((0, 3)))
+    for name, packed, why in (
+        ('upper', upper, "/points: cloud #0 cannot be mapped: PointCloud2 (frame 'velodyne') has no x/y/z field"),
+        ('int16', int16, "/points: cloud #0 cannot be mapped: PointCloud2 field 'x' has datatype INT16"),
+        ('empty', empty, '/points: all 3 of its clouds are empty (no points)'),
+    ):
+        entries = _scene_tf() + [_cloud('/points', t, packed=packed) for t in STAMPS[:3]]
+        with open_recording(fx.write_bag(tmp_path / f'{name}.bag', 'ros1', sorted(entries, key=lambda e: e[2]))) as rec:
+            info = rec.info()
+        assert info.pose_source == 'tf: map -> base_link -> velodyne'
+        assert (info.pose_error or '').startswith(why), info.pose_error

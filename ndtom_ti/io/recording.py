@@ -652,6 +652,7 @@ class Recording:
                 what=default_topic,
             )
             pose_source = choice.description
+            self._check_clouds(default_topic)
         except RecordingError as err:
             pose_error = str(err)
         return RecordingInfo(
@@ -673,6 +674,35 @@ class Recording:
             pose_source=pose_source,
             pose_error=pose_error,
             notes=notes,
+        )
+
+    def _check_clouds(self, topic: str) -> None:
+        """RecordingError where the topic's first clouds cannot be mapped: the first that names
+        its frame cannot be decoded (its fields), or every one of the first few is empty."""
+        kind = dict(self.mappable_topics()).get(topic)
+        if kind not in _DECODERS:
+            return
+        for k, (_, msgtype, raw) in enumerate(self._messages(topic)):
+            fast = decode_livox_raw(raw, self.format == 'ros1') if kind == 'livox' else None
+            try:
+                if fast is not None:
+                    pts = fast[2]
+                else:
+                    msg = self._deserialize(raw, msgtype, topic)
+                    if not normalize_frame(msg.header.frame_id) and k + 1 < _FRAME_LOOKAHEAD:
+                        continue  # skipped by ndtom map too (no frame)
+                    pts = _DECODERS[kind](msg)
+            except RecordingError as err:
+                raise RecordingError(f'{topic}: cloud #{k} cannot be mapped: {err}') from err
+            if len(pts):
+                return
+            if k + 1 >= _FRAME_LOOKAHEAD:
+                break
+        n = min(self._topics[topic][1], _FRAME_LOOKAHEAD)
+        every = 'all' if n == self._topics[topic][1] else 'the first'
+        raise RecordingError(
+            f'{topic}: {every} {n} of its clouds {"are" if n != 1 else "is"} empty (no points): nothing to map'
+            + ('' if every == 'all' else '; later ones may have points (--start skips the first)')
         )
 
     def scans(
