@@ -187,3 +187,31 @@ def test_info_says_why_the_first_clouds_cannot_be_mapped(tmp_path: Path) -> None
             info = rec.info()
         assert info.pose_source == 'tf: map -> base_link -> velodyne'
         assert (info.pose_error or '').startswith(why), info.pose_error
+
+
+# ----------------------------------------------------------------------------- Livox CustomMsg
+@pytest.mark.parametrize('fmt', ['ros1', 'sqlite3'])
+def test_livox_point_num_that_disagrees_is_noted_and_its_records_read(
+    tmp_path: Path, fmt: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pts = np.arange(30, dtype=np.float32).reshape(10, 3) + 1
+
+    def msg(m: fx.Msgs, t: int) -> object:
+        out = m.livox(t, 'livox', pts, 'livox_ros_driver2')
+        out.point_num = 0  # a driver that leaves it unset
+        return out
+
+    entries = [_tf('/tf', t, 'map', 'livox', (k, 0.0, 0.0)) for k, t in enumerate(STAMPS)]
+    entries += [('/livox/lidar', 'livox_ros_driver2/msg/CustomMsg', t, lambda m, t=t: msg(m, t)) for t in STAMPS[:3]]
+    bag = _write(tmp_path, entries, fmt)
+    note = '3 clouds hold a point_num that disagrees with the point records that follow (cloud #0: point_num 0, 10 records)'
+    for fast in (True, False):  # from the bytes, and deserialised
+        if not fast:
+            monkeypatch.setattr('ndtom_ti.io.recording.decode_livox_raw', lambda raw, ros1: None)
+        with open_recording(bag) as rec:
+            stream = rec.scans()
+            scans = list(stream)
+        assert [len(s.points) for s in scans] == [10, 10, 10]
+        assert any(n.startswith(note) for n in stream.notes), stream.notes
+    with open_recording(bag) as rec, pytest.raises(RecordingError, match='holds no definition of that type'):
+        rec._deserialize(b'\0' * 8, 'some_driver/msg/Unknown', '/x')

@@ -5,7 +5,8 @@ than PointCloud2: a header, then one record per point (offset time, x, y, z in m
 float32, reflectivity, tag, line). Deserialised field by field it takes ~50 ms a message of
 20k points (a Python object per point), longer than mapping it, so the points are read from
 the message's bytes; a message whose bytes do not have the layout expected falls back to the
-deserialised message. A beam with no return is (0, 0, 0), which the map leaves out.
+deserialised message. Its point records are read, as deserialising does, where its point_num
+field disagrees (the caller notes it). A beam with no return is (0, 0, 0), which the map leaves out.
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ def decode_livox_raw(raw: bytes | memoryview, ros1: bool) -> tuple[int, str, np.
             _, sec, nsec, flen = struct.unpack_from('<IIII', buf, 0)
             frame = buf[16 : 16 + flen].decode()
             at = 16 + flen
-            point_num, count = struct.unpack_from('<8xI4xI', buf, at)
+            count = struct.unpack_from('<16xI', buf, at)[0]
             start = at + 20
-            if count != point_num or len(buf) != start + 19 * count:
+            if len(buf) != start + 19 * count:
                 return None
             return sec * 10**9 + nsec, frame, _xyz(buf, start, count, _ROS1_POINT)
         if buf[:2] != b'\x00\x01':  # CDR little-endian only (what ROS2 writes on every common host)
@@ -51,9 +52,9 @@ def decode_livox_raw(raw: bytes | memoryview, ros1: bool) -> tuple[int, str, np.
         frame = buf[body + 12 : body + 12 + flen].rstrip(b'\x00').decode()
         rel = 12 + flen
         rel += -rel % 8  # timebase is a u64
-        point_num, count = struct.unpack_from('<8xI4xI', buf, body + rel)
+        count = struct.unpack_from('<16xI', buf, body + rel)[0]
         start = body + rel + 20
-        if count != point_num or not (start + 20 * count - 1 <= len(buf) <= start + 20 * count + 3):
+        if not (start + 20 * count - 1 <= len(buf) <= start + 20 * count + 3):
             return None
         if count == 0:
             return sec * 10**9 + nsec, frame, np.empty((0, 3), np.float32)
@@ -63,6 +64,21 @@ def decode_livox_raw(raw: bytes | memoryview, ros1: bool) -> tuple[int, str, np.
         xyz[-1] = struct.unpack_from('<3f', buf, start + 20 * (count - 1) + 4)
         return sec * 10**9 + nsec, frame, xyz
     except (struct.error, ValueError, UnicodeDecodeError):
+        return None
+
+
+def livox_point_num(raw: bytes | memoryview, ros1: bool) -> int | None:
+    """The message's point_num field (a driver's count of its points; the records that follow
+    are what it holds), or None where the bytes are not a CustomMsg's."""
+    buf = bytes(raw)
+    try:
+        if ros1:
+            at = 16 + struct.unpack_from('<12xI', buf, 0)[0]
+        else:
+            rel = 12 + struct.unpack_from('<8xI', buf, 4)[0]
+            at = 4 + rel + (-rel % 8)
+        return int(struct.unpack_from('<8xI', buf, at)[0])
+    except struct.error:
         return None
 
 

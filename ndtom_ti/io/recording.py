@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from ..scan import Scan
 from .errors import RecordingError, TransformTimeError
-from .livox import LIVOX_TYPES, decode_livox_raw, livox_points
+from .livox import LIVOX_TYPES, decode_livox_raw, livox_point_num, livox_points
 from .pointcloud import (
     DEPTH_ENCODINGS,
     decode_pointcloud2,
@@ -386,6 +386,16 @@ class Recording:
     def _deserialize(self, raw: bytes, msgtype: str, topic: str) -> Any:
         try:
             return self._reader.deserialize(raw, msgtype)
+        except KeyError as err:  # the type is neither in the bag nor a standard one
+            raise RecordingError(
+                f'the {topic} messages ({msgtype}) cannot be decoded: {self.path} holds no definition of that '
+                'type (older ROS2 bags, Foxy\'s for one, keep none) and it is not a standard ROS message'
+                + (
+                    '; their bytes are not laid out as that message either (damaged, or another version of the driver)'
+                    if msgtype in LIVOX_TYPES
+                    else ''
+                )
+            ) from err
         except Exception as err:
             raise RecordingError(
                 f'a {msgtype} message on {topic} in {self.path} cannot be decoded ({err}); the recording is corrupt'
@@ -1234,9 +1244,13 @@ class ScanStream:
         if not n:
             self.notes.append('')
         self._counted[key] = (n + 1, at, text)
+        clouds = f'{n + 1} cloud{"s" if n else ""} hold{"" if n else "s"}'
         self.notes[at] = (
-            f'{n + 1} cloud{"s" if n else ""} hold{"" if n else "s"} more data than the header says ({text}): only '
-            "the header's points are read, as rviz and PCL read them (a driver's width or height may be wrong)"
+            f'{clouds} more data than the header says ({text}): only the header\'s points are read, as rviz '
+            "and PCL read them (a driver's width or height may be wrong)"
+            if key == 'data'
+            else f'{clouds} a point_num that disagrees with the point records that follow ({text}): the records '
+            'are read'
         )
 
     def _skip(self, reason: str, detail: str | None = None) -> None:
@@ -1314,12 +1328,22 @@ class ScanStream:
                     stamp = _cloud_stamp(stamp, t, self._record_time)
                     frame = normalize_frame(frame)
                     empty = len(pts) == 0
+                    said = livox_point_num(raw, rec.format == 'ros1')
+                    if said is not None and said != len(pts):
+                        self._count_note(
+                            'point_num', f'{self._which(topic, index)}: point_num {said:,}, {len(pts):,} records'
+                        )
                 else:
                     msg = rec._deserialize(raw, msgtype, topic)
                     stamp = _cloud_stamp(stamp_ns(msg.header.stamp), t, self._record_time)
                     frame = normalize_frame(msg.header.frame_id)
                     if kind == 'livox':
                         empty = len(msg.points) == 0
+                        if int(msg.point_num) != len(msg.points):
+                            self._count_note(
+                                'point_num',
+                                f'{self._which(topic, index)}: point_num {int(msg.point_num):,}, {len(msg.points):,} records',
+                            )
                     elif kind == 'laserscan':
                         empty = len(msg.ranges) == 0
                     else:
