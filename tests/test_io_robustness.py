@@ -215,3 +215,17 @@ def test_livox_point_num_that_disagrees_is_noted_and_its_records_read(
         assert any(n.startswith(note) for n in stream.notes), stream.notes
     with open_recording(bag) as rec, pytest.raises(RecordingError, match='holds no definition of that type'):
         rec._deserialize(b'\0' * 8, 'some_driver/msg/Unknown', '/x')
+
+
+# ----------------------------------------------------------------------------- hints
+def test_a_cloud_frame_without_its_mount_offers_static_transform_and_the_split_folder(tmp_path: Path) -> None:
+    tfs = _scene_tf()
+    fx.write_bag(tmp_path / 'run_0.bag', 'ros1', tfs[:3] + [_cloud('/points', STAMPS[0])])
+    fx.write_bag(tmp_path / 'run_1.bag', 'ros1', tfs[3:] + [_cloud('/points', t) for t in STAMPS[3:]])
+    with open_recording(tmp_path / 'run_1.bag') as rec, pytest.raises(RecordingError) as err:
+        rec.scans()
+    text = str(err.value)
+    assert "give it with --static-transform 'X Y Z QX QY QZ QW base_link velodyne'" in text
+    assert 'run_1.bag looks like one part of a split recording' in text and f'pass the folder {tmp_path}' in text
+    with open_recording(tmp_path) as rec:  # the folder: both parts
+        assert len(list(rec.scans())) == 3

@@ -891,9 +891,14 @@ class _PoseSources:
         if not tf.frames():
             return _PoseChoice(None, 'TF: the recording has no /tf or /tf_static transforms')
         if frame not in tf:
+            # its mount not recorded (/tf_static missing, or in another part of a split recording)
+            moving = [e.child for e in tf.edges() if not e.static]
+            parent = 'base_link' if 'base_link' in tf else moving[0] if moving else 'PARENT'
             return _PoseChoice(
                 None,
-                f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())})",
+                f"TF: the cloud frame {frame!r} is not in the TF tree (frames that exist: {', '.join(tf.frames())}); "
+                f"if the recording lacks its mount, give it with --static-transform 'X Y Z QX QY QZ QW {parent} {frame}'"
+                + ''.join(f'; {n}' for n in self._rec.file_notes),
             )
         if fixed_frame:  # a frame with two parents: the one towards the fixed frame
             tf.choose_parent(fixed_frame, frame)
