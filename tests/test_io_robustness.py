@@ -229,3 +229,17 @@ def test_a_cloud_frame_without_its_mount_offers_static_transform_and_the_split_f
     assert 'run_1.bag looks like one part of a split recording' in text and f'pass the folder {tmp_path}' in text
     with open_recording(tmp_path) as rec:  # the folder: both parts
         assert len(list(rec.scans())) == 3
+
+
+def test_a_static_transform_given_over_a_recorded_mount_says_both(tmp_path: Path) -> None:
+    entries = _scene_tf() + [_cloud('/points', t) for t in STAMPS]
+    given = '0 0 2 0 0 0 1 base_link velodyne'
+    with open_recording(_write(tmp_path, entries)) as rec:
+        for _ in range(2):  # given again by a second scans(): the same note
+            stream = rec.scans(static_transforms=[given])
+            scans = list(stream)
+    np.testing.assert_allclose(scans[1].T_world_sensor[:3, 3], [1.0, 0.0, 2.0], atol=1e-9)
+    assert stream.notes == [
+        'static transform given: base_link -> velodyne, replacing the recorded base_link -> velodyne: given '
+        'xyz (0, 0, 2) m, quaternion xyzw (0, 0, 0, 1), recorded xyz (0, 0, 1) m, quaternion xyzw (0, 0, 0, 1)'
+    ]

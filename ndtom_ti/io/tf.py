@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .errors import RecordingError, TransformTimeError
-from .transforms import PoseTrack, invalid_transform, invert, make_transform
+from .transforms import PoseTrack, invalid_transform, invert, make_transform, rot_to_quat
 
 __all__ = ['TfBuffer', 'TfEdge', 'normalize_frame', 'stamp_ns']
 
@@ -25,6 +25,13 @@ def stamp_ns(stamp: Any) -> int:
 
 def _fmt_s(ns: int) -> str:
     return f'{ns / 1e9:.3f} s'
+
+
+def _fmt_T(T: np.ndarray) -> str:
+    """'xyz (0.1, 0, 1.2) m, quaternion (0, 0, 0, 1)' of a transform."""
+    t = ', '.join(f'{v:.4g}' for v in T[:3, 3])
+    q = ', '.join(f'{v:.4g}' for v in rot_to_quat(T[:3, :3]))
+    return f'xyz ({t}) m, quaternion xyzw ({q})'
 
 
 @dataclass(frozen=True)
@@ -59,7 +66,7 @@ class TfBuffer:
         self._noted: set[tuple[str, str, str]] = set()
         # (parent, child) -> (transforms dropped: NaN/Inf or a zero quaternion, why the first)
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
-        self._given: dict[str, None] = {}  # 'parent -> child' of mounts given, not recorded (give)
+        self._given: dict[str, str] = {}  # 'parent -> child' -> note, of mounts given, not recorded (give)
         self._restatic: dict[str, None] = {}  # notes of mounts /tf_static gave with different values
         # (parent, child) -> ((T, count) if static, dynamic samples): a child's other parents
         self._other: dict[tuple[str, str], tuple[tuple[np.ndarray, int] | None, list]] = {}
@@ -159,8 +166,24 @@ class TfBuffer:
     def give(self, parent: str, child: str, translation: Any, rotation: Any) -> None:
         """A mount the recording lacks (its /tf_static not recorded), given by the user: a
         static edge like a recorded one, said in ``run_notes``."""
-        self.add(parent, child, 0, translation, rotation, static=True)
-        self._given[f'{normalize_frame(parent)} -> {normalize_frame(child)}'] = None
+        p, c = normalize_frame(parent), normalize_frame(child)
+        text = f'static transform given: {p} -> {c}'
+        if self._given.get(f'{p} -> {c}') and self._parent.get(c) == p:  # given again (another scans())
+            self._static[c] = make_transform(translation, rotation)
+            return
+        known = self._parent.get(c)
+        if known is not None:  # recorded: the given one replaces it (said with both values)
+            if c in self._static:
+                was = f'recorded {_fmt_T(self._static[c])}'
+            else:
+                was = f'{len(self._samples.get(c, []))} recorded transforms'
+            text += (
+                f', replacing the recorded {known} -> {c}: given {_fmt_T(make_transform(translation, rotation))}, {was}'
+            )
+            for d in (self._static, self._static_count, self._samples, self._tracks, self._parent):
+                d.pop(c, None)  # type: ignore[attr-defined]
+        self.add(p, c, 0, translation, rotation, static=True)
+        self._given[f'{p} -> {c}'] = text
 
     def _edge_text(self, parent: str, child: str) -> str:
         if (parent, child) in self._other:
@@ -224,7 +247,7 @@ class TfBuffer:
         transforms were dropped (``add``), with their count."""
         return (
             ([self.source_note] if self.source_note else [])
-            + [f'static transform given: {e}' for e in self._given]
+            + list(self._given.values())
             + list(self._chosen.values())
             + self.parent_notes()
             + list(self._restatic)
