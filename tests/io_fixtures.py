@@ -514,7 +514,9 @@ def expected_depth_points(depth_m: np.ndarray, fx: float, fy: float, cx: float, 
     for v in range(depth_m.shape[0]):
         for u in range(depth_m.shape[1]):
             z = float(depth_m[v, u])
-            if not math.isfinite(z) or z <= 0:
+            if z == 0:  # no depth measured: the mapper's mark of no return
+                out.append((0.0, 0.0, 0.0))
+            elif not math.isfinite(z) or z < 0:
                 out.append((math.nan, math.nan, math.nan))
             else:
                 out.append(((u - cx) * z / fx, (v - cy) * z / fy, z))

@@ -120,7 +120,8 @@ def test_depth_32fc1_back_projection(m: fx.Msgs) -> None:
     ref = fx.expected_depth_points(d32, **fx.DEPTH_K)
     assert out.shape == (40, 3) and out.dtype == np.float32
     np.testing.assert_allclose(out, ref, atol=1e-6, equal_nan=True)
-    assert np.isnan(out).all(axis=1).sum() == 3  # NaN, 0 and inf pixels -> NaN rows, layout kept
+    assert np.isnan(out).all(axis=1).sum() == 2  # NaN and inf pixels -> NaN rows, layout kept
+    assert (out == 0).all(axis=1).sum() == 1  # 0: no depth measured, (0, 0, 0) as a lidar's beam with no return
 
 
 def test_depth_16uc1_millimetres_big_endian_and_stride() -> None:
@@ -132,7 +133,7 @@ def test_depth_16uc1_millimetres_big_endian_and_stride() -> None:
     out = depth_image_to_points(img, info, stride=3)
     assert out.shape == (2 * 3, 3)
     np.testing.assert_allclose(out, ref[::3, ::3].reshape(-1, 3), atol=1e-6, equal_nan=True)
-    assert np.isnan(depth_image_to_points(img, info)[1 * 8 + 1]).all()  # 0 mm = no depth
+    assert (depth_image_to_points(img, info)[1 * 8 + 1] == 0).all()  # 0 mm = no depth: no return, not 'not finite'
 
 
 def test_unsupported_image_encoding_and_bad_camera_info() -> None:

@@ -148,9 +148,10 @@ def depth_image_to_points(msg: Any, camera_info: Any, stride: int = 1) -> np.nda
 
     Encodings: 32FC1 (metres) and 16UC1 (millimetres). Every ``stride``-th pixel
     of every ``stride``-th row is used (N = ceil(h/stride) * ceil(w/stride)).
-    Pixels without depth (NaN, inf, <= 0, or 0 mm) give NaN rows rather than
-    being dropped, so the output keeps the image layout like an organised cloud;
-    the mapper drops and counts NaN points. The pinhole model of K is used;
+    Pixels without depth give rows rather than being dropped, so the output keeps the image
+    layout like an organised cloud: 0 (no depth measured, 0 m or 0 mm) gives (0, 0, 0), which
+    the mapper counts as no return, as a lidar's beam; NaN, inf or negative depths give NaN
+    rows, counted as not finite. The pinhole model of K is used;
     distortion coefficients are ignored (depth images are normally rectified).
     """
     enc = str(msg.encoding)
@@ -181,7 +182,7 @@ def depth_image_to_points(msg: Any, camera_info: Any, stride: int = 1) -> np.nda
     dtype = np.dtype(('>' if msg.is_bigendian else '<') + ('f4' if is_float else 'u2'))
     img = np.ndarray(shape=(h, w), dtype=dtype, buffer=data, strides=(step, item))[::stride, ::stride]
     z = img.astype(np.float64) if is_float else img.astype(np.float64) * 1e-3
-    z[~np.isfinite(z) | (z <= 0)] = np.nan
+    z[~np.isfinite(z) | (z < 0)] = np.nan  # (z == 0, no depth measured, gives (0, 0, 0): no return)
     u = np.arange(0, w, stride, dtype=np.float64)
     v = np.arange(0, h, stride, dtype=np.float64)
     out = np.empty((*z.shape, 3), dtype=np.float32)
