@@ -243,3 +243,25 @@ def test_a_static_transform_given_over_a_recorded_mount_says_both(tmp_path: Path
         'static transform given: base_link -> velodyne, replacing the recorded base_link -> velodyne: given '
         'xyz (0, 0, 2) m, quaternion xyzw (0, 0, 0, 1), recorded xyz (0, 0, 1) m, quaternion xyzw (0, 0, 0, 1)'
     ]
+
+
+def test_a_first_cloud_without_a_frame_is_named_and_start_offered(tmp_path: Path) -> None:
+    entries = _scene_tf() + [_cloud('/points', STAMPS[0], frame='')] + [_cloud('/points', t) for t in STAMPS[1:]]
+    with open_recording(_write(tmp_path, entries)) as rec:
+        with pytest.raises(RecordingError) as err:
+            list(rec.scans())
+        assert len(list(rec.scans(t_start=0.001))) == 4
+    assert str(err.value) == (
+        'cloud #0 of /points at 1700000000.000 s has an empty frame_id; it is the first cloud to map '
+        '(a broken first cloud refuses the recording): --start 0.001 skips it'
+    )
+
+
+def test_a_cloud_in_another_frame_than_the_first_is_noted(tmp_path: Path) -> None:
+    entries = _scene_tf() + [_tf('/tf_static', STAMPS[0], 'base_link', 'rear', (-1.0, 0.0, 0.0))]
+    entries += [_cloud('/points', t, frame='rear' if k == 2 else 'velodyne') for k, t in enumerate(STAMPS)]
+    with open_recording(_write(tmp_path, entries)) as rec:
+        stream = rec.scans()
+        scans = list(stream)
+    assert "cloud #2 of /points is in frame 'rear', not 'velodyne' like the first" in '\n'.join(stream.notes)
+    np.testing.assert_allclose(scans[2].T_world_sensor[:3, 3], [1.0, 0.0, 0.0], atol=1e-9)

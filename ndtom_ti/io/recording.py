@@ -1306,6 +1306,7 @@ class ScanStream:
         self.total_seen = self.kept = 0
         self.notes = list(self._rec.file_notes)
         self._counted: dict[str, tuple[int, int, str]] = {}
+        self._other_frames: set[str] = set()  # topics with a cloud in another frame than their first's
         for part in self._parts.values():
             self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
@@ -1359,6 +1360,12 @@ class ScanStream:
                             continue
                         if size is not None:  # the header's points are read, as rviz and PCL read them
                             self._count_note('data', f'{self._which(topic, index)}: {size[1]}')
+                if frame and frame != part.frame_id and topic not in self._other_frames:
+                    self._other_frames.add(topic)  # the poses line names the first cloud's frame only
+                    self.notes.append(
+                        f'{self._which(topic, index)}{"" if len(self._parts) > 1 else f" of {topic}"} is in frame '
+                        f'{frame!r}, not {part.frame_id!r} like the first: each cloud is placed by its own frame'
+                    )
                 if empty:
                     self._skip('empty cloud', f'{self._which(topic, index)} at {_s(stamp)} has no points')
                     continue
@@ -1367,6 +1374,11 @@ class ScanStream:
                 except TransformTimeError as err:
                     self._skip('no pose at stamp', f'{self._which(topic, index)}: {err}')
                     continue
+                except RecordingError as err:
+                    if frame:
+                        raise
+                    # no frame to look up (tf2 refuses an empty frame too)
+                    raise RecordingError(f'cloud #{index} of {topic} at {_s(stamp)} has an empty frame_id') from err
                 if (
                     self._every_distance
                     and topic in last_pos
@@ -1384,7 +1396,11 @@ class ScanStream:
                         pts = pts.astype(np.float64) @ S[:3, :3].T + S[:3, 3]
             except RecordingError as err:
                 if not self.kept:  # the recording's first scan: refused, as when it is opened
-                    raise
+                    later = (t - rec.start_ns) // 1_000_000 / 1e3 + 0.001
+                    raise RecordingError(
+                        f'{err}; it is the first cloud to map (a broken first cloud refuses the recording): '
+                        f'--start {later:.3f} skips it'
+                    ) from err
                 # one broken message (a truncated cloud, a frame TF does not have) among good ones
                 self._skip('bad message', f'{self._which(topic, index)}: {err}')
                 continue
