@@ -97,16 +97,16 @@ def _need_import(module: str, purpose: str) -> None:
         fail(broken_message(module, purpose, error), reinstall_hint(module), EXIT_FAILURE)
 
 
-def _skip_broken(module: str, skipped: str) -> bool:
-    """True (after a note) when ``module`` is missing (``without_extra``) or installed but
-    cannot be imported."""
+def _skip_broken(module: str, skipped: str) -> str | None:
+    """Why ``module`` is skipped (after a note): it is missing (``without_extra``) or
+    installed but cannot be imported; None when it imports."""
     from ..extras import reinstall_hint
 
     if without_extra(module, skipped):
-        return True
+        return f"{module} missing"
     error = _import_extra(module, skipped)
     if error is None:
-        return False
+        return None
     console_err().print(
         Text(
             f"note: {module} is installed but cannot be imported ({error}): {skipped}; {reinstall_hint(module)}",
@@ -114,7 +114,7 @@ def _skip_broken(module: str, skipped: str) -> bool:
         ),
         soft_wrap=True,
     )
-    return True
+    return f"{module} cannot be imported"
 
 
 def _memory_text(exc: BaseException) -> str:
@@ -272,7 +272,7 @@ def sweep(
                 fmt_mib(r.memory_bytes),
             )
         console_out().print(t)
-        wrote = f"Wrote {csv_path} and {png_path}" if png_path else f"Wrote {csv_path} (no plot)"
+        wrote = f"Wrote {csv_path} and {png_path}" if png_path else f"Wrote {csv_path} (no plot: {no_plot})"
         console_out().print(wrote, soft_wrap=True, markup=False)
         if stopped is None:
             return
