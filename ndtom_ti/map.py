@@ -28,6 +28,7 @@ def _locked(method):
 
     @functools.wraps(method)
     def call(self, *args, **kwargs):
+        runtime.check_process()  # before the lock: one another thread held at a fork stays held
         with self._lock:
             self._slot.check_open()
             release_dead()

@@ -54,6 +54,7 @@ class _State:
     huge_pages: int = 0  # bytes of the CPU pool advised MADV_HUGEPAGE
     taichi: Any = None  # Taichi's runtime object that init() started (check_taichi)
     ready: bool = False  # init() done, its default storage built
+    pid: int | None = None  # the process that started Taichi (a forked child has another)
     init_thread: Any = None  # the thread that started Taichi: the only one that may build trees
 
 
@@ -207,6 +208,7 @@ def _init(
         _state.init_thread = threading.current_thread()
         impl.get_runtime().materialize()
         _state.taichi = impl.get_runtime()
+        _state.pid = os.getpid()
     # Likewise the maps' storage (its trees are built when the first map is made, maybe in a
     # worker thread): built now for the default layout. An unused one gives way to another
     # layout or max_maps (storage()).
@@ -406,12 +408,25 @@ def storage(layout):
         return st
 
 
+def check_process() -> None:
+    """RuntimeError in a process forked after ndtom_ti started Taichi: Taichi's worker threads
+    do not survive fork, so a kernel there would hang (as would a lock another thread held)."""
+    if _state.pid is not None and os.getpid() != _state.pid:
+        raise RuntimeError(
+            "this process was forked from one in which ndtom_ti had started Taichi, whose threads do not "
+            "survive fork: a map here would hang at its first kernel. Start worker processes with "
+            "multiprocessing's 'spawn' or 'forkserver' method (multiprocessing.get_context('spawn')), or "
+            "make the first map only in the workers. A MapSnapshot (numpy only) works in a forked process"
+        )
+
+
 def check_taichi() -> None:
     """RuntimeError when Taichi was started again (``ti.init`` or ``ti.reset`` by other code in
     the process) after ndtom_ti started it: that frees every field, and a kernel on the maps'
     trees would then crash the process."""
     if _state.taichi is None:
         return
+    check_process()
     from taichi.lang import impl
 
     if impl.get_runtime() is not _state.taichi:
@@ -458,6 +473,8 @@ def acquire_slot(layout):
 
 def release_slot(st, slot: int) -> None:
     """Empty a dead map's slot (its nodes go back to Taichi's free lists) and free it."""
+    if _state.pid is not None and os.getpid() != _state.pid:
+        return  # a forked child's copy of a map: a kernel would hang (check_taichi), its memory is its own
     try:
         import taichi as ti
 

@@ -103,3 +103,44 @@ def test_a_map_the_collector_frees_inside_a_compile_waits_for_the_next_call():
     )
     assert p.returncode == 0, p.stderr[-3000:]
     assert "OK True True 2" in p.stdout, p.stdout
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX only")
+def test_a_process_forked_after_the_first_map_refuses_maps_instead_of_hanging():
+    """Taichi's worker threads do not survive fork: a map used or made in a child forked after
+    the parent's first map hung at its first kernel (multiprocessing's default start method on
+    Linux). It is a RuntimeError naming 'spawn' now; snapshots (numpy only) still work, and the
+    child's copy of a map is dropped without a kernel."""
+    code = """
+        import gc, os, numpy as np, ndtom_ti
+        m = ndtom_ti.NdtOmMap(0.2)
+        m.insert_scan(np.random.default_rng(0).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+        snap, n = m.snapshot(), len(m)
+        pid = os.fork()
+        if pid == 0:  # (a child leaves by os._exit, as multiprocessing's do: Taichi hangs a normal exit)
+            try:
+                out = [len(snap.gaussians()["n"]) == n > 0]
+                for use in (lambda: len(m), lambda: ndtom_ti.NdtOmMap(0.2)):
+                    try:
+                        use()
+                        out.append("used")
+                    except RuntimeError as exc:
+                        out.append("refused" if "'spawn'" in str(exc) else str(exc))
+                del m
+                gc.collect()
+                print("CHILD", *out, flush=True)
+            finally:
+                os._exit(0)
+        os.waitpid(pid, 0)
+        m.insert_scan(np.random.default_rng(1).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+        print("PARENT", m.scans_inserted, flush=True)
+    """
+    p = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "NDTOM_ARCH": "cpu"},
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "CHILD True refused refused" in p.stdout and "PARENT 2" in p.stdout, p.stdout + p.stderr[-2000:]
