@@ -103,7 +103,7 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from ndtom_ti import MapFileError  # noqa: E402
-from ndtom_ti.config import MapConfig  # noqa: E402
+from ndtom_ti.config import RESOLUTION_MAX, MapConfig  # noqa: E402
 from ndtom_ti.mapfile import read_header  # noqa: E402
 from ndtom_ti.pipeline import config_with_ranges, load_config_file  # noqa: E402
 from ndtom_ti.snapshot import MapSnapshot  # noqa: E402
@@ -372,7 +372,11 @@ def test_property_map_file_settings_give_a_map_file_error_or_a_valid_map(tmp_pat
     check_valid(s.config)
     read_header(path)
     s.gaussians(min_probability=0.0)
-    s.coarsen(2)
+    if 2 * s.resolution <= RESOLUTION_MAX:
+        s.coarsen(2)
+    else:  # cells past the largest a map takes: a clear refusal
+        with pytest.raises(ValueError, match="factor is too large"):
+            s.coarsen(2)
     if data.draw(st.integers(0, 9), label="to a map") == 0:  # maps take a slot and Taichi: a tenth of them
         with NdtOmMap.from_snapshot(s) as m:
             exercise(m)
