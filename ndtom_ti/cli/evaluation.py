@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
@@ -35,17 +34,17 @@ from .common import (
 )
 from .root import app
 
+
 # ---------------------------------------------------------------------------- shared
-# What a recording without usable poses can do in these commands (the recording's own
-# message names `ndtom map`'s options, which these commands do not have).
-_POSE_ADVICE = re.compile(r"Map in the sensor frame \(identity poses\).*?--pose-topic\.", re.DOTALL)
-
-
 def _own_words(text: str, command: str) -> str:
-    return _POSE_ADVICE.sub(
+    """A recording's error with its advice on poses in this command's options (it names
+    `ndtom map`'s, which these commands do not have)."""
+    from ..io.recording import POSE_ADVICE
+
+    return text.replace(
+        POSE_ADVICE,
         f"`ndtom {command}` takes the poses a recording holds (its TF tree or a single pose topic), or "
         "identity poses with --sensor-frame; `ndtom map` also takes --poses FILE and --pose-topic.",
-        text,
     )
 
 
@@ -80,7 +79,7 @@ def _out_folder(out: str, what: str) -> Path:
     return output_folder(Path(out), what)
 
 
-def _import_extra(module: str, purpose: str) -> str | None:
+def _import_extra(module: str) -> str | None:
     """Why ``module``, found installed, cannot be imported (None: it imports, or is not installed)."""
     from ..extras import available, import_error
 
@@ -92,7 +91,7 @@ def _need_import(module: str, purpose: str) -> None:
     from ..extras import broken_message, reinstall_hint
 
     need_extra(module, purpose)
-    error = _import_extra(module, purpose)
+    error = _import_extra(module)
     if error is not None:
         fail(broken_message(module, purpose, error), reinstall_hint(module), EXIT_FAILURE)
 
@@ -104,7 +103,7 @@ def _skip_broken(module: str, skipped: str) -> str | None:
 
     if without_extra(module, skipped):
         return f"{module} missing"
-    error = _import_extra(module, skipped)
+    error = _import_extra(module)
     if error is None:
         return None
     console_err().print(

@@ -53,7 +53,9 @@ POSE_TYPES = (
     'geometry_msgs/msg/TransformStamped',
 )
 _ROS1_MAGIC = b'#ROSBAG V2.0\n'
-_SUGGEST = (
+# The pose sources `ndtom map` offers a recording without usable poses (other commands
+# name their own: cli/evaluation.py replaces this sentence).
+POSE_ADVICE = (
     'Map in the sensor frame (identity poses) with --sensor-frame, give poses with --poses FILE '
     '(TUM or KITTI), or name a pose topic with --pose-topic.'
 )
@@ -1142,7 +1144,7 @@ class _PoseSources:
                 pose_child_frame=pose_child_frame,
             )
             if not choice.usable:
-                raise RecordingError(f'{choice.description}. {_SUGGEST}')
+                raise RecordingError(f'{choice.description}. {POSE_ADVICE}')
             return choice
         # automatic: TF first, then a single usable pose topic
         tf_choice = self._tf_choice(frame, fixed_frame, first_stamp, tol)
@@ -1173,7 +1175,7 @@ class _PoseSources:
         raise RecordingError(
             f'no usable poses for {what} (frame {frame!r}) in {self._rec.path}:\n'
             + ''.join(f'  - {r.rstrip(".")}\n'.replace('; ', ';\n    ') for r in reasons)
-            + _SUGGEST
+            + POSE_ADVICE
         )
 
 
