@@ -4,6 +4,7 @@ import functools
 import os
 import subprocess
 import sys
+import textwrap
 import weakref
 from pathlib import Path
 
@@ -132,3 +133,18 @@ def pytest_collection_modifyitems(config, items):
         skip = pytest.mark.skip(reason="needs a CUDA GPU (none found by the CUDA driver)")
         for item in gpu:
             item.add_marker(skip)
+
+
+def run_py(code: str, *args: str, timeout: int = 900) -> str:
+    """Run ``code`` in a fresh CPU process (a process has one Taichi pool and one Taichi
+    runtime) and return its stdout; a failure shows both streams' ends."""
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code), *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=timeout,
+        env={**os.environ, "NDTOM_ARCH": "cpu"},
+    )
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    return out.stdout

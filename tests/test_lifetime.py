@@ -2,12 +2,10 @@
 
 import gc
 import os
-import subprocess
-import sys
-import textwrap
 
 import numpy as np
 import pytest
+from conftest import run_py
 
 from ndtom_ti import NdtOmMap, NoFreeSlotError, runtime
 
@@ -94,15 +92,8 @@ def test_a_map_the_collector_frees_inside_a_compile_waits_for_the_next_call():
         st = ndtom_ti.runtime.storage(b.layout)
         print("OK", len(b) > 0, len(b) == len(c), st.slots - len(st.free_slots))
     """
-    p = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "NDTOM_ARCH": "cpu"},
-    )
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert "OK True True 2" in p.stdout, p.stdout
+    out = run_py(code, timeout=600)
+    assert "OK True True 2" in out, out
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX only")
@@ -135,12 +126,5 @@ def test_a_process_forked_after_the_first_map_refuses_maps_instead_of_hanging():
         m.insert_scan(np.random.default_rng(1).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
         print("PARENT", m.scans_inserted, flush=True)
     """
-    p = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "NDTOM_ARCH": "cpu"},
-    )
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert "CHILD True refused refused" in p.stdout and "PARENT 2" in p.stdout, p.stdout + p.stderr[-2000:]
+    out = run_py(code, timeout=120)
+    assert "CHILD True refused refused" in out and "PARENT 2" in out, out

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import DATA
+from conftest import DATA, run_py
 
 import ndtom_ti
 from ndtom_ti import NdtOmMap, runtime
@@ -19,20 +19,6 @@ from ndtom_ti.multires import coarsen_state
 from ndtom_ti.snapshot import MapSnapshot
 
 NORLAB = DATA / "norlab_outdoor_stationary_14.bag"
-
-
-def run_py(code: str, *args: str, timeout: int = 900) -> str:
-    """Run ``code`` in a fresh CPU process (a process has one Taichi pool) and return stdout."""
-    out = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code), *args],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=timeout,
-        env={**os.environ, "NDTOM_ARCH": "cpu"},
-    )
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
-    return out.stdout
 
 
 def values(stdout: str, tag: str) -> list[str]:
@@ -535,7 +521,6 @@ def test_a_cells_free_space_fields_share_its_bytes_in_the_leaf():
     """A free-space update reads and writes a cell's log-odds and ray count together: the
     leaves hold them side by side (8 B a cell, OCC_CELL_BYTES), one cache line for both."""
     import taichi as ti
-
     from ndtom_ti.kernels.layout import OCC_CELL_BYTES
 
     st = runtime.storage(None)
