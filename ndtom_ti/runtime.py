@@ -209,6 +209,8 @@ def _init(
         impl.get_runtime().materialize()
         _state.taichi = impl.get_runtime()
         _state.pid = os.getpid()
+        if hasattr(os, "register_at_fork"):
+            os.register_at_fork(after_in_child=_keep_taichi_in_child)
     # Likewise the maps' storage (its trees are built when the first map is made, maybe in a
     # worker thread): built now for the default layout. An unused one gives way to another
     # layout or max_maps (storage()).
@@ -406,6 +408,25 @@ def storage(layout):
                 )
             st = _storages[layout] = Storage(layout, _state.max_maps)
         return st
+
+
+def _keep_taichi_in_child() -> None:
+    """In a child forked from a process running Taichi: Taichi's program, destroyed at the
+    child's exit, waits for worker threads that fork did not copy, so a child that left by
+    sys.exit or the end of its code never ended. One more reference keeps it alive to the
+    end; the child's memory goes with the child."""
+    if _state.pid is None or os.getpid() == _state.pid:
+        return
+    try:
+        import ctypes
+
+        from taichi.lang import impl
+
+        prog = impl.get_runtime().prog
+        if prog is not None:
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(prog))
+    except Exception:  # noqa: BLE001, S110 - a fork handler must not raise; the child runs on as before
+        pass
 
 
 def check_process() -> None:

@@ -108,7 +108,7 @@ def test_a_process_forked_after_the_first_map_refuses_maps_instead_of_hanging():
         m.insert_scan(np.random.default_rng(0).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
         snap, n = m.snapshot(), len(m)
         pid = os.fork()
-        if pid == 0:  # (a child leaves by os._exit, as multiprocessing's do: Taichi hangs a normal exit)
+        if pid == 0:  # (it leaves by os._exit, as multiprocessing's children do)
             try:
                 out = [len(snap.gaussians()["n"]) == n > 0]
                 for use in (lambda: len(m), lambda: ndtom_ti.NdtOmMap(0.2)):
@@ -128,3 +128,32 @@ def test_a_process_forked_after_the_first_map_refuses_maps_instead_of_hanging():
     """
     out = run_py(code, timeout=120)
     assert "CHILD True refused refused" in out and "PARENT 2" in out, out
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX only")
+def test_a_child_forked_after_the_first_map_ends_by_sys_exit():
+    """A child forked from a process running Taichi that left by sys.exit (or the end of its
+    code) never ended: Taichi's program, destroyed at exit, waited for worker threads fork did
+    not copy. The child ends now, with its own exit status."""
+    code = """
+        import os, sys, time, numpy as np, ndtom_ti
+        m = ndtom_ti.NdtOmMap(0.2)
+        m.insert_scan(np.random.default_rng(0).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+        pid = os.fork()
+        if pid == 0:
+            sys.exit(3)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                print("CHILD", os.waitstatus_to_exitcode(status), flush=True)
+                break
+            time.sleep(0.05)
+        else:
+            os.kill(pid, 9)
+            print("CHILD hung", flush=True)
+        m.insert_scan(np.random.default_rng(1).normal(size=(2000, 3)) + [3.0, 0.0, 0.0], np.eye(4))
+        print("PARENT", m.scans_inserted, flush=True)
+    """
+    out = run_py(code, timeout=180)
+    assert "CHILD 3" in out and "PARENT 2" in out, out
