@@ -29,7 +29,7 @@ from .pointcloud import (
 from .posefile import load_pose_file
 from .selection import ScanSelection
 from .tf import TfBuffer, TfEdge, normalize_frame, stamp_ns
-from .transforms import PoseTrack, invalid_transform, invert
+from .transforms import PoseTrack, hole_text, invalid_transform, invert
 
 __all__ = [
     'PoseSourceInfo',
@@ -179,6 +179,9 @@ def _track_fn(track: PoseTrack, tol: int, pre: PoseFn | None = None, post: PoseF
                     f"{'before the first' if gap < 0 else 'after the last'} pose "
                     f'({_s(track.first_ns)} .. {_s(track.last_ns)}; tolerance {tol / 1e9:.3f} s)'
                 )
+            hole = track.hole_at(stamp, tol)
+            if hole is not None:
+                raise TransformTimeError(f'{track.source}: {hole_text(track, stamp, *hole)}')
         if pre is not None:
             T = pre(stamp, frame, index) @ T
         if post is not None:

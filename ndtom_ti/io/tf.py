@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .errors import RecordingError, TransformTimeError
-from .transforms import PoseTrack, invalid_transform, invert, make_transform, rot_to_quat
+from .transforms import PoseTrack, hole_text, invalid_transform, invert, make_transform, rot_to_quat
 
 __all__ = ['TfBuffer', 'TfEdge', 'normalize_frame', 'stamp_ns']
 
@@ -382,6 +382,9 @@ class TfBuffer:
                 f'{abs(gap) / 1e9:.3f} s {where} of its {len(tr)} transforms '
                 f'({_fmt_s(tr.first_ns)} .. {_fmt_s(tr.last_ns)}; tolerance {tolerance_ns / 1e9:.3f} s)'
             )
+        hole = tr.hole_at(stamp, tolerance_ns)
+        if hole is not None:  # tf2 would interpolate across it: a straight line over seconds unseen
+            raise TransformTimeError(f'transform {self._parent[child]} -> {child}: {hole_text(tr, stamp, *hole)}')
         return T
 
     def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray:

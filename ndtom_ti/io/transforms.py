@@ -14,6 +14,7 @@ from .errors import RecordingError
 
 __all__ = [
     'PoseTrack',
+    'hole_text',
     'invalid_transform',
     'invert',
     'make_transform',
@@ -120,6 +121,15 @@ def slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def hole_text(track: PoseTrack, stamp_ns: int, before: int, after: int) -> str:
+    """Why a stamp in a gap of a track's poses (:meth:`PoseTrack.hole_at`) has none."""
+    return (
+        f'no pose at {stamp_ns / 1e9:.3f} s: it falls in a gap of {(after - before) / 1e9:.3f} s without poses '
+        f'({before / 1e9:.3f} .. {after / 1e9:.3f} s, where they are {(track.spacing_ns() or 0) / 1e9:.3f} s '
+        'apart as a rule): a pose interpolated across it would be a guess'
+    )
+
+
 class PoseTrack:
     """Time-sorted stamped poses; :meth:`at` interpolates (translation linear, rotation slerp).
 
@@ -179,6 +189,7 @@ class PoseTrack:
         self._q = q
         self.by_index = by_index
         self.source = source
+        self._spacing: int | None | bool = False  # (spacing_ns, worked out on first use)
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -207,6 +218,34 @@ class PoseTrack:
         if stamp_ns > self.stamps_ns[-1]:
             return int(stamp_ns) - self.last_ns
         return 0
+
+    def max_gap_ns(self) -> int | None:
+        """The longest time between two poses that interpolating across is trusted: 10 times
+        their usual (median) spacing, at least 1 s; None with too few poses to tell."""
+        spacing = self.spacing_ns()
+        return None if spacing is None else max(10**9, 10 * spacing)
+
+    def spacing_ns(self) -> int | None:
+        """The usual (median) time between two poses; None with fewer than 3 or by index."""
+        if self._spacing is False:
+            few = len(self) < 3 or self.by_index
+            self._spacing = None if few else int(np.median(np.diff(self.stamps_ns)))
+        return self._spacing
+
+    def hole_at(self, stamp_ns: int, tolerance_ns: int = 0) -> tuple[int, int] | None:
+        """(before, after): the stamps of the poses around ``stamp_ns`` where they are farther
+        apart than :meth:`max_gap_ns` (poses lost, a sensor or localisation that stopped) and
+        the stamp is beyond ``tolerance_ns`` of both: a pose interpolated there would be a
+        guess. None elsewhere (outside [first, last] too: :meth:`at` says that)."""
+        limit = self.max_gap_ns()
+        s = int(stamp_ns)
+        if limit is None or not self.first_ns < s < self.last_ns:
+            return None
+        i = int(np.searchsorted(self.stamps_ns, s, side='right')) - 1
+        lo, hi = int(self.stamps_ns[i]), int(self.stamps_ns[i + 1])
+        if hi - lo <= limit or min(s - lo, hi - s) <= tolerance_ns:
+            return None
+        return lo, hi
 
     def at(self, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray | None:
         """Pose at ``stamp_ns``; None outside [first - tol, last + tol].
