@@ -39,7 +39,6 @@ Example::
 
 from __future__ import annotations
 
-import itertools
 import math
 import sys
 import time
@@ -517,7 +516,30 @@ def _after_resumed(m: Any, scans: Iterable[Any], summary: MappingSummary) -> Ite
     skipped (the same selection, so the same scans)."""
     done = int(getattr(m, "scans_inserted", 0))
     summary.scans_resumed = done
-    return itertools.islice(scans, done, None) if done else scans
+    return _skip_resumed(scans, done, m) if done else scans
+
+
+_NONE = object()  # next()'s default: the stream ended
+
+
+def _skip_resumed(scans: Iterable[Any], done: int, m: Any) -> Iterator[Any]:
+    """``scans`` after the first ``done``. RecordingError when there are fewer: the selection
+    now ends (an earlier --end) before scans the checkpoint holds, and its map would hold
+    them all the same."""
+    from .io import RecordingError
+
+    it = iter(scans)
+    for k in range(done):
+        if next(it, _NONE) is _NONE:
+            folder = getattr(m, "folder", None)
+            raise RecordingError(
+                f"this selection of the recording ends after {k} scan{'' if k == 1 else 's'}, before the {done} that "
+                "the checkpoint being resumed holds (an earlier --end than the stopped run's?): its map would hold "
+                "scans past the end. "
+                "Resume with the stopped run's --end or a later one"
+                + (f", or merge the scans it holds with `ndtom merge {folder}`" if folder is not None else "")
+            )
+    yield from it
 
 
 def _stopped(summary: MappingSummary, why: str, text: str) -> None:

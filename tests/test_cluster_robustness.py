@@ -238,6 +238,17 @@ def test_resume_with_fewer_scans_than_the_checkpoint_holds_is_refused(tmp_path: 
     assert not (tmp_path / "m2.ndtom").exists()
 
 
+def test_resume_with_an_end_before_the_checkpoints_scans_is_refused(tmp_path: Path, bag: Path, local_engine):
+    """--end is not part of the job (a resumed run may go further), but an earlier one left a
+    map of all the checkpoint's scans, past that end, written with exit 0."""
+    t = tmp_path / "T"
+    assert map_bag(bag, "--tiled", t, "--max-scans", "3", "-o", tmp_path / "m.ndtom").exit_code == 0
+    r = map_bag(bag, "--tiled", t, "--resume", "--end", "0.05", "-o", tmp_path / "m2.ndtom")
+    assert_user_error(r, "ends after 0 scans, before the 3 that the checkpoint being resumed holds", f"ndtom merge {t}")
+    assert not (tmp_path / "m2.ndtom").exists()
+    assert json.loads((t / MANIFEST).read_text())["scans"] == 3  # the checkpoint is as it was
+
+
 def test_a_resume_with_another_option_names_it(tmp_path: Path, bag: Path, local_engine) -> None:
     t = tmp_path / "T"
     assert map_bag(bag, "--tiled", t, "--max-scans", "2", "-o", tmp_path / "m.ndtom").exit_code == 0
