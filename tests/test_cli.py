@@ -433,7 +433,10 @@ def test_clouds_before_the_first_transform_are_skipped_and_counted(bags, tmp_pat
 
 def test_no_scan_left_is_an_error(bags, tmp_path: Path) -> None:
     out = tmp_path / "none.ndtom"
-    r = run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--start", "100")
+    r = run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--start", "100")  # past the end: said so first
+    assert_user_error(r, "t_start (--start) 100 s is past the end", "s long (seconds from its first message")
+    assert not out.exists()
+    r = run("map", bags["ros1"], "-r", pb.RES, "-o", out, "--start", "0.3", "--end", "0.31")  # between two clouds
     assert_user_error(r, "no scans were mapped", "outside time window", "no map written")
     assert not out.exists()
 

@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import io_fixtures as fx  # noqa: E402
 
-from ndtom_ti.io import open_recording  # noqa: E402
+from ndtom_ti.io import RecordingError, open_recording  # noqa: E402
 
 MS = fx.MS
 S = 1000 * MS
@@ -83,3 +83,31 @@ def test_a_cloud_near_the_edge_of_a_gap_keeps_its_pose(tmp_path: Path) -> None:
     with open_recording(bag) as rec:
         stream = rec.scans()
         assert len(list(stream)) == 2
+
+
+# ----------------------------------------------------------------------------- time windows
+def _drive(tmp_path: Path) -> Path:
+    """2 s at 10 Hz: TF and a cloud at each 0.1 s."""
+    times = [T0 + k * 100 * MS for k in range(21)]
+    return _write(tmp_path, [_static()] + [_tf(t, (_x(t), 0.0, 0.0)) for t in times] + [_cloud(t) for t in times])
+
+
+@pytest.mark.parametrize(
+    ('window', 'says'),
+    [({'t_start': 2.5}, 't_start (--start) 2.5 s is past the end'), ({'t_end': -1.0}, 't_end (--end) -1 s is before')],
+)
+def test_a_time_window_outside_the_recording_is_refused_with_its_length(
+    tmp_path: Path, window: dict, says: str
+) -> None:
+    with open_recording(_drive(tmp_path)) as rec, pytest.raises(RecordingError) as err:
+        rec.scans(**window)
+    assert says in str(err.value) and 'is 2.000 s long' in str(err.value)
+
+
+@pytest.mark.parametrize('window', [{'t_start': -1e300}, {'t_end': 1e300}, {'t_start': -5.0, 't_end': 1e20}])
+def test_a_time_window_far_beyond_the_recording_keeps_every_cloud(tmp_path: Path, window: dict) -> None:
+    """Seconds past int64 nanoseconds (1e300 * 1e9 is inf) were an OverflowError."""
+    with open_recording(_drive(tmp_path)) as rec:
+        assert len(list(rec.scans(**window))) == 21
+        with pytest.raises(ValueError, match='finite number of seconds'):
+            rec.scans(t_start=float('nan'))

@@ -753,6 +753,14 @@ class Recording:
             raise ValueError(f'max_scans must be >= 1, got {max_scans}')
         if t_start is not None and t_end is not None and t_end < t_start:
             raise ValueError(f't_end ({t_end}) is before t_start ({t_start})')
+        for name, v in (('t_start', t_start), ('t_end', t_end)):
+            if v is not None and not np.isfinite(v):
+                raise ValueError(f'{name} must be a finite number of seconds from the recording\'s start, got {v}')
+        long = f'{self.path} is {self.duration_ns / 1e9:.3f} s long (seconds from its first message, by record time)'
+        if t_start is not None and t_start * 1e9 > self.duration_ns:
+            raise RecordingError(f't_start (--start) {t_start:g} s is past the end: {long}')
+        if t_end is not None and t_end < 0:
+            raise RecordingError(f't_end (--end) {t_end:g} s is before the start: {long}')
         if depth_stride < 1:
             raise ValueError(f'depth_stride must be >= 1, got {depth_stride}')
         names = [n.strip() for n in sel.cloud_topic.split(',')] if sel.cloud_topic else [None]
@@ -1230,8 +1238,10 @@ class ScanStream:
         self._every_distance = selection.every_distance
         self._record_time = selection.cloud_time == 'record'
         t_start, t_end = selection.t_start, selection.t_end
-        self._lo = None if t_start is None else rec.start_ns + round(t_start * 1e9)
-        self._hi = None if t_end is None else rec.start_ns + round(t_end * 1e9)
+        # (clamped to the recording, a second either side: 1e300 s is no int64 of ns)
+        span = (-1.0, rec.duration_ns / 1e9 + 1.0)
+        self._lo = None if t_start is None else rec.start_ns + round(float(np.clip(t_start, *span)) * 1e9)
+        self._hi = None if t_end is None else rec.start_ns + round(float(np.clip(t_end, *span)) * 1e9)
         self._max = selection.max_scans
         self._stride = depth_stride
         self.skipped: Counter[str] = Counter()
