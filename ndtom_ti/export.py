@@ -25,9 +25,10 @@ without a map slot or Taichi).
   ``(i, j, k)`` is exactly the leaf of key ``(i, j, k) + 32768``. Eight sibling leaves of one
   state are merged into their parent, as OctoMap's own writer does.
 - grid: an image ``NAME.pgm`` (P5; 0 occupied, 254 free, 205 unknown) and ``NAME.yaml``
-  (map_server: ``mode: trinary``, origin = the lower-left pixel). A column of cells is
-  occupied when a cell of the height band is, free when a cell of the band is known free
-  and none is occupied, unknown otherwise. The band is ``[z_min, z_max]`` in the map
+  (map_server: ``mode: trinary``, origin = the lower-left pixel, the image's name quoted
+  where YAML needs it: ``run #3.pgm``). A column of cells is occupied when a cell of the
+  height band is, free when a cell of the band is known free and none is occupied,
+  unknown otherwise. The band is ``[z_min, z_max]`` in the map
   frame, or by default 0.3 to 2 m above a floor plane fitted to the map (which may be
   tilted: a lidar's start pose is often the map frame).
 
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
@@ -473,6 +475,15 @@ def grid_paths(path: str | Path) -> tuple[Path, Path]:
     return base.with_name(base.name + ".pgm"), path if is_yaml else base.with_name(base.name + ".yaml")
 
 
+def _yaml_scalar(text: str) -> str:
+    """``text`` as a YAML string: plain when it reads back as itself, else double-quoted (JSON's
+    quoting is YAML's). A plain ``run #3.pgm`` is read as ``run`` (a comment), and ``a: b.pgm``
+    or ``[x].pgm`` are YAML errors: map_server loads no map."""
+    if re.fullmatch(r"\w[\w.+-]*", text):
+        return text
+    return json.dumps(text, ensure_ascii=False)
+
+
 def write_grid(grid: Grid, path: str | Path) -> tuple[Path, Path]:
     """``NAME.pgm`` and ``NAME.yaml`` (map_server's format) for ``path`` (either suffix, or
     none). Returns (pgm path, yaml path)."""
@@ -481,7 +492,7 @@ def write_grid(grid: Grid, path: str | Path) -> tuple[Path, Path]:
     head = (f"P5\n# ndtom_ti occupancy grid: {grid.band}, {grid.resolution!r} m cells\n{w} {h}\n255\n").encode("ascii")
     ox, oy = grid.origin
     text = (
-        f"image: {pgm.name}\n"
+        f"image: {_yaml_scalar(pgm.name)}\n"
         "mode: trinary\n"
         f"resolution: {grid.resolution!r}\n"
         f"origin: [{ox:.12g}, {oy:.12g}, 0.0]\n"

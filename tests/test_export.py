@@ -405,13 +405,23 @@ def read_pgm(path: Path) -> np.ndarray:
 
 
 def read_map_yaml(path: Path) -> dict:
-    """map_server's YAML keys (flat ``key: value`` lines, the origin a list)."""
+    """map_server's YAML keys (flat ``key: value`` lines, the origin a list), read by YAML's
+    rules for scalars (as yaml-cpp and PyYAML read them): a double-quoted value is a JSON
+    string; a plain one ends at `` #`` (a comment), may not hold ``: `` and may not start
+    with an indicator character (``[``, ``&``, ``#``, ...): such a line is an error."""
     out: dict = {}
     for line in path.read_text().splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
+        if not line.strip() or line.lstrip().startswith("#"):
             continue
-        key, value = (part.strip() for part in line.split(":", 1))
+        key, value = line.split(":", 1)
+        value = value.strip()
+        if value.startswith('"'):
+            out[key], end = json.JSONDecoder().raw_decode(value)
+            assert not value[end:].strip() or value[end:].strip().startswith("#"), line
+            continue
+        value = value.split(" #", 1)[0].strip()
+        assert ": " not in value and not value.endswith(":"), f"a YAML error: {line!r}"
+        assert value[:1] not in set("-?:,[]{}#&*!|>'%@`") or value.startswith("["), f"a YAML error: {line!r}"
         if value.startswith("["):
             out[key] = [float(x) for x in value.strip("[]").split(",")]
         else:
@@ -420,6 +430,25 @@ def read_map_yaml(path: Path) -> dict:
             except ValueError:
                 out[key] = value
     return out
+
+
+def test_grid_yaml_names_any_image(map_file: Path, tmp_path: Path) -> None:
+    """The YAML's ``image`` names the PGM whatever its name: plain when YAML reads it back
+    as written, quoted otherwise (``run #3.pgm`` was read as ``run``, and ``site: a.pgm`` or
+    ``[old].pgm`` made map_server's YAML fail; checked with PyYAML)."""
+    m = NdtOmMap.load(map_file)
+    for name in ("floor_2.pgm", "run #3.pgm", "site: a.yaml", "[old] &x.pgm", "'q\"é.pgm"):
+        pgm, yml = export_file(m, tmp_path / name, z_min=1.0, z_max=2.0).paths
+        meta = read_map_yaml(yml)
+        assert meta["image"] == pgm.name and (yml.parent / meta["image"]).is_file(), (name, yml.read_text())
+        assert meta["resolution"] == pb.RES and len(meta["origin"]) == 3
+        try:
+            import yaml
+        except ImportError:
+            continue
+        assert yaml.safe_load(yml.read_text())["image"] == pgm.name
+    assert "image: floor_2.pgm\n" in (tmp_path / "floor_2.yaml").read_text()  # plain where it can be
+    del m
 
 
 def test_grid_is_a_map_server_map(map_file: Path, tmp_path: Path) -> None:
