@@ -51,3 +51,182 @@ def test_documented_names_are_reachable_after_import_ndtom_ti() -> None:
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert json.loads(r.stdout.strip().splitlines()[-1]) == []
+
+
+# What a user reads and types: the options, signatures, defaults and names the docs give exist in the code
+# and say what the code does. The measurement logs (performance.md, quality.md) quote benchmarks' options.
+USER_PAGES = [p for p in _pages() if p.name not in ("performance.md", "quality.md")]
+OPTION = re.compile(r"(?<![\w-])(--[a-z][a-z0-9-]*)")
+# Options of other tools the docs name: rosbag record --split, ray start --head/--address.
+FOREIGN_OPTIONS = {"--split", "--head", "--address"}
+
+
+def _ndtom_options() -> tuple[set[str], dict[str, set[str]]]:
+    import typer
+
+    from ndtom_ti.cli import app
+
+    cmd = typer.main.get_command(app)
+    root = {o for p in cmd.params for o in [*p.opts, *p.secondary_opts]} | {"-h", "--help"}
+    per = {
+        name: root | {o for p in sub.params for o in [*p.opts, *p.secondary_opts]} for name, sub in cmd.commands.items()
+    }  # type: ignore[attr-defined]
+    return root, per
+
+
+def test_documented_options_exist() -> None:
+    """Every `--option` the docs name is an option of an `ndtom` command (or of a benchmark script
+    the text runs, or of another tool it names), and `ndtom CMD ... --opt` is an option of CMD."""
+    root, per = _ndtom_options()
+    ndtom = set().union(root, *per.values())
+    bench = {
+        o
+        for f in (ROOT / "benchmarks").glob("*.py")
+        for o in re.findall(r"[\"'](--[a-z][a-z0-9-]*)[\"']", f.read_text())
+    }
+    unknown, misplaced = [], []
+    for page in USER_PAGES:
+        text = page.read_text()
+        unknown += [f"{page.name}: {o}" for o in OPTION.findall(text) if o not in ndtom | bench | FOREIGN_OPTIONS]
+        commands = re.findall(r"`(ndtom [^`]+)`", text) + re.findall(r"^(ndtom .*)$", text, re.M)
+        for line in (c.split("#")[0].split() for c in commands):
+            if len(line) > 1 and line[1] in per:
+                misplaced += [
+                    f"{page.name}: ndtom {line[1]} {o}" for o in OPTION.findall(" ".join(line)) if o not in per[line[1]]
+                ]
+    assert not unknown, unknown
+    assert not misplaced, misplaced
+
+
+def test_sensor_model_table_gives_mapconfig_defaults() -> None:
+    """docs/sensor-model.md's table of MapConfig options: every field, each with its default."""
+    import dataclasses
+    import math
+
+    from ndtom_ti import MapConfig
+
+    text = (ROOT / "docs" / "sensor-model.md").read_text()
+    rows = re.findall(r"^\| (`[^|]+`)[^|]*\| ([^|]+) \|", text, re.M)
+    documented = {}
+    for names, default in rows:
+        for name, value in zip(re.findall(r"`(\w+)`", names), default.split(","), strict=False):
+            documented[name] = value.strip().split(" ")[0].strip("`")
+    fields = {f.name: f.default for f in dataclasses.fields(MapConfig)}
+    assert set(documented) == set(fields)
+    wrong = []
+    for name, value in documented.items():
+        want = fields[name]
+        got = {"inf": math.inf, "None:": None}.get(value, value)
+        if want is not None and not isinstance(want, str):
+            got = float(got)  # type: ignore[arg-type]
+        if got != want:
+            wrong.append(f"{name}: docs {value}, MapConfig {want!r}")
+    assert not wrong, wrong
+
+
+def _documented_callables() -> dict:
+    """The callables the docs give as `Name(...)`, by the name they are written with."""
+    from ndtom_ti import NdtOmMap, init
+    from ndtom_ti.cluster import TiledMap
+    from ndtom_ti.pipeline import map_recording
+    from ndtom_ti.snapshot import MapSnapshot
+
+    found = {"NdtOmMap": NdtOmMap, "TiledMap": TiledMap, "init": init, "gaussians": NdtOmMap.gaussians}
+    found["pipeline.map_recording"] = map_recording
+    found |= {
+        "save": NdtOmMap.save,
+        "s.save": MapSnapshot.save,
+        "MapSnapshot.save": MapSnapshot.save,
+        "m.save": NdtOmMap.save,
+    }
+    try:
+        from ndtom_ti.viewer import MapViewer
+        from ndtom_ti.viewer.live import LiveMapper
+    except ImportError:  # the [viewer] extra
+        return found
+    return found | {"MapViewer": MapViewer, "live": (MapViewer.live, LiveMapper.__init__)}
+
+
+def _last_call(span: str) -> tuple[str, str]:
+    """The call a code span ends with, `a.b(x).c(y=1)` -> ("c", "y=1"), and its name as written
+    (`ndtom_ti.init` -> "init"; `s.save`, `m.save` kept: whose save it is)."""
+    depth = 0
+    for i in range(len(span) - 1, -1, -1):
+        depth += {")": 1, "(": -1}.get(span[i], 0)
+        if depth == 0:
+            name = re.search(r"([A-Za-z_][\w.]*)$", span[:i])
+            if name is None:
+                return "", ""
+            return name.group(1).removeprefix("ndtom_ti.").split(").")[-1].removeprefix("MapViewer(...)."), span[
+                i + 1 : -1
+            ]
+    return "", ""
+
+
+def test_documented_signatures_match_the_code() -> None:
+    """`Name(kw=value, ...)` in the docs: every keyword is one the callable takes (NdtOmMap and TiledMap
+    also take MapConfig's fields); where two or more keywords all give values (a signature), each value is
+    the callable's default (for map options left None, MapConfig's)."""
+    import ast
+    import dataclasses
+    import inspect
+    import math
+
+    from ndtom_ti import MapConfig
+
+    config = {f.name: f.default for f in dataclasses.fields(MapConfig)}
+    callables = _documented_callables()
+    bad, checked = [], 0
+    for page in USER_PAGES:
+        for name, args in (_last_call(s) for s in re.findall(r"`([^`]*\))`", page.read_text())):
+            if name not in callables:
+                continue
+            funcs = callables[name] if isinstance(callables[name], tuple) else (callables[name],)
+            params = {}
+            for f in reversed(funcs):
+                params |= {p.name: p.default for p in inspect.signature(f).parameters.values()}
+            if name in ("NdtOmMap", "TiledMap"):
+                params = {**config, **{k: (config[k] if v is None and k in config else v) for k, v in params.items()}}
+            given = re.findall(r"(\w+)=([^,()]+(?:\([^)]*\))?)", " ".join(args.split()))
+            literal = {}
+            for key, value in given:
+                if key not in params:
+                    bad.append(f"{page.name}: {name}() takes no {key}=")
+                    continue
+                try:
+                    literal[key] = ast.literal_eval(value.strip())
+                except (ValueError, SyntaxError):
+                    literal[key] = math.inf if value.strip() == "inf" else Ellipsis
+            if len(literal) >= 2 and Ellipsis not in literal.values():
+                checked += 1
+                bad += [
+                    f"{page.name}: {name}({key}={value!r}), the code's default is {params[key]!r}"
+                    for key, value in literal.items()
+                    if params[key] != value
+                ]
+    assert checked >= 3  # NdtOmMap, gaussians, TiledMap in api.md
+    assert not bad, bad
+
+
+def test_api_md_names_exist() -> None:
+    """Every `name` and `name(...)` docs/api.md gives is something of the API: an attribute of a map, a
+    snapshot, a ScanReport, a TiledMap (its instance attributes too) or the package, a MapConfig option or
+    a parameter of a callable it documents."""
+    import dataclasses
+    import inspect
+
+    import ndtom_ti
+    from ndtom_ti import MapConfig, MapSnapshot, NdtOmMap, ScanReport
+    from ndtom_ti.cluster import TiledMap
+
+    owners = [NdtOmMap, MapSnapshot, ScanReport, TiledMap, ndtom_ti, ndtom_ti.cluster]
+    known = {f.name for f in dataclasses.fields(MapConfig)}
+    known |= set(re.findall(r"self\.(\w+)\s*[:=]", inspect.getsource(TiledMap)))
+    for f in _documented_callables().values():
+        for g in f if isinstance(f, tuple) else (f,):
+            known |= set(inspect.signature(g).parameters)
+    known |= {"OFF", "fork"}  # an environment variable's value; the start method
+    text = (ROOT / "docs" / "api.md").read_text()
+    names = set(re.findall(r"`([A-Za-z_]\w*)(?:\([^`]*\))?`", text))
+    missing = sorted(n for n in names if n not in known and not any(hasattr(o, n) for o in owners))
+    assert not missing, missing
