@@ -165,8 +165,8 @@ def _last_call(span: str) -> tuple[str, str]:
 
 def test_documented_signatures_match_the_code() -> None:
     """`Name(kw=value, ...)` in the docs: every keyword is one the callable takes (NdtOmMap and TiledMap
-    also take MapConfig's fields); where two or more keywords all give values (a signature), each value is
-    the callable's default (for map options left None, MapConfig's)."""
+    also take MapConfig's fields); a signature (a bullet that starts with the call, two or more keywords,
+    all with values) gives each keyword's default (for map options left None, MapConfig's)."""
     import ast
     import dataclasses
     import inspect
@@ -178,7 +178,8 @@ def test_documented_signatures_match_the_code() -> None:
     callables = _documented_callables()
     bad, checked = [], 0
     for page in USER_PAGES:
-        for name, args in (_last_call(s) for s in re.findall(r"`([^`]*\))`", page.read_text())):
+        for lead, span in re.findall(r"(^- )?`([^`]*\))`", page.read_text(), re.M):
+            name, args = _last_call(span)
             if name not in callables:
                 continue
             funcs = callables[name] if isinstance(callables[name], tuple) else (callables[name],)
@@ -197,7 +198,7 @@ def test_documented_signatures_match_the_code() -> None:
                     literal[key] = ast.literal_eval(value.strip())
                 except (ValueError, SyntaxError):
                     literal[key] = math.inf if value.strip() == "inf" else Ellipsis
-            if len(literal) >= 2 and Ellipsis not in literal.values():
+            if lead and len(literal) >= 2 and Ellipsis not in literal.values():
                 checked += 1
                 bad += [
                     f"{page.name}: {name}({key}={value!r}), the code's default is {params[key]!r}"
