@@ -47,7 +47,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from .atomic import atomic_write
+from .atomic import atomic_write, check_target
 from .frames import as_frame_origin
 
 __all__ = [
@@ -488,6 +488,8 @@ def write_grid(grid: Grid, path: str | Path) -> tuple[Path, Path]:
     """``NAME.pgm`` and ``NAME.yaml`` (map_server's format) for ``path`` (either suffix, or
     none). Returns (pgm path, yaml path)."""
     pgm, yml = grid_paths(path)
+    for target in (pgm, yml):  # both before either: a YAML path that was a folder left the PGM written
+        check_target(target)
     h, w = grid.image.shape
     head = (f"P5\n# ndtom_ti occupancy grid: {grid.band}, {grid.resolution!r} m cells\n{w} {h}\n255\n").encode("ascii")
     ox, oy = grid.origin

@@ -205,6 +205,25 @@ def test_export_errors_exit_2(map_file: Path, tmp_path: Path, setup, args, texts
     assert not list(tmp_path.glob("h*"))  # nothing written
 
 
+def test_export_to_a_folder_writes_nothing(map_file: Path, tmp_path: Path) -> None:
+    """A target that is a folder is refused before anything is written, with a file name of
+    the format's suffix as the hint (it said ``map.ndtom``); for a grid, either of its two
+    files: a YAML path that was a folder left the PGM written and exited 1."""
+    (tmp_path / "d.ply").mkdir()
+    r = run("export", map_file, "-o", tmp_path / "d.ply")
+    assert r.exit_code == 2 and "is a folder" in r.output and "d.ply/map.ply" in r.output, r.output
+    (tmp_path / "g.yaml").mkdir()
+    for out in ("g.pgm", "g.yaml", "g"):
+        r = run("export", map_file, "-f", "grid", "-o", tmp_path / out, "--z-min", 1, "--z-max", 2)
+        assert r.exit_code == 2, r.output
+        assert "g.yaml is a folder" in r.output and "g.yaml/map.pgm" in r.output, r.output
+    m = NdtOmMap.load(map_file)
+    with pytest.raises(IsADirectoryError, match="g.yaml: it is a folder"):
+        export_file(m, tmp_path / "g.pgm", z_min=1.0, z_max=2.0)
+    del m
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.ply", "g.yaml"]  # no PGM, no temporaries
+
+
 def test_python_api_and_empty_maps(tmp_path: Path) -> None:
     empty = {
         "index": np.zeros((0, 3), np.int64),

@@ -165,11 +165,12 @@ def init_taichi(arch: Arch, memory_limit: float | None = None) -> str:
     return used
 
 
-def check_writable(path: Path, what: str = "output", option: str = "-o") -> Path:
-    """Fail now (before any mapping) when ``path`` cannot be written; the hints name ``option``."""
+def check_writable(path: Path, what: str = "output", option: str = "-o", suffix: str = MAP_SUFFIX) -> Path:
+    """Fail now (before any mapping) when ``path`` cannot be written; the hints name ``option``
+    (and a file name of ``suffix`` for a folder given)."""
     path = path.expanduser()
     if path.is_dir():
-        fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + MAP_SUFFIX)}")
+        fail(f"the {what} path {path} is a folder", f"give a file name, e.g. {path / ('map' + suffix)}")
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():
         fail(

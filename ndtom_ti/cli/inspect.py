@@ -360,9 +360,12 @@ def export(
             out_path = map_file.parent / (map_file.name + DEFAULT_SUFFIX[fmt_name])
         else:
             out_path = map_file.with_suffix(DEFAULT_SUFFIX[fmt_name])
-        for t in grid_paths(out_path) if fmt_name == "grid" else (out_path,):
+        out_path = out_path.expanduser()
+        targets = grid_paths(out_path) if fmt_name == "grid" else (out_path,)
+        for t in targets:
             check_not_input(t, {"map file": map_file})
-        out_path = check_writable(out_path, f"{fmt_name} file")
+        for t in targets:  # a grid's both files: a bad YAML path left the PGM written
+            check_writable(t, f"{fmt_name} file", suffix=DEFAULT_SUFFIX[fmt_name])
         from ..snapshot import MapSnapshot
 
         # a snapshot: numpy only, no map slot and no Taichi (--arch has nothing to choose)
