@@ -523,7 +523,8 @@ def map_(
         typer.Option(
             metavar="DIR",
             help="With --workers: write the checkpoints to DIR and keep it, a tiled map (`ndtom merge`, info, export "
-            "and view read it). Default: OUT.tiles beside the map file, removed after a complete run.",
+            "and view read it). Default: the map file's name with .tiles added, beside it (site.ndtom.tiles), removed "
+            "after a complete run.",
             show_default=False,
         ),
     ] = None,
@@ -540,7 +541,8 @@ def map_(
         bool,
         typer.Option(
             "--resume",
-            help="With --workers: carry on from the checkpoint of a stopped run (--tiled DIR, else OUT.tiles), "
+            help="With --workers: carry on from the checkpoint of a stopped run (--tiled DIR, else site.ndtom.tiles "
+            "beside -o site.ndtom), "
             "skipping the scans it holds; give the stopped run's options.",
         ),
     ] = False,

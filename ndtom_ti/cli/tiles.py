@@ -37,7 +37,9 @@ from .common import (
 from .root import app
 
 TILES_SUFFIX = ".tiles"  # the checkpoint folder beside the map file without --tiled: OUT.ndtom.tiles
-RESUME_HINT = "give the folder of the stopped run with --tiled DIR (without --tiled: OUT.ndtom.tiles beside -o OUT)"
+RESUME_HINT = (
+    "give the folder of the stopped run with --tiled DIR (without --tiled: OUT.ndtom.tiles beside -o OUT.ndtom)"
+)
 
 
 DAMAGED_HINT = (
