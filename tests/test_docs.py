@@ -231,3 +231,14 @@ def test_api_md_names_exist() -> None:
     names = set(re.findall(r"`([A-Za-z_]\w*)(?:\([^`]*\))?`", text))
     missing = sorted(n for n in names if n not in known and not any(hasattr(o, n) for o in owners))
     assert not missing, missing
+
+
+def test_large_maps_record_bytes() -> None:
+    """docs/large-maps.md's bytes of a Gaussian record, without and with the NDT miss model's arrays."""
+    from ndtom_ti.kernels.layout import NDT_RECORD_BYTES, RECORD_BYTES
+
+    text = " ".join((ROOT / "docs" / "large-maps.md").read_text().split())
+    plain = {int(b) for b in re.findall(r"(\d+) B (?:each|record)\b", text)}
+    ndt = {int(b) for b in re.findall(r"(\d+) B with the NDT miss model", text)}
+    assert plain == {RECORD_BYTES}, plain
+    assert ndt == {RECORD_BYTES + NDT_RECORD_BYTES}, ndt
