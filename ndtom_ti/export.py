@@ -23,7 +23,8 @@ without a map slot or Taichi).
   occupied or free leaf at the map's resolution. OctoMap's tree has 16 levels centred on
   the origin and its leaf key is ``floor(x / resolution) + 32768`` per axis, so map cell
   ``(i, j, k)`` is exactly the leaf of key ``(i, j, k) + 32768``. Eight sibling leaves of one
-  state are merged into their parent, as OctoMap's own writer does.
+  state are merged into their parent, as OctoMap's own writer does. Its keys reach +-32768
+  cells from the origin (+-3276.8 m at 0.1 m); a map's default grid is half that.
 - grid: an image ``NAME.pgm`` (P5; 0 occupied, 254 free, 205 unknown) and ``NAME.yaml``
   (map_server: ``mode: trinary``, origin = the lower-left pixel, the image's name quoted
   where YAML needs it: ``run #3.pgm``). A column of cells is occupied when a cell of the
@@ -321,7 +322,18 @@ def octree_stream(index: Any, occupied: Any) -> tuple[int, bytes]:
 def write_bt(index: Any, occupied: Any, resolution: float, path: str | Path, comment: str | None = None) -> Path:
     """OctoMap binary tree (``.bt``) of cells ``index`` (K, 3) at ``resolution`` (module doc);
     ``comment``: one more header comment line (OctoMap's reader skips them)."""
-    size, data = octree_stream(index, occupied)
+    idx, r = np.asarray(index, np.int64).reshape(-1, 3), float(resolution)
+    if len(idx) and (idx.min() < -_OCTO_OFFSET or idx.max() >= _OCTO_OFFSET):
+        # only a map of a larger grid than the default (Layout) reaches this: say it in metres
+        reach = max(-int(idx.min()), int(idx.max()) + 1) * r
+        limit = _OCTO_OFFSET * r
+        fits = r * 2 ** math.ceil(math.log2(reach / limit))
+        raise ValueError(
+            f"the map's cells reach {reach:.1f} m from its origin, past OctoMap's tree ({_OCTO_DEPTH} levels of "
+            f"keys: +-{limit:g} m at {r:g} m cells); its map coarsened to {fits:g} m cells fits (coarsen), "
+            "or export another format"
+        )
+    size, data = octree_stream(idx, occupied)
     header = (
         "# Octomap OcTree binary file\n"
         "# written by ndtom_ti: known cells of an NDT Occupancy Map, occupied or free\n"

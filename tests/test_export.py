@@ -18,7 +18,7 @@ import test_pipeline_bags as pb  # noqa: E402
 
 from ndtom_ti import NdtOmMap  # noqa: E402
 from ndtom_ti.cli import app  # noqa: E402
-from ndtom_ti.export import COV_TERMS, export_file, export_map, write_ply  # noqa: E402
+from ndtom_ti.export import COV_TERMS, export_file, export_map, write_bt, write_ply  # noqa: E402
 from ndtom_ti.pipeline import map_scans  # noqa: E402
 
 IJ = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -399,6 +399,14 @@ def test_bt_merges_full_octants_and_rejects_cells_beyond_octomap(tmp_path: Path)
         octree_stream([[0, 0, 40000]], [True])
     with pytest.raises(ValueError, match="twice"):
         octree_stream([[1, 2, 3], [1, 2, 3]], [True, False])
+    # a map of a grid larger than the default (Layout) can hold cells past OctoMap's keys:
+    # the refusal says it in metres and names the coarser resolution that fits
+    with pytest.raises(ValueError, match=r"reach 4000\.1 m .* \+-3276\.8 m at 0\.1 m cells.* 0\.2 m cells fits"):
+        write_bt([[-5, 0, 0], [40000, 0, 0]], [True, False], 0.1, tmp_path / "far.bt")
+    with pytest.raises(ValueError, match=r"reach 3276\.9 m .* 0\.2 m cells fits"):
+        write_bt([[-32769, 0, 0]], [True], 0.1, tmp_path / "far.bt")
+    assert write_bt([[-32768, 0, 32767]], [True], 0.1, tmp_path / "edge.bt").is_file()  # the last keys fit
+    assert not (tmp_path / "far.bt").exists()
 
 
 def read_pgm(path: Path) -> np.ndarray:
