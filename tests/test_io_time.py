@@ -111,3 +111,67 @@ def test_a_time_window_far_beyond_the_recording_keeps_every_cloud(tmp_path: Path
         assert len(list(rec.scans(**window))) == 21
         with pytest.raises(ValueError, match='finite number of seconds'):
             rec.scans(t_start=float('nan'))
+
+
+# ----------------------------------------------------------------------------- clocks that jump back
+def _two_runs(source: str, second_stamp0: int = T0, outlier: int | None = None) -> list[fx.Entry]:
+    """A drive of 2 s at 10 Hz recorded twice (a looped playback, a restarted simulation): the
+    second run recorded from 3 s on, its stamps from ``second_stamp0``, the vehicle 5 m to the
+    side. ``outlier``: one transform of the first run stamped there instead."""
+    out = [_static()]
+    make = _tf if source == 'tf' else _odom
+    for run, stamp0 in enumerate((T0, second_stamp0)):
+        for k in range(21):
+            t, stamp = T0 + run * 3 * S + k * 100 * MS, stamp0 + k * 100 * MS
+            xyz = (k * 0.1, 5.0 * run, 0.0)
+            if source == 'tf':
+                out.append(_tf(t, xyz, stamp=outlier if (run, k) == (0, 10) and outlier else stamp))
+            else:
+                out.append(('/odom', ODOM, t, lambda m, s=stamp, xyz=xyz: m.odometry(s, 'map', 'base_link', xyz, Q0)))
+            out.append(_cloud(t + 10 * MS, stamp=stamp + 10 * MS))
+    return out
+
+
+@pytest.mark.parametrize('source', ['tf', 'odom'])
+def test_a_recording_whose_clock_jumps_back_is_mapped_one_run_at_a_time(tmp_path: Path, source: str) -> None:
+    """Both runs give poses at the same stamps: merged, each cloud took the pose of either run
+    (interleaved). Refused, naming the runs; --start/--end of one maps it with its own poses."""
+    bag = _write(tmp_path, _two_runs(source))
+    pose_topic = '/odom' if source == 'odom' else None
+    edge = 'map -> base_link' if source == 'tf' else '/odom'
+    with open_recording(bag) as rec:
+        with pytest.raises(RecordingError) as err:
+            rec.scans(pose_topic=pose_topic)
+        text = str(err.value)
+        assert f'jump back at 3.000 s into the recording ({edge} from {(T0 + 2 * S) / 1e9:.3f} s to' in text, text
+        assert (
+            'it holds 2 runs of one clock' in text and '--start 0.000 --end 2.999 or --start 3.000 --end 5.010' in text
+        )
+        assert any('jump back at 3.000 s' in n for n in rec.info().notes)
+        for run, window in enumerate(({'t_end': 2.999}, {'t_start': 3.0})):
+            stream = rec.scans(pose_topic=pose_topic, **window)
+            scans = list(stream)
+            assert len(scans) == 21
+            for s in scans:
+                assert s.T_world_sensor[1, 3] == pytest.approx(5.0 * run)
+            assert f'poses of run {run + 1} of 2' in ' '.join(stream.notes)
+
+
+def test_a_clock_restarted_before_its_first_stamps_maps_both_runs(tmp_path: Path) -> None:
+    """Simulation time from 1 s again: the runs' stamps are apart, so each cloud still finds
+    its own run's poses (and none between them: a gap of decades)."""
+    with open_recording(_write(tmp_path, _two_runs('tf', second_stamp0=S))) as rec:
+        scans = list(rec.scans())
+    assert len(scans) == 42
+    for s in scans:
+        assert s.T_world_sensor[1, 3] == pytest.approx(0.0 if s.stamp_ns > T0 else 5.0)
+
+
+@pytest.mark.parametrize('outlier', [T0 + 10**6 * S, 5 * S], ids=['future', 'past'])
+def test_one_transform_stamped_far_off_is_no_second_run(tmp_path: Path, outlier: int) -> None:
+    """A stamp days ahead (or in 1970) among the others, then back: no run of its own."""
+    entries = [e for e in _two_runs('tf', outlier=outlier) if e[2] < T0 + 3 * S]
+    with open_recording(_write(tmp_path, entries)) as rec:
+        stream = rec.scans()
+        assert len(list(stream)) == 21
+    assert not any('jump' in n for n in stream.notes)

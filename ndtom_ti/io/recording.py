@@ -7,6 +7,7 @@ import re
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
 from typing import Any
@@ -197,6 +198,30 @@ def _cloud_stamp(header_ns: int, record_ns: int, by_record: bool = False) -> int
     return record_ns if by_record or header_ns == 0 else header_ns
 
 
+# A pose source whose stamps go back by more than this (and stay back) starts a second run of
+# its clock (a looped playback, a restarted simulation), not a late message.
+_JUMP_NS = 10**9
+
+
+def _jumps_back(what: str, record_ns: list[int], stamps: list[int]) -> list[tuple[int, str]]:
+    """(record time, what) where the stamps of one pose source, in record order, jump back into
+    stamps it gave already: a second run of its clock. A jump is a stamp over a second before
+    the median of the 5 before it, with the next two back too (one message stamped in the
+    future or the past is no run); a clock that restarts before all of the run it ends (sim
+    time from 0 again) gives stamps apart from it, which cannot mix (a gap between them is no
+    pose: PoseTrack.hole_at)."""
+    st = np.asarray(stamps, np.int64)
+    cuts = []
+    for i in np.flatnonzero(st[1:] < st[:-1] - _JUMP_NS) + 1:
+        ref = int(np.median(st[max(0, i - 5) : i]))
+        if (st[i : i + 3] < ref - _JUMP_NS).all():
+            cuts.append(int(i))
+    runs = [st[a:b] for a, b in zip([0, *cuts], [*cuts, len(st)], strict=True)]
+    if not any(a.min() <= b.max() and b.min() <= a.max() for k, a in enumerate(runs) for b in runs[k + 1 :]):
+        return []  # (no cuts: no runs to overlap)
+    return [(int(record_ns[i]), f'{what} from {_s(int(st[i - 1]))} to {_s(int(st[i]))}') for i in cuts]
+
+
 def _inverse_fn(fn: PoseFn) -> PoseFn:
     """The inverse of a rigid transform provider."""
 
@@ -329,7 +354,9 @@ class Recording:
             for name, ti in sorted(self._reader.topics.items())
         }
         self._tf: TfBuffer | None = None
-        self._tf_bufs: dict[tuple[str, ...], TfBuffer] = {}
+        self._tf_topics: tuple[str, ...] | None = None  # those use_tf chose (None: every TF topic)
+        self._tf_bufs: dict[tuple[tuple[str, ...], tuple[int, int] | None], TfBuffer] = {}
+        self._jumps: dict[tuple[tuple[str, ...], tuple[int, int] | None], list[tuple[int, str]]] = {}
         self._poses = _PoseSources(self)  # pose topics' tracks and the choice of a pose source
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
@@ -433,25 +460,94 @@ class Recording:
         return [n for n, (t, c, _) in self._topics.items() if t in types]
 
     # -- TF and pose topics
-    def _tf_buffer(self, topics: tuple[str, ...]) -> TfBuffer:
-        """The transforms of these TFMessage topics (names ending in tf_static are static)."""
-        buf = self._tf_bufs.get(topics)
+    def _tf_buffer(self, topics: tuple[str, ...], span: tuple[int, int] | None = None) -> TfBuffer:
+        """The transforms of these TFMessage topics (names ending in tf_static are static);
+        ``span``: the moving ones recorded in [lo, hi) record time only (one run of a clock
+        that jumps back, :meth:`_clock_jumps`)."""
+        buf = self._tf_bufs.get((topics, span))
         if buf is None:
             buf = TfBuffer()
+            seen: dict[str, tuple[list[int], list[int]]] = {}  # 'parent -> child' -> (record times, stamps)
             # static first so that a child on both topics is known as static from the start
             for topic in sorted(topics, key=lambda n: not n.endswith('tf_static')):
                 static = topic.endswith('tf_static')
-                for _, msgtype, raw in self._messages(topic):
-                    buf.add_message(self._deserialize(raw, msgtype, topic), static=static)
-            self._tf_bufs[topics] = buf
+                for t, msgtype, raw in self._messages(topic):
+                    if span is not None and not static and not span[0] <= t < span[1]:
+                        continue
+                    msg = self._deserialize(raw, msgtype, topic)
+                    for tr in () if static or span else msg.transforms:
+                        edge = f'{normalize_frame(tr.header.frame_id)} -> {normalize_frame(tr.child_frame_id)}'
+                        rec_ns, stamps = seen.setdefault(edge, ([], []))
+                        rec_ns.append(t)
+                        stamps.append(stamp_ns(tr.header.stamp))
+                    buf.add_message(msg, static=static)
+            self._tf_bufs[(topics, span)] = buf
+            self._jumps[(topics, span)] = [j for edge, (r, st) in seen.items() for j in _jumps_back(edge, r, st)]
         return buf
 
     def tf(self) -> TfBuffer:
         """The transforms poses come from: every TFMessage topic's, or those :meth:`use_tf`
         chose (one robot's of several with namespaced TF topics)."""
         if self._tf is None:
-            self._tf = self._tf_buffer(tuple(self._of_type(*TF_TYPES)))
+            self._tf = self._tf_buffer(self._tf_topics or tuple(self._of_type(*TF_TYPES)))
         return self._tf
+
+    def _clock_jumps(self) -> list[tuple[int, str]]:
+        """(record time, what) where the stamps of the TF edges or pose topics go back into
+        stamps they gave already (:func:`_jumps_back`), in record order."""
+        self.tf()
+        jumps = list(self._jumps[(self._tf_topics or tuple(self._of_type(*TF_TYPES)), None)])
+        for topic in self.pose_topics():
+            if topic not in self._poses.jumps:
+                self._poses.track(topic)
+            jumps += self._poses.jumps[topic]
+        return sorted(jumps)
+
+    def _runs(self) -> list[tuple[int, int]]:
+        """[lo, hi) record times of the runs of the recording's clock: one, or one more per
+        place where it jumps back (a second jump within a second of the first is the same)."""
+        cuts: list[int] = []
+        for t, _ in self._clock_jumps():
+            if not cuts or t - cuts[-1] > _JUMP_NS:
+                cuts.append(t)
+        bounds = [self.start_ns, *cuts, self.end_ns + 1]
+        return list(pairwise(bounds))
+
+    def _use_run(self, t_start: float | None, t_end: float | None) -> str | None:
+        """Where the clock jumps back, the poses of the run that holds the time window only;
+        RecordingError where the window spans several runs. A note saying which run, or None."""
+        self._poses.span = None
+        runs = self._runs()
+        if len(runs) < 2:
+            return None
+        lo = self.start_ns + (0 if t_start is None else round(t_start * 1e9))
+        hi = self.end_ns if t_end is None else self.start_ns + round(t_end * 1e9)
+        inside = [r for r in runs if r[0] <= hi and r[1] > lo]
+        rel = [
+            ((a - self.start_ns + 999_999) // 1_000_000 / 1e3, (b - 1 - self.start_ns) // 1_000_000 / 1e3)
+            for a, b in runs
+        ]
+        if len(inside) != 1:
+            raise RecordingError(
+                f'{self._jump_text(runs)}, so a cloud\'s pose would be either run\'s. Map one run at a time: '
+                + ' or '.join(f'--start {a:.3f} --end {b:.3f}' for a, b in rel)
+            )
+        k = runs.index(inside[0])
+        self._tf = self._tf_buffer(self._tf_topics or tuple(self._of_type(*TF_TYPES)), inside[0])
+        self._poses.span = inside[0]
+        return (
+            f"the recording's clock jumps back (a looped playback, a restarted simulation): poses of run {k + 1} "
+            f'of {len(runs)} (--start {rel[k][0]:.3f} --end {rel[k][1]:.3f}) only'
+        )
+
+    def _jump_text(self, runs: list[tuple[int, int]]) -> str:
+        jumps = self._clock_jumps()
+        at = ', '.join(_s(b - self.start_ns) for b, _ in runs[1:])
+        return (
+            f'the stamps of {self.path} jump back at {at} into the recording ({jumps[0][1]}'
+            f'{", and more" if len(jumps) > 1 else ""}): it holds {len(runs)} runs of one clock (a looped playback, '
+            'a restarted simulation) that give poses at the same stamps'
+        )
 
     def use_tf(self, cloud_topics: list[str], tf_topic: str | None = None) -> None:
         """Choose the TF topics for these cloud topics. Namespaced TF topics that give the same
@@ -469,16 +565,17 @@ class Recording:
                 raise RecordingError(
                     f'TF topic {tf_topic!r} is not in {self.path}; TF topics: {", ".join(topics) or "(none)"}'
                 )
-            self._tf = self._tf_buffer(tuple(groups[ns]))
+            self._tf_topics = tuple(groups[ns])
+            self._tf = self._tf_buffer(self._tf_topics)
             self._tf.source_note = f'TF from {", ".join(groups[ns])} (tf_topic)'
             return
         if len(groups) < 2:
-            self._tf = None
+            self._tf = self._tf_topics = None
             return
         children = {ns: set(self._tf_buffer(tuple(g)).tree()) for ns, g in groups.items()}
         shared = sorted({f for a in children for b in children if a < b for f in children[a] & children[b]})
         if not shared:  # namespaces of different frames: one tree
-            self._tf = None
+            self._tf = self._tf_topics = None
             return
         which = {max((ns for ns in groups if c.startswith(ns + '/')), key=len, default=None) for c in cloud_topics}
         listing = ', '.join(topics)
@@ -486,7 +583,8 @@ class Recording:
         if len(which) == 1 and None not in which:
             ns = which.pop()
             assert ns is not None
-            self._tf = self._tf_buffer(tuple(groups[ns]))
+            self._tf_topics = tuple(groups[ns])
+            self._tf = self._tf_buffer(self._tf_topics)
             self._tf.source_note = (
                 f'TF topics of several namespaces give the same frames ({", ".join(shared[:4])}): {listing}; '
                 f'using {", ".join(groups[ns])}, those of the cloud topic\'s namespace (--tf-topic chooses others)'
@@ -599,6 +697,9 @@ class Recording:
                 + ', '.join(f.name for f in self.files[:4])
                 + (f' ... {self.files[-1].name}' if len(self.files) > 4 else '')
             )
+        runs = self._runs()
+        if len(runs) > 1:
+            notes.append(f'{self._jump_text(runs)}: ndtom map maps one run at a time (--start, --end)')
         for topic, _ in mappable:
             first = self._first_message(topic)
             if first is None:
@@ -767,6 +868,7 @@ class Recording:
         if len(names) > 1 and any(not n for n in names):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
         self.use_tf([self._resolve_cloud_topic(n)[0] for n in names], sel.tf_topic)
+        run = self._use_run(sel.t_start, sel.t_end)  # (before the mounts given: they go into its TF)
         if sel.static_transforms:
             tf = self.tf()
             for parent, child, t, q in sel.static_transforms:  # (a recording without its /tf_static)
@@ -774,6 +876,8 @@ class Recording:
         if len(names) > 1 and sel.poses_file is not None and not isinstance(sel.poses_file, PoseTrack):
             sel = replace(sel, poses_file=load_pose_file(sel.poses_file))  # read once for every topic
         parts = [self._stream_part(n, sel, round(extrapolation_s * 1e9)) for n in names]
+        if run is not None:
+            parts[0].choice.notes = (run, *parts[0].choice.notes)
         topics = [p.topic for p in parts]
         if len(set(topics)) < len(topics):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r} names a topic twice')
@@ -833,11 +937,17 @@ class _PoseSources:
 
     def __init__(self, rec: Recording) -> None:
         self._rec = rec
-        self._pose_tracks: dict[str, tuple[PoseTrack, str, str | None, list[str]]] = {}
+        # (topic, span) -> (track, parent, child, notes)
+        self._pose_tracks: dict[tuple[str, tuple[int, int] | None], tuple[PoseTrack, str, str | None, list[str]]] = {}
+        self.jumps: dict[str, list[tuple[int, str]]] = {}  # topic -> where its stamps jump back (_jumps_back)
+        self.span: tuple[int, int] | None = None  # [lo, hi) record time: one run of a clock (Recording._use_run)
 
     def track(self, topic: str) -> tuple[PoseTrack, str, str | None, list[str]]:
-        """(track T_parent_child, parent frame, child frame or None, notes) of a pose topic."""
-        if topic not in self._pose_tracks:
+        """(track T_parent_child, parent frame, child frame or None, notes) of a pose topic
+        (its messages recorded in ``span`` only, where that is set)."""
+        span = self.span
+        if (topic, span) not in self._pose_tracks:
+            rec_ns: list[int] = []
             msgtype = self._rec._topics[topic][0]
             stamps: list[int] = []
             ts: list[tuple[float, float, float]] = []
@@ -848,6 +958,8 @@ class _PoseSources:
             child: str | None = None
             zero_stamps = 0
             for t_rec, mt, raw in self._rec._messages(topic):
+                if span is not None and not span[0] <= t_rec < span[1]:
+                    continue
                 m = self._rec._deserialize(raw, mt, topic)
                 if msgtype.endswith('TransformStamped'):
                     v, q = m.transform.translation, m.transform.rotation
@@ -869,6 +981,7 @@ class _PoseSources:
                     continue
                 stamp = stamp_ns(m.header.stamp)
                 zero_stamps += stamp == 0
+                rec_ns.append(t_rec)
                 stamps.append(_cloud_stamp(stamp, t_rec))  # an unset stamp: the bag's record time, as for clouds
                 ts.append(t)
                 qs.append(r)
@@ -877,8 +990,10 @@ class _PoseSources:
             for why, n in bad.items():
                 notes.append(f'{topic}: ignored {n} pose{"s" if n != 1 else ""} with {why}')
             track = PoseTrack.from_tq(stamps, ts, qs, source=f'pose topic {topic}')
-            self._pose_tracks[topic] = (track, parent or '', child, notes)
-        return self._pose_tracks[topic]
+            self._pose_tracks[(topic, span)] = (track, parent or '', child, notes)
+            if span is None:
+                self.jumps[topic] = _jumps_back(topic, rec_ns, stamps)
+        return self._pose_tracks[(topic, span)]
 
     def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
         """True when the pose stamps cannot be on the clock of the clouds: the clouds, which span
