@@ -92,7 +92,7 @@ class NdtOmMap:
         metadata: a dict saved with the map (source, settings, ...).
 
         Raises TypeError or ValueError for a bad resolution or option, and
-        MapMemoryError when every map slot of the process is taken.
+        NoFreeSlotError when every map slot of the process is taken.
         """
         given = {
             "p_occupied": p_occupied,
@@ -380,12 +380,14 @@ class NdtOmMap:
 
     @_locked
     def coarsen(self, factor: int) -> NdtOmMap:
-        """A new map at ``factor * resolution`` (method.md sec. 4).
+        """A new map at ``factor * resolution`` (the paper's sec. III-B).
 
         Every cell's (N, mean, scatter) is merged with the RCU into its parent
         ``floor(index / factor)``: the Gaussian part equals a map built directly at the
-        coarse resolution from the same points. A parent's log-odds is the maximum of its
-        known children's (an occupied child makes the parent occupied: safe for planning).
+        coarse resolution from the same points. The Gaussians of free cells (which the NDT
+        miss model keeps for their next hit) are left out. A parent's log-odds is the
+        maximum of its known children's (an occupied child makes the parent occupied: safe
+        for planning).
         """
         from .multires import check_factor, coarsen_state
 

@@ -322,8 +322,9 @@ class MapSnapshot:
     def coarsen(self, factor: int) -> MapSnapshot:
         """The snapshot at ``factor * resolution``, the cells ``NdtOmMap.coarsen`` gives:
         each Gaussian merged with the RCU into its parent ``floor(index / factor)`` (N
-        capped at the config's ``n_max``), each parent's log-odds the maximum of its known
-        children's (method.md sec. 4). Runs in numpy: no map slot."""
+        capped at the config's ``n_max``; free cells' Gaussians left out), each parent's
+        log-odds the maximum of its known children's (the paper's sec. III-B). Runs in
+        numpy: no map slot."""
         from .multires import check_factor, coarsen_state
 
         f = check_factor(factor, self.resolution)

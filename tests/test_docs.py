@@ -242,3 +242,24 @@ def test_large_maps_record_bytes() -> None:
     ndt = {int(b) for b in re.findall(r"(\d+) B with the NDT miss model", text)}
     assert plain == {RECORD_BYTES}, plain
     assert ndt == {RECORD_BYTES + NDT_RECORD_BYTES}, ndt
+
+
+def test_public_docstrings_cite_docs_that_exist() -> None:
+    """The docstrings of `ndtom_ti.__all__` (and of their methods and functions) cite only pages a user
+    has: docs/NAME.md or README.md, not the maintainers' notes outside the repository."""
+    import inspect
+
+    import ndtom_ti
+
+    cited = set()
+    for name in ndtom_ti.__all__:
+        obj = getattr(ndtom_ti, name)
+        parts = [obj]
+        if inspect.isclass(obj) or inspect.ismodule(obj):
+            parts += [v for k, v in vars(obj).items() if callable(v) or isinstance(v, property)]
+        for part in parts:
+            doc = inspect.getdoc(part) or ""
+            cited |= {(name, page) for page in re.findall(r"[\w./-]*\.md\b", doc)}
+    missing = [f"{name}: {page}" for name, page in sorted(cited) if not (ROOT / "docs" / Path(page).name).exists()]
+    missing = [m for m in missing if not m.endswith("README.md")]
+    assert not missing, missing

@@ -1,6 +1,6 @@
 """Batch NDT maps and the paper's map-comparison score (numpy, float64, no Taichi).
 
-This module is the *ground truth* side of the project (``docs/method.md`` sections 1, 2, 5):
+This module is the *ground truth* side of the project (the paper's eqs. (1)-(3), sec. IV-A):
 
 - :func:`batch_ndt` is the batch NDT map of paper eq. (1): every point of every scan binned
   into cells ``k = floor(x / r)`` and each cell's sample mean and covariance computed at once.
@@ -188,7 +188,7 @@ def regularize_cov(cov: np.ndarray, ratio: float = 1e-3) -> np.ndarray:
 def l2_similarity(mu1: np.ndarray, C1: np.ndarray, mu2: np.ndarray, C2: np.ndarray) -> np.ndarray:
     """L2 similarity of Gaussian pairs, ``sim = 2 <f1, f2> / (||f1||^2 + ||f2||^2)``.
 
-    With ``f_i = N(mu_i, C_i)`` in 3D (``docs/method.md`` section 5):
+    With ``f_i = N(mu_i, C_i)`` in 3D (the paper's sec. IV-A):
 
         <f1, f2>  = N(mu1 - mu2; 0, C1 + C2)
         ||f||^2   = (4 pi)^(-3/2) det(C)^(-1/2)
