@@ -263,3 +263,20 @@ def test_public_docstrings_cite_docs_that_exist() -> None:
     missing = [f"{name}: {page}" for name, page in sorted(cited) if not (ROOT / "docs" / Path(page).name).exists()]
     missing = [m for m in missing if not m.endswith("README.md")]
     assert not missing, missing
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's anchors of a page's headings (fenced code left out): lower case, punctuation but - and _
+    dropped, spaces as -."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.M | re.S)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in re.findall(r"^#+ (.+)$", text, re.M)}
+
+
+def test_link_anchors_lead_to_headings() -> None:
+    broken = []
+    for page in _pages():
+        for target, anchor in re.findall(r"\]\(([^)#\s]*)#([^)\s]+)\)", page.read_text()):
+            dest = page.parent / target if target else page
+            if "://" not in target and anchor not in _anchors(dest):
+                broken.append(f"{page.relative_to(ROOT)}: {target}#{anchor}")
+    assert not broken, broken
