@@ -263,6 +263,21 @@ def read_pcd(path: Path) -> tuple[dict, np.ndarray]:
         head[key] = vals
         if key == "DATA":
             break
+    # PCL's reader (pcl_pcd2ply, pcl_convert_pcd_ascii_binary) and Open3D's take these keys
+    # in PCL's writer's order, one value per field, DATA last; VIEWPOINT is a pose (7 numbers)
+    assert list(head) == [
+        "VERSION",
+        "FIELDS",
+        "SIZE",
+        "TYPE",
+        "COUNT",
+        "WIDTH",
+        "HEIGHT",
+        "VIEWPOINT",
+        "POINTS",
+        "DATA",
+    ]
+    assert len(head["VIEWPOINT"]) == 7 and all(len(head[k]) == len(head["FIELDS"]) for k in ("SIZE", "TYPE", "COUNT"))
     assert head["VERSION"] == ["0.7"] and head["DATA"] == ["binary"] and head["HEIGHT"] == ["1"]
     kinds = {("F", "4"): "<f4", ("U", "4"): "<u4", ("I", "4"): "<i4", ("F", "8"): "<f8"}
     assert set(head["COUNT"]) == {"1"}
