@@ -263,8 +263,8 @@ def read_pcd(path: Path) -> tuple[dict, np.ndarray]:
         head[key] = vals
         if key == "DATA":
             break
-    # PCL's reader (pcl_pcd2ply, pcl_convert_pcd_ascii_binary) and Open3D's take these keys
-    # in PCL's writer's order, one value per field, DATA last; VIEWPOINT is a pose (7 numbers)
+    # PCL's writer's order. Found with pcl_pcd2ply (PCL 1.13) and Open3D 0.20: both fail on a
+    # FIELDS after SIZE/TYPE/COUNT, PCL on a TYPE before SIZE; DATA ends the header
     assert list(head) == [
         "VERSION",
         "FIELDS",
