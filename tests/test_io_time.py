@@ -175,3 +175,35 @@ def test_one_transform_stamped_far_off_is_no_second_run(tmp_path: Path, outlier:
         stream = rec.scans()
         assert len(list(stream)) == 21
     assert not any('jump' in n for n in stream.notes)
+
+
+# ----------------------------------------------------------------------------- clouds on another clock
+@pytest.mark.parametrize('source', ['tf', 'odom'])
+@pytest.mark.parametrize('offset_s', [3.0, -2.0, 0.4])
+def test_clouds_stamped_on_another_clock_than_the_poses_are_noted(tmp_path: Path, source: str, offset_s: float) -> None:
+    """The sensor's clock 3 s ahead of the computer's that stamps TF: each cloud took the pose
+    of 3 s later, silently (those past the last pose skipped). Noted with --cloud-time record,
+    which matches them by record time; a lag under a second (a sweep, transport) is not."""
+    times = [T0 + k * 100 * MS for k in range(61)]
+    make = _tf if source == 'tf' else _odom
+    entries = [_static()] + [make(t, (_x(t), 0.0, 0.0)) for t in times]
+    bag = _write(tmp_path, entries + [_cloud(t + 5 * MS, stamp=t + round(offset_s * S)) for t in times])
+    pose_topic = '/odom' if source == 'odom' else None
+    with open_recording(bag) as rec:
+        stream = rec.scans(pose_topic=pose_topic)
+        list(stream)
+        said = [n for n in stream.notes if 'another clock' in n]
+        if offset_s == 0.4:
+            assert not said
+            return
+        assert len(said) == 1
+        assert (
+            f'its clouds are stamped {offset_s - 0.005:+.3f} s from the times they were recorded, the poses +0.000'
+            in said[0]
+        )
+        assert '--cloud-time record' in said[0]
+        stream = rec.scans(pose_topic=pose_topic, cloud_time='record')
+        scans = list(stream)
+        assert len(scans) == 61 and not any('another clock' in n for n in stream.notes)
+        for s in scans:
+            assert s.T_world_sensor[0, 3] == pytest.approx(_x(s.stamp_ns), abs=0.006)  # (by record time, 5 ms late)

@@ -95,6 +95,8 @@ SIZE_DISAGREES = 'data size disagrees with width x height x point_step'  # a ski
 
 # Messages of a topic read for the first one that names its frame (Recording._first_message).
 _FRAME_LOOKAHEAD = 50
+# Clouds of a topic whose stamps are held against their record times (ScanStream._clock_check).
+_LAG_CLOUDS = 20
 
 
 @dataclass
@@ -143,6 +145,7 @@ class _PoseChoice:
     # is not the cloud's own (registered clouds, ray_origin_frame); None when it is.
     to_sensor: PoseFn | None = None
     notes: tuple[str, ...] = ()  # what a run with this choice should say (poses it dropped)
+    lag_ns: int | None = None  # the poses' stamps minus their record times, as a rule (median)
 
     @property
     def usable(self) -> bool:
@@ -357,6 +360,7 @@ class Recording:
         self._tf_topics: tuple[str, ...] | None = None  # those use_tf chose (None: every TF topic)
         self._tf_bufs: dict[tuple[tuple[str, ...], tuple[int, int] | None], TfBuffer] = {}
         self._jumps: dict[tuple[tuple[str, ...], tuple[int, int] | None], list[tuple[int, str]]] = {}
+        self._tf_lags: dict[tuple[str, ...], dict[str, int]] = {}  # TF topics -> child -> stamp - record time
         self._poses = _PoseSources(self)  # pose topics' tracks and the choice of a pose source
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
@@ -483,6 +487,11 @@ class Recording:
                     buf.add_message(msg, static=static)
             self._tf_bufs[(topics, span)] = buf
             self._jumps[(topics, span)] = [j for edge, (r, st) in seen.items() for j in _jumps_back(edge, r, st)]
+            if span is None:
+                self._tf_lags[topics] = {
+                    normalize_frame(edge.split(' -> ')[1]): int(np.median(np.subtract(st, r)))
+                    for edge, (r, st) in seen.items()
+                }
         return buf
 
     def tf(self) -> TfBuffer:
@@ -940,6 +949,7 @@ class _PoseSources:
         # (topic, span) -> (track, parent, child, notes)
         self._pose_tracks: dict[tuple[str, tuple[int, int] | None], tuple[PoseTrack, str, str | None, list[str]]] = {}
         self.jumps: dict[str, list[tuple[int, str]]] = {}  # topic -> where its stamps jump back (_jumps_back)
+        self.lags: dict[str, int] = {}  # topic -> its stamps minus their record times, as a rule (median)
         self.span: tuple[int, int] | None = None  # [lo, hi) record time: one run of a clock (Recording._use_run)
 
     def track(self, topic: str) -> tuple[PoseTrack, str, str | None, list[str]]:
@@ -993,6 +1003,8 @@ class _PoseSources:
             self._pose_tracks[(topic, span)] = (track, parent or '', child, notes)
             if span is None:
                 self.jumps[topic] = _jumps_back(topic, rec_ns, stamps)
+                if stamps:
+                    self.lags[topic] = int(np.median(np.subtract(stamps, rec_ns)))
         return self._pose_tracks[(topic, span)]
 
     def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
@@ -1061,12 +1073,16 @@ class _PoseSources:
         rng = tf.dynamic_range_ns(fixed, frame)
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
             return _PoseChoice(None, f'TF: {twice}' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
+        up_s, up_t = tf.path(fixed, frame)
+        lags = self._rec._tf_lags.get(self._rec._tf_topics or tuple(self._rec._of_type(*TF_TYPES)), {})
+        moving = [lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags]
         return _PoseChoice(
             _tf_fn(tf, fixed, None, tol),
             f'tf: {chain}' + (' (static)' if static else ''),
             fixed,
             rng,
             notes=tuple(tf.run_notes()),
+            lag_ns=int(np.median(moving)) if moving else None,
         )
 
     def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
@@ -1201,6 +1217,7 @@ class _PoseSources:
             (track.first_ns, track.last_ns),
             to_sensor,
             notes=(*tnotes, *tf.run_notes()),
+            lag_ns=self.lags.get(topic),
         )
 
     def choose(
@@ -1393,6 +1410,31 @@ class ScanStream:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
+    def _clock_check(self, part: _StreamPart, lag: int | None) -> None:
+        """Note once per topic where its first clouds' stamps sit apart from their record
+        times by over a second more (or less) than the poses' stamps from theirs: stamps of
+        another clock (the sensor's, not the computer's that stamps TF) give each cloud the
+        pose of another time. Within a run both were recorded alike, so the lags agree.
+        ``lag`` None: the topic's clouds end here (fewer were read)."""
+        lags = self._lags.setdefault(part.topic, [])
+        if self._record_time or part.choice.lag_ns is None or len(lags) >= _LAG_CLOUDS:
+            return
+        if lag is not None:
+            lags.append(lag)
+            if len(lags) < _LAG_CLOUDS:
+                return
+        elif not lags:  # (the end of the clouds: fewer than _LAG_CLOUDS)
+            return
+        cloud, poses = int(np.median(lags)), part.choice.lag_ns
+        lags += [0] * _LAG_CLOUDS  # (said once)
+        if abs(cloud - poses) > _JUMP_NS:
+            self.notes.append(
+                f'{part.topic}: its clouds are stamped {cloud / 1e9:+.3f} s from the times they were recorded, '
+                f'the poses {poses / 1e9:+.3f} s from theirs: the clouds\' stamps look to be on another clock (the '
+                "sensor's), which gives each cloud the pose of another time; --cloud-time record matches clouds by "
+                'their record times'
+            )
+
     @property
     def start_ns(self) -> int:
         """The recording's start (what t_start and t_end count from)."""
@@ -1437,6 +1479,7 @@ class ScanStream:
         self.notes = list(self._rec.file_notes)
         self._counted: dict[str, tuple[int, int, str]] = {}
         self._other_frames: set[str] = set()  # topics with a cloud in another frame than their first's
+        self._lags: dict[str, list[int]] = {}  # topic -> its first clouds' stamps minus record times
         for part in self._parts.values():
             self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
@@ -1490,6 +1533,7 @@ class ScanStream:
                             continue
                         if size is not None:  # the header's points are read, as rviz and PCL read them
                             self._count_note('data', f'{self._which(topic, index)}: {size[1]}')
+                self._clock_check(part, stamp - t)
                 if frame and frame != part.frame_id and topic not in self._other_frames:
                     self._other_frames.add(topic)  # the poses line names the first cloud's frame only
                     self.notes.append(
@@ -1538,7 +1582,11 @@ class ScanStream:
             self.kept += 1
             yield Scan(points=pts, T_world_sensor=T, stamp_ns=stamp, frame_id=frame, index=index)
             if self._max is not None and self.kept >= self._max:
+                for p in self._parts.values():
+                    self._clock_check(p, None)
                 return
+        for p in self._parts.values():
+            self._clock_check(p, None)
         # clouds after t_end were not read (the reader stopped there); count them
         rest = sum(rec._topics[tp][1] for tp in self._parts) - self.total_seen
         if rest > 0 and self._hi is not None:
