@@ -280,3 +280,19 @@ def test_link_anchors_lead_to_headings() -> None:
             if "://" not in target and anchor not in _anchors(dest):
                 broken.append(f"{page.relative_to(ROOT)}: {target}#{anchor}")
     assert not broken, broken
+
+
+def test_named_files_and_tests_exist() -> None:
+    """The repository's files the docs name (`benchmarks/x.py`, `tests/x.py::test_y`, `ndtom_ti/x.py`, ...)
+    are there, and a named test is defined in its file."""
+    missing = []
+    for page in _pages():
+        text = page.read_text()
+        for path, test in set(
+            re.findall(r"(?<![\w/.])((?:tests|benchmarks|ndtom_ti|kernels|viewer)/[\w/]+\.py)(?:::(\w+))?", text)
+        ):
+            if not (ROOT / path).exists():
+                missing.append(f"{page.name}: {path}")
+            elif test and not re.search(rf"def {test}\b", (ROOT / path).read_text()):
+                missing.append(f"{page.name}: {path}::{test}")
+    assert not missing, missing
