@@ -56,9 +56,11 @@ class MapConfig:
     Defaults for ``p_occupied``, ``p_empty`` and ``min_points`` are the paper's
     (Saarinen et al., ICRA 2013, sec. III and IV: p_o = 0.6, p_e = 0.49, 3 points per
     Gaussian). The paper gives no clamp; we clamp log-odds to [-2.0, 2.0] (p in
-    [0.12, 0.88]) so that a cell of an object that left is cleared after ~50 rays pass
-    it (a few scans of a 32-beam lidar) while a wall hit by ~5 points per scan needs
-    ~10 such scans of misses in a row to lose its Gaussian.
+    [0.12, 0.88]) so that, with the paper's miss model (p_e per ray), a cell of an object
+    that left is cleared after ~50 rays pass it (a few scans of a 32-beam lidar) while a
+    wall hit by ~5 points per scan needs ~10 such scans of misses in a row to lose its
+    Gaussian. The default miss model, ``"ndt"``, lowers a cell by how squarely each ray
+    passes its Gaussian (``miss_model``, ``eta``, ``sigma_s``; docs/sensor-model.md).
     """
 
     p_occupied: float = 0.6  # p_o: probability a cell holding an endpoint is occupied
