@@ -207,3 +207,22 @@ def test_clouds_stamped_on_another_clock_than_the_poses_are_noted(tmp_path: Path
         assert len(scans) == 61 and not any('another clock' in n for n in stream.notes)
         for s in scans:
             assert s.T_world_sensor[0, 3] == pytest.approx(_x(s.stamp_ns), abs=0.006)  # (by record time, 5 ms late)
+
+
+# ----------------------------------------------------------------------------- a mount sent on /tf
+def test_a_mount_sent_once_on_tf_names_the_static_transform_that_gives_it(tmp_path: Path) -> None:
+    """base_link -> velodyne sent once on /tf (no /tf_static): tf2 and ndtom map have it at
+    that stamp only, so every later cloud was skipped with no way out named."""
+    times = [T0 + k * 100 * MS for k in range(11)]
+    mount = ('/tf', TF, T0, lambda m: m.tf([(T0, 'base_link', 'velodyne', (0.25, 0.0, 1.5), Q0)]))
+    bag = _write(tmp_path, [mount] + [_tf(t + 1, (_x(t), 0.0, 0.0)) for t in times] + [_cloud(t + 2) for t in times])
+    with open_recording(bag) as rec:
+        stream = rec.scans()
+        assert len(list(stream)) == 1 and stream.skipped == {'no pose at stamp': 10}
+        note = next(n for n in stream.notes if n.startswith('no pose at stamp'))
+        assert "It has one transform: a mount sent on /tf rather than /tf_static? --static-transform" in note, note
+        given = note.split('--static-transform ')[1].split("'")[1]
+        assert given == '0.25 0 1.5 0 0 0 1 base_link velodyne'
+        scans = list(rec.scans(static_transforms=[given]))
+    assert len(scans) == 11
+    assert scans[5].T_world_sensor[:3, 3] == pytest.approx([_x(times[5]) + 0.25, 0.0, 1.5], abs=1e-6)

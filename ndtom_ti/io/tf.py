@@ -381,11 +381,25 @@ class TfBuffer:
                 f'transform {self._parent[child]} -> {child} is not available at {_fmt_s(stamp)}: that is '
                 f'{abs(gap) / 1e9:.3f} s {where} of its {len(tr)} transforms '
                 f'({_fmt_s(tr.first_ns)} .. {_fmt_s(tr.last_ns)}; tolerance {tolerance_ns / 1e9:.3f} s)'
+                + self._mount_hint(child, tr)
             )
         hole = tr.hole_at(stamp, tolerance_ns)
         if hole is not None:  # tf2 would interpolate across it: a straight line over seconds unseen
             raise TransformTimeError(f'transform {self._parent[child]} -> {child}: {hole_text(tr, stamp, *hole)}')
         return T
+
+    def _mount_hint(self, child: str, tr: PoseTrack) -> str:
+        """Where every transform of a /tf edge is the same (a mount published on /tf rather
+        than /tf_static, once or at start-up only): how to give it for all times."""
+        if not tr.is_constant(1e-9):
+            return ''
+        t = ' '.join(f'{v:.9g}' for v in tr.poses[0][:3, 3])
+        q = ' '.join(f'{v:.9g}' for v in rot_to_quat(tr.poses[0][:3, :3]))
+        n = len(tr)
+        return (
+            f'. {"It has one transform" if n == 1 else f"Its {n} transforms give one value"}: a mount sent on /tf '
+            f"rather than /tf_static? --static-transform '{t} {q} {self._parent[child]} {child}' gives it for every time"
+        )
 
     def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray:
         """T_target_source (4x4): maps points in ``source_frame`` into ``target_frame``.
