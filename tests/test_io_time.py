@@ -226,3 +226,24 @@ def test_a_mount_sent_once_on_tf_names_the_static_transform_that_gives_it(tmp_pa
         scans = list(rec.scans(static_transforms=[given]))
     assert len(scans) == 11
     assert scans[5].T_world_sensor[:3, 3] == pytest.approx([_x(times[5]) + 0.25, 0.0, 1.5], abs=1e-6)
+
+
+# ----------------------------------------------------------------------------- split recordings
+def test_the_parts_of_a_split_recording_that_overlap_map_each_cloud_once(tmp_path: Path) -> None:
+    """A folder of two bags whose times overlap (the second starts 0.5 s before the first
+    ends, its messages the same): the clouds of the overlap were mapped twice, their points
+    counted twice in each Gaussian. Skipped and counted; a gap between parts maps what is there."""
+    times = [T0 + k * 100 * MS for k in range(21)]
+    entries = [_static()] + [_tf(t, (_x(t), 0.0, 0.0)) for t in times] + [_cloud(t + 2) for t in times]
+    folder = tmp_path / 'split'
+    folder.mkdir()
+    fx.write_bag(folder / 'run_0.bag', 'ros1', sorted([e for e in entries if e[2] <= T0 + S + 2], key=lambda e: e[2]))
+    part2 = [e for e in entries if e[2] >= T0 + 500 * MS or e[0] == '/tf_static']
+    fx.write_bag(folder / 'run_1.bag', 'ros1', sorted(part2, key=lambda e: e[2]))
+    with open_recording(folder) as rec:
+        stream = rec.scans()
+        scans = list(stream)
+    assert [s.stamp_ns for s in scans] == [t + 2 for t in times]
+    assert stream.skipped == {'twice in the recording': 6} and stream.total_seen == 27
+    note = next(n for n in stream.notes if n.startswith('twice in the recording'))
+    assert 'cloud #6 is cloud #5 again' in note and "the recording's files hold it twice" in note, note

@@ -1340,7 +1340,7 @@ class ScanStream:
     After (or during) iteration: ``total_seen`` clouds of the topic were
     considered, ``kept`` yielded, and ``skipped`` counts the rest by reason
     ('outside time window', 'every', 'no pose at stamp', 'empty cloud',
-    'every_distance'), so total_seen == kept + sum(skipped.values()) once the
+    'every_distance', 'twice in the recording'), so total_seen == kept + sum(skipped.values()) once the
     topic was read to the end (max_scans stops early). ``notes`` holds notes on the
     recording's files (a lone part of a split recording), then the first detailed
     message for each skip reason (e.g. the time gap to the first transform).
@@ -1486,6 +1486,7 @@ class ScanStream:
         last_pos: dict[str, np.ndarray] = {}  # each topic's sensor at its last kept cloud
         stop = None if self._hi is None else self._hi + 1  # reader stop is exclusive
         indices = dict.fromkeys(self._parts, -1)  # a cloud's index within its topic
+        seen: dict[tuple, int] = {}  # (topic, record time, stamp, frame, bytes) -> index: duplicates
         for topic, t, msgtype, raw in rec._messages_of(list(self._parts), stop=stop):
             part = self._parts[topic]
             kind, pose_fn, to_sensor = part.kind, part.choice.fn, part.choice.to_sensor
@@ -1534,6 +1535,16 @@ class ScanStream:
                         if size is not None:  # the header's points are read, as rviz and PCL read them
                             self._count_note('data', f'{self._which(topic, index)}: {size[1]}')
                 self._clock_check(part, stamp - t)
+                key = (topic, t, stamp, frame, len(raw))
+                if key in seen:  # the same message twice: the files of a split recording overlap
+                    self._skip(
+                        'twice in the recording',
+                        f'{self._which(topic, index)} is cloud #{seen[key]} again (the same record time, stamp '
+                        f'{_s(stamp)}, frame and size): the recording\'s files hold it twice (parts that overlap, '
+                        'a part copied twice); it is mapped once',
+                    )
+                    continue
+                seen[key] = index
                 if frame and frame != part.frame_id and topic not in self._other_frames:
                     self._other_frames.add(topic)  # the poses line names the first cloud's frame only
                     self.notes.append(
