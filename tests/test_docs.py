@@ -296,3 +296,33 @@ def test_named_files_and_tests_exist() -> None:
             elif test and not re.search(rf"def {test}\b", (ROOT / path).read_text()):
                 missing.append(f"{page.name}: {path}::{test}")
     assert not missing, missing
+
+
+def test_sensor_model_limits_are_the_codes() -> None:
+    """The bounds docs/sensor-model.md gives for MapConfig's options are config.py's."""
+    from ndtom_ti import config
+
+    text = " ".join((ROOT / "docs" / "sensor-model.md").read_text().split())
+    stated = {
+        "N_LIMIT": r"at most 2\^(\d+) \(`N_LIMIT`",
+        "RANGE_LIMIT": r"`max_range` at most (\S+) m",
+        "SIGMA_S_LOW": r"`sigma_s` from (\S+) to",
+        "SIGMA_S_HIGH": r"`sigma_s` from \S+ to (\S+) m",
+        "RESOLUTION_MAX": r"a resolution is at most (\S+) m",
+        "SIGMA_S_CELLS": r"None: (\d+) cells",
+        "SIGMA_S_MIN": r"cells, at least ([\d.]+) m",
+    }
+    found = {name: re.search(pattern, text) for name, pattern in stated.items()}
+    assert all(found.values()), [name for name, m in found.items() if m is None]
+    got = {name: float(m.group(1)) for name, m in found.items() if m is not None}
+    got["N_LIMIT"] = 2 ** got["N_LIMIT"]
+    want = {
+        "N_LIMIT": config.N_LIMIT,
+        "RANGE_LIMIT": config.RANGE_LIMIT,
+        "SIGMA_S_LOW": config.SIGMA_S_LIMITS[0],
+        "SIGMA_S_HIGH": config.SIGMA_S_LIMITS[1],
+        "RESOLUTION_MAX": config.RESOLUTION_MAX,
+        "SIGMA_S_CELLS": config.SIGMA_S_CELLS,
+        "SIGMA_S_MIN": config.SIGMA_S_MIN,
+    }
+    assert got == want
