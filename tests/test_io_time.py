@@ -209,6 +209,23 @@ def test_clouds_stamped_on_another_clock_than_the_poses_are_noted(tmp_path: Path
             assert s.T_world_sensor[0, 3] == pytest.approx(_x(s.stamp_ns), abs=0.006)  # (by record time, 5 ms late)
 
 
+def test_poses_stamped_on_another_clock_than_the_clouds_are_noted_without_cloud_time(tmp_path: Path) -> None:
+    """Odometry stamped 3 s ahead of its record times, the clouds not: the poses' clock is the
+    other one, and matching the clouds by record time would not help (not offered)."""
+    times = [T0 + k * 100 * MS for k in range(61)]
+    odom = [
+        ('/odom', ODOM, t, lambda m, t=t: m.odometry(t + 3 * S, 'map', 'base_link', (_x(t), 0.0, 0.0), Q0))
+        for t in times
+    ]
+    bag = _write(tmp_path, [_static(), *odom] + [_cloud(t + 5 * MS) for t in times])
+    with open_recording(bag) as rec:
+        stream = rec.scans(pose_topic='/odom')
+        list(stream)
+    said = [n for n in stream.notes if 'another clock' in n]
+    assert len(said) == 1 and "the poses +3.000 s from theirs: the poses' stamps look to be" in said[0], said
+    assert '--cloud-time' not in said[0]
+
+
 # ----------------------------------------------------------------------------- a mount sent on /tf
 def test_a_mount_sent_once_on_tf_names_the_static_transform_that_gives_it(tmp_path: Path) -> None:
     """base_link -> velodyne sent once on /tf (no /tf_static): tf2 and ndtom map have it at

@@ -1428,11 +1428,14 @@ class ScanStream:
         cloud, poses = int(np.median(lags)), part.choice.lag_ns
         lags += [0] * _LAG_CLOUDS  # (said once)
         if abs(cloud - poses) > _JUMP_NS:
+            # the one whose stamps stray from the recorder's clock is on another; only the clouds'
+            # can be replaced by their record times
+            which = "the poses'" if abs(poses) > abs(cloud) else "the clouds'"
             self.notes.append(
                 f'{part.topic}: its clouds are stamped {cloud / 1e9:+.3f} s from the times they were recorded, '
-                f'the poses {poses / 1e9:+.3f} s from theirs: the clouds\' stamps look to be on another clock (the '
-                "sensor's), which gives each cloud the pose of another time; --cloud-time record matches clouds by "
-                'their record times'
+                f'the poses {poses / 1e9:+.3f} s from theirs: {which} stamps look to be on another clock (a '
+                "sensor's, another computer's), which gives each cloud the pose of another time"
+                + ('; --cloud-time record matches clouds by their record times' if abs(poses) <= _JUMP_NS else '')
             )
 
     @property
