@@ -226,6 +226,27 @@ def test_poses_stamped_on_another_clock_than_the_clouds_are_noted_without_cloud_
     assert '--cloud-time' not in said[0]
 
 
+def test_clouds_stamped_out_of_order_are_counted_in_a_note(tmp_path: Path) -> None:
+    """Cloud #4 stamped as #2 (a repeat), #7 stamped 0.5 s back: each was placed by its stamp
+    without a word. Counted in one note; by record time they are in order (none)."""
+    times = [T0 + k * 100 * MS for k in range(11)]
+    stamps = {4: times[2], 7: times[7] - 500 * MS}
+    entries = [_static()] + [_tf(t, (_x(t), 0.0, 0.0)) for t in times]
+    bag = _write(tmp_path, entries + [_cloud(t + 2, stamp=stamps.get(k, t)) for k, t in enumerate(times)])
+    with open_recording(bag) as rec:
+        stream = rec.scans()
+        assert len(list(stream)) == 11
+        said = [n for n in stream.notes if 'stamped at or before' in n]
+        assert said == [
+            f'2 clouds are stamped at or before the cloud recorded before them (cloud #4 at {times[2] / 1e9:.3f} s, the '
+            f"one before at {times[3] / 1e9:.3f} s): each is placed by its own stamp; stamps out of order are a driver's "
+            "or a clock's fault, and --cloud-time record places the clouds by their record times"
+        ]
+        stream = rec.scans(cloud_time='record')
+        list(stream)
+        assert not [n for n in stream.notes if 'stamped at or before' in n]
+
+
 # ----------------------------------------------------------------------------- a mount sent on /tf
 def test_a_mount_sent_once_on_tf_names_the_static_transform_that_gives_it(tmp_path: Path) -> None:
     """base_link -> velodyne sent once on /tf (no /tf_static): tf2 and ndtom map have it at

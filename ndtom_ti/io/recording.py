@@ -1390,12 +1390,19 @@ class ScanStream:
     def _which(self, topic: str, index: int) -> str:
         return f'cloud #{index}' + (f' of {topic}' if len(self._parts) > 1 else '')
 
-    def _count_note(self, key: str, first: str) -> None:
+    def _count_note(self, key: str, first: str) -> None:  # key: 'data', 'point_num' or 'order'
         """A note of clouds read despite a fault, counted: its line in ``notes`` is rewritten."""
         n, at, text = self._counted.get(key, (0, len(self.notes), first))
         if not n:
             self.notes.append('')
         self._counted[key] = (n + 1, at, text)
+        if key == 'order':
+            self.notes[at] = (
+                f'{n + 1} cloud{"s" if n else ""} {"are" if n else "is"} stamped at or before the cloud recorded '
+                f'before {"them" if n else "it"} ({text}): each is placed by its own stamp; stamps out of order are a '
+                "driver's or a clock's fault, and --cloud-time record places the clouds by their record times"
+            )
+            return
         clouds = f'{n + 1} cloud{"s" if n else ""} hold{"" if n else "s"}'
         self.notes[at] = (
             f'{clouds} more data than the header says ({text}): only the header\'s points are read, as rviz '
@@ -1490,6 +1497,7 @@ class ScanStream:
         stop = None if self._hi is None else self._hi + 1  # reader stop is exclusive
         indices = dict.fromkeys(self._parts, -1)  # a cloud's index within its topic
         seen: dict[tuple, int] = {}  # (topic, record time, stamp, frame, bytes) -> index: duplicates
+        last_stamp: dict[str, int] = {}  # each topic's last cloud's stamp
         for topic, t, msgtype, raw in rec._messages_of(list(self._parts), stop=stop):
             part = self._parts[topic]
             kind, pose_fn, to_sensor = part.kind, part.choice.fn, part.choice.to_sensor
@@ -1548,6 +1556,12 @@ class ScanStream:
                     )
                     continue
                 seen[key] = index
+                if not self._record_time and stamp != t and stamp <= last_stamp.get(topic, stamp - 1):
+                    self._count_note(
+                        'order',
+                        f'{self._which(topic, index)} at {_s(stamp)}, the one before at {_s(last_stamp[topic])}',
+                    )
+                last_stamp[topic] = stamp
                 if frame and frame != part.frame_id and topic not in self._other_frames:
                     self._other_frames.add(topic)  # the poses line names the first cloud's frame only
                     self.notes.append(
