@@ -246,6 +246,14 @@ def test_map_options_and_config_file(bags, tmp_path: Path) -> None:
     assert read_header(out)["config"]["p_empty"] == 0.4
 
 
+def test_a_bad_option_value_names_its_commands_help(bags, tmp_path: Path) -> None:
+    """The hint of an option the command refuses names that command's help, not `ndtom COMMAND --help`."""
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"p_occupid": 0.7}')
+    r = run("map", bags["ros1"], "-r", "0.5", "-o", tmp_path / "x.ndtom", "--config", bad, "--no-progress")
+    assert_user_error(r, "unknown options ['p_occupid']", "Hint: `ndtom map --help` lists the options")
+
+
 def test_miss_model_option_wins_over_the_config_file(bags, tmp_path: Path) -> None:
     cfg = tmp_path / "map.toml"
     cfg.write_text('miss_model = "ndt"\nsigma_s = 0.1\n')

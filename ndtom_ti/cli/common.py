@@ -99,6 +99,21 @@ MEMORY_HINT = (
 )
 
 
+def _command_path() -> str:
+    """The command running (``ndtom map``), from Click's context: Typer's own copy of Click
+    or Click itself; ``ndtom COMMAND`` outside a command."""
+    import importlib
+
+    for name in ("typer._click.globals", "click.globals"):
+        try:
+            ctx = importlib.import_module(name).get_current_context(silent=True)
+        except ImportError:
+            continue
+        if ctx is not None:
+            return ctx.command_path
+    return "ndtom COMMAND"
+
+
 @contextlib.contextmanager
 def user_errors(*, recording: str | None = None, map_file: str | None = None) -> Iterator[None]:
     """Turn the errors a user can cause into one red line + hint and an exit code."""
@@ -117,7 +132,7 @@ def user_errors(*, recording: str | None = None, map_file: str | None = None) ->
     except OSError as exc:
         fail(f"{exc}", "check the path and its permissions", EXIT_FAILURE)
     except (ValueError, TypeError) as exc:
-        fail(str(exc), "`ndtom COMMAND --help` lists the options and their ranges")
+        fail(str(exc), f"`{_command_path()} --help` lists the options and their ranges")
     except KeyboardInterrupt as exc:
         from ..signals import signal_name
 
