@@ -38,7 +38,7 @@ class _Group(TyperGroup):
         except Exception as exc:
             if _CLICK is None or not isinstance(exc, _CLICK.UsageError):
                 raise
-            if type(exc).__name__ == "NoArgsIsHelpError":  # `ndtom map` alone: its help, as asked
+            if type(exc).__name__ == "NoArgsIsHelpError":  # `ndtom` alone: its help, as asked
                 raise
             ctx = getattr(exc, "ctx", None)
             sub = ctx.command_path if ctx is not None else "ndtom COMMAND"
