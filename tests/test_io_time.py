@@ -209,6 +209,20 @@ def test_clouds_stamped_on_another_clock_than_the_poses_are_noted(tmp_path: Path
             assert s.T_world_sensor[0, 3] == pytest.approx(_x(s.stamp_ns), abs=0.006)  # (by record time, 5 ms late)
 
 
+def test_simulation_time_slower_than_the_recorder_is_one_clock(tmp_path: Path) -> None:
+    """Simulation time at half the recorder's rate: every stamp drifts from its record time
+    alike (by 15 s at the end), so the first clouds are held against the poses recorded with
+    them, not against all the poses' lags (the note said "another clock")."""
+    stamps = [T0 + k * 100 * MS for k in range(301)]
+    rec_t = {t: T0 + 2 * (t - T0) for t in stamps}
+    entries = [_static()] + [_tf(rec_t[t], (_x(t), 0.0, 0.0), stamp=t) for t in stamps]
+    bag = _write(tmp_path, entries + [_cloud(rec_t[t] + 2, stamp=t) for t in stamps])
+    with open_recording(bag) as rec:
+        stream = rec.scans()
+        assert len(list(stream)) == 301
+    assert not [n for n in stream.notes if 'another clock' in n], stream.notes
+
+
 def test_poses_stamped_on_another_clock_than_the_clouds_are_noted_without_cloud_time(tmp_path: Path) -> None:
     """Odometry stamped 3 s ahead of its record times, the clouds not: the poses' clock is the
     other one, and matching the clouds by record time would not help (not offered)."""

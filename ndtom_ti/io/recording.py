@@ -145,7 +145,8 @@ class _PoseChoice:
     # is not the cloud's own (registered clouds, ray_origin_frame); None when it is.
     to_sensor: PoseFn | None = None
     notes: tuple[str, ...] = ()  # what a run with this choice should say (poses it dropped)
-    lag_ns: int | None = None  # the poses' stamps minus their record times, as a rule (median)
+    # the poses' stamps minus their record times, near a record time (ScanStream._clock_check)
+    lag_at: Callable[[int], int] | None = None
 
     @property
     def usable(self) -> bool:
@@ -223,6 +224,21 @@ def _jumps_back(what: str, record_ns: list[int], stamps: list[int]) -> list[tupl
     if not any(a.min() <= b.max() and b.min() <= a.max() for k, a in enumerate(runs) for b in runs[k + 1 :]):
         return []  # (no cuts: no runs to overlap)
     return [(int(record_ns[i]), f'{what} from {_s(int(st[i - 1]))} to {_s(int(st[i]))}') for i in cuts]
+
+
+def _lag_fn(record_ns: list[int], stamps: list[int]) -> Callable[[int], int]:
+    """The stamps of a pose source minus their record times, at the sample recorded nearest a
+    record time (the lag drifts where simulation time runs slower than the recorder's)."""
+    order = np.argsort(record_ns, kind='stable')
+    rec = np.asarray(record_ns, np.int64)[order]
+    lag = np.asarray(stamps, np.int64)[order] - rec
+
+    def at(t: int) -> int:
+        i = int(np.searchsorted(rec, t))
+        near = min((j for j in (i - 1, i) if 0 <= j < len(rec)), key=lambda j: abs(int(rec[j]) - t))
+        return int(lag[near])
+
+    return at
 
 
 def _inverse_fn(fn: PoseFn) -> PoseFn:
@@ -360,7 +376,7 @@ class Recording:
         self._tf_topics: tuple[str, ...] | None = None  # those use_tf chose (None: every TF topic)
         self._tf_bufs: dict[tuple[tuple[str, ...], tuple[int, int] | None], TfBuffer] = {}
         self._jumps: dict[tuple[tuple[str, ...], tuple[int, int] | None], list[tuple[int, str]]] = {}
-        self._tf_lags: dict[tuple[str, ...], dict[str, int]] = {}  # TF topics -> child -> stamp - record time
+        self._tf_lags: dict[tuple[str, ...], dict[str, Callable[[int], int]]] = {}  # TF topics -> child -> lag_at
         self._poses = _PoseSources(self)  # pose topics' tracks and the choice of a pose source
         self._first: dict[str, tuple[int, Any] | None] = {}
         self._closed = False
@@ -489,8 +505,7 @@ class Recording:
             self._jumps[(topics, span)] = [j for edge, (r, st) in seen.items() for j in _jumps_back(edge, r, st)]
             if span is None:
                 self._tf_lags[topics] = {
-                    normalize_frame(edge.split(' -> ')[1]): int(np.median(np.subtract(st, r)))
-                    for edge, (r, st) in seen.items()
+                    normalize_frame(edge.split(' -> ')[1]): _lag_fn(r, st) for edge, (r, st) in seen.items()
                 }
         return buf
 
@@ -949,7 +964,7 @@ class _PoseSources:
         # (topic, span) -> (track, parent, child, notes)
         self._pose_tracks: dict[tuple[str, tuple[int, int] | None], tuple[PoseTrack, str, str | None, list[str]]] = {}
         self.jumps: dict[str, list[tuple[int, str]]] = {}  # topic -> where its stamps jump back (_jumps_back)
-        self.lags: dict[str, int] = {}  # topic -> its stamps minus their record times, as a rule (median)
+        self.lags: dict[str, Callable[[int], int]] = {}  # topic -> its stamps minus record times (_lag_fn)
         self.span: tuple[int, int] | None = None  # [lo, hi) record time: one run of a clock (Recording._use_run)
 
     def track(self, topic: str) -> tuple[PoseTrack, str, str | None, list[str]]:
@@ -1004,7 +1019,7 @@ class _PoseSources:
             if span is None:
                 self.jumps[topic] = _jumps_back(topic, rec_ns, stamps)
                 if stamps:
-                    self.lags[topic] = int(np.median(np.subtract(stamps, rec_ns)))
+                    self.lags[topic] = _lag_fn(rec_ns, stamps)
         return self._pose_tracks[(topic, span)]
 
     def _clock_mismatch(self, first_stamp: int, lo: int, hi: int, tol: int) -> bool:
@@ -1075,14 +1090,14 @@ class _PoseSources:
             return _PoseChoice(None, f'TF: {twice}' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
         up_s, up_t = tf.path(fixed, frame)
         lags = self._rec._tf_lags.get(self._rec._tf_topics or tuple(self._rec._of_type(*TF_TYPES)), {})
-        moving = [lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags]
+        moving = [lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags]  # (the first's)
         return _PoseChoice(
             _tf_fn(tf, fixed, None, tol),
             f'tf: {chain}' + (' (static)' if static else ''),
             fixed,
             rng,
             notes=tuple(tf.run_notes()),
-            lag_ns=int(np.median(moving)) if moving else None,
+            lag_at=moving[0] if moving else None,
         )
 
     def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
@@ -1217,7 +1232,7 @@ class _PoseSources:
             (track.first_ns, track.last_ns),
             to_sensor,
             notes=(*tnotes, *tf.run_notes()),
-            lag_ns=self.lags.get(topic),
+            lag_at=self.lags.get(topic),
         )
 
     def choose(
@@ -1417,24 +1432,27 @@ class ScanStream:
             self.notes.append(f'{reason}: {detail}')
         self.skipped[reason] += 1
 
-    def _clock_check(self, part: _StreamPart, lag: int | None) -> None:
+    def _clock_check(self, part: _StreamPart, stamp: int | None, record_ns: int = 0) -> None:
         """Note once per topic where its first clouds' stamps sit apart from their record
-        times by over a second more (or less) than the poses' stamps from theirs: stamps of
-        another clock (the sensor's, not the computer's that stamps TF) give each cloud the
-        pose of another time. Within a run both were recorded alike, so the lags agree.
-        ``lag`` None: the topic's clouds end here (fewer were read)."""
+        times by over a second more (or less) than the poses' stamps recorded then from theirs:
+        stamps of another clock (the sensor's, not the computer's that stamps TF) give each
+        cloud the pose of another time. Recorded alike, both lags agree (and drift alike where
+        simulation time runs slower than the recorder's clock). ``stamp`` None: the topic's
+        clouds end here (fewer were read)."""
         lags = self._lags.setdefault(part.topic, [])
-        if self._record_time or part.choice.lag_ns is None or len(lags) >= _LAG_CLOUDS:
+        lag_at = part.choice.lag_at
+        if self._record_time or lag_at is None or len(lags) >= _LAG_CLOUDS:
             return
-        if lag is not None:
-            lags.append(lag)
+        if stamp is not None:
+            lags.append((stamp - record_ns, lag_at(record_ns)))
             if len(lags) < _LAG_CLOUDS:
                 return
         elif not lags:  # (the end of the clouds: fewer than _LAG_CLOUDS)
             return
-        cloud, poses = int(np.median(lags)), part.choice.lag_ns
-        lags += [0] * _LAG_CLOUDS  # (said once)
-        if abs(cloud - poses) > _JUMP_NS:
+        both = np.asarray(lags, np.int64)
+        lags += [(0, 0)] * _LAG_CLOUDS  # (said once)
+        cloud, poses = (int(v) for v in np.median(both, axis=0))
+        if abs(int(np.median(both[:, 0] - both[:, 1]))) > _JUMP_NS:
             # the one whose stamps stray from the recorder's clock is on another; only the clouds'
             # can be replaced by their record times
             which = "the poses'" if abs(poses) > abs(cloud) else "the clouds'"
@@ -1489,7 +1507,7 @@ class ScanStream:
         self.notes = list(self._rec.file_notes)
         self._counted: dict[str, tuple[int, int, str]] = {}
         self._other_frames: set[str] = set()  # topics with a cloud in another frame than their first's
-        self._lags: dict[str, list[int]] = {}  # topic -> its first clouds' stamps minus record times
+        self._lags: dict[str, list[tuple[int, int]]] = {}  # topic -> (cloud, pose) lags of its first clouds
         for part in self._parts.values():
             self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
@@ -1545,7 +1563,7 @@ class ScanStream:
                             continue
                         if size is not None:  # the header's points are read, as rviz and PCL read them
                             self._count_note('data', f'{self._which(topic, index)}: {size[1]}')
-                self._clock_check(part, stamp - t)
+                self._clock_check(part, stamp, t)
                 key = (topic, t, stamp, frame, len(raw))
                 if key in seen:  # the same message twice: the files of a split recording overlap
                     self._skip(
