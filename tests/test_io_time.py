@@ -155,6 +155,9 @@ def test_a_recording_whose_clock_jumps_back_is_mapped_one_run_at_a_time(tmp_path
             for s in scans:
                 assert s.T_world_sensor[1, 3] == pytest.approx(5.0 * run)
             assert f'poses of run {run + 1} of 2' in ' '.join(stream.notes)
+        # a run chosen is no choice for what follows
+        with pytest.raises(RecordingError, match='Map one run at a time'):
+            rec.scans(pose_topic=pose_topic)
 
 
 def test_a_clock_restarted_before_its_first_stamps_maps_both_runs(tmp_path: Path) -> None:

@@ -578,6 +578,7 @@ class Recording:
         frames (each robot's /robotN/tf with map, base_link ..., as Nav2 runs several robots)
         would mix the robots' poses in one tree: the clouds' namespace chooses, or
         ``tf_topic`` (a TF topic or its namespace, with its tf_static); else RecordingError."""
+        self._poses.span = None  # (one run of the clock, an earlier scans()'s: all of it again)
         topics = self._of_type(*TF_TYPES)
         groups: dict[str, list[str]] = {}
         for t in topics:
