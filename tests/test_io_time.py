@@ -302,3 +302,20 @@ def test_the_parts_of_a_split_recording_that_overlap_map_each_cloud_once(tmp_pat
     assert stream.skipped == {'twice in the recording': 6} and stream.total_seen == 27
     note = next(n for n in stream.notes if n.startswith('twice in the recording'))
     assert 'cloud #6 is cloud #5 again' in note and "the recording's files hold it twice" in note, note
+
+
+def test_a_post_dated_edge_of_the_chain_is_no_other_clock(tmp_path: Path) -> None:
+    """odom -> base_link post-dated by 1.5 s (robot_localization's transform_time_offset; AMCL
+    post-dates map -> odom alike), map -> odom on time: the clouds keep the clock of that one,
+    so nothing is noted (the edge nearest the sensor alone said "another clock")."""
+    times = [T0 + k * 100 * MS for k in range(41)]
+    slam = [('/tf', TF, t, lambda m, t=t: m.tf([(t, 'map', 'odom', (0.0, 0.0, 0.0), Q0)])) for t in times]
+    ekf = [
+        ('/tf', TF, t + 1, lambda m, t=t: m.tf([(t + 1500 * MS, 'odom', 'base_link', (_x(t), 0.0, 0.0), Q0)]))
+        for t in times
+    ]
+    bag = _write(tmp_path, [_static(), *slam, *ekf] + [_cloud(t + 2) for t in times[15:35]])
+    with open_recording(bag) as rec:
+        stream = rec.scans()
+        assert len(list(stream)) == 20
+    assert not [n for n in stream.notes if 'another clock' in n], stream.notes

@@ -145,8 +145,9 @@ class _PoseChoice:
     # is not the cloud's own (registered clouds, ray_origin_frame); None when it is.
     to_sensor: PoseFn | None = None
     notes: tuple[str, ...] = ()  # what a run with this choice should say (poses it dropped)
-    # the poses' stamps minus their record times, near a record time (ScanStream._clock_check)
-    lag_at: Callable[[int], int] | None = None
+    # the poses' stamps minus their record times, near a record time, of each moving TF edge
+    # of the chain or the pose topic (ScanStream._clock_check)
+    lag_at: tuple[Callable[[int], int], ...] = ()
 
     @property
     def usable(self) -> bool:
@@ -1091,14 +1092,14 @@ class _PoseSources:
             return _PoseChoice(None, f'TF: {twice}' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
         up_s, up_t = tf.path(fixed, frame)
         lags = self._rec._tf_lags.get(self._rec._tf_topics or tuple(self._rec._of_type(*TF_TYPES)), {})
-        moving = [lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags]  # (the first's)
+        moving = tuple(lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags)
         return _PoseChoice(
             _tf_fn(tf, fixed, None, tol),
             f'tf: {chain}' + (' (static)' if static else ''),
             fixed,
             rng,
             notes=tuple(tf.run_notes()),
-            lag_at=moving[0] if moving else None,
+            lag_at=moving,
         )
 
     def _origin_choice(self, frame: str, origin: str, fixed_frame: str | None, tol: int) -> _PoseChoice:
@@ -1233,7 +1234,7 @@ class _PoseSources:
             (track.first_ns, track.last_ns),
             to_sensor,
             notes=(*tnotes, *tf.run_notes()),
-            lag_at=self.lags.get(topic),
+            lag_at=(self.lags[topic],) if topic in self.lags else (),
         )
 
     def choose(
@@ -1435,25 +1436,28 @@ class ScanStream:
 
     def _clock_check(self, part: _StreamPart, stamp: int | None, record_ns: int = 0) -> None:
         """Note once per topic where its first clouds' stamps sit apart from their record
-        times by over a second more (or less) than the poses' stamps recorded then from theirs:
+        times by over a second more (or less) than the poses' stamps recorded then from theirs,
+        for every moving edge of a TF chain (AMCL post-dates its map -> odom by a second):
         stamps of another clock (the sensor's, not the computer's that stamps TF) give each
-        cloud the pose of another time. Recorded alike, both lags agree (and drift alike where
+        cloud the pose of another time. Recorded alike, the lags agree (and drift alike where
         simulation time runs slower than the recorder's clock). ``stamp`` None: the topic's
         clouds end here (fewer were read)."""
         lags = self._lags.setdefault(part.topic, [])
         lag_at = part.choice.lag_at
-        if self._record_time or lag_at is None or len(lags) >= _LAG_CLOUDS:
+        if self._record_time or not lag_at or len(lags) >= _LAG_CLOUDS:
             return
         if stamp is not None:
-            lags.append((stamp - record_ns, lag_at(record_ns)))
+            lags.append((stamp - record_ns, *(f(record_ns) for f in lag_at)))
             if len(lags) < _LAG_CLOUDS:
                 return
         elif not lags:  # (the end of the clouds: fewer than _LAG_CLOUDS)
             return
         both = np.asarray(lags, np.int64)
-        lags += [(0, 0)] * _LAG_CLOUDS  # (said once)
-        cloud, poses = (int(v) for v in np.median(both, axis=0))
-        if abs(int(np.median(both[:, 0] - both[:, 1]))) > _JUMP_NS:
+        lags += [lags[0]] * _LAG_CLOUDS  # (said once)
+        apart = np.median(both[:, :1] - both[:, 1:], axis=0)  # each edge's
+        k = int(np.argmin(np.abs(apart)))  # the edge closest to the clouds' clock
+        cloud, poses = int(np.median(both[:, 0])), int(np.median(both[:, k + 1]))
+        if abs(apart[k]) > _JUMP_NS:
             # the one whose stamps stray from the recorder's clock is on another; only the clouds'
             # can be replaced by their record times
             which = "the poses'" if abs(poses) > abs(cloud) else "the clouds'"
