@@ -1512,7 +1512,9 @@ class ScanStream:
         self.notes = list(self._rec.file_notes)
         self._counted: dict[str, tuple[int, int, str]] = {}
         self._other_frames: set[str] = set()  # topics with a cloud in another frame than their first's
-        self._lags: dict[str, list[tuple[int, int]]] = {}  # topic -> (cloud, pose) lags of its first clouds
+        self._lags: dict[
+            str, list[tuple[int, ...]]
+        ] = {}  # topic -> (cloud, each pose source's) lags of its first clouds
         for part in self._parts.values():
             self.notes += [n for n in part.choice.notes if n not in self.notes]
         rec = self._rec
