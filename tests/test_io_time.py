@@ -319,3 +319,23 @@ def test_a_post_dated_edge_of_the_chain_is_no_other_clock(tmp_path: Path) -> Non
         stream = rec.scans()
         assert len(list(stream)) == 20
     assert not [n for n in stream.notes if 'another clock' in n], stream.notes
+
+
+def test_a_mount_republished_with_another_value_says_both_and_how_to_keep_the_first(tmp_path: Path) -> None:
+    """/tf_static gives base_link -> velodyne again halfway, 1 m higher: the last is used for
+    every cloud (as tf2 keeps it); the note now gives both values and the --static-transform
+    that maps with the first, which then is the only one said."""
+    times = [T0 + k * 100 * MS for k in range(11)]
+    again = ('/tf_static', TF, T0 + 500 * MS, lambda m: m.tf([(T0, 'base_link', 'velodyne', (0.0, 0.0, 2.0), Q0)]))
+    entries = [_static(), again] + [_tf(t, (_x(t), 0.0, 0.0)) for t in times]
+    bag = _write(tmp_path, entries + [_cloud(t + 2) for t in times])
+    with open_recording(bag) as rec:
+        stream = rec.scans()
+        assert {s.T_world_sensor[2, 3] for s in stream} == {2.0}
+        note = next(n for n in stream.notes if n.startswith('/tf_static gives'))
+        assert 'first xyz (0, 0, 1) m' in note and 'last xyz (0, 0, 2) m' in note, note
+        given = note.split('--static-transform ')[1].split("'")[1]
+        assert given == '0 0 1 0 0 0 1 base_link velodyne'
+        stream = rec.scans(static_transforms=[given])
+        assert {s.T_world_sensor[2, 3] for s in stream} == {1.0}
+        assert not [n for n in stream.notes if n.startswith('/tf_static gives')], stream.notes

@@ -67,7 +67,7 @@ class TfBuffer:
         # (parent, child) -> (transforms dropped: NaN/Inf or a zero quaternion, why the first)
         self.ignored: dict[tuple[str, str], tuple[int, str]] = {}
         self._given: dict[str, str] = {}  # 'parent -> child' -> note, of mounts given, not recorded (give)
-        self._restatic: dict[str, None] = {}  # notes of mounts /tf_static gave with different values
+        self._restatic: dict[tuple[str, str], np.ndarray] = {}  # mounts /tf_static changed -> the first value
         # (parent, child) -> ((T, count) if static, dynamic samples): a child's other parents
         self._other: dict[tuple[str, str], tuple[tuple[np.ndarray, int] | None, list]] = {}
         self._chosen: dict[str, str] = {}  # child -> note: its parent chosen by a fixed frame
@@ -120,12 +120,8 @@ class TfBuffer:
             T = make_transform(translation, rotation)
             old = self._static.get(child)
             if old is not None and not np.allclose(old, T, atol=1e-6):  # a mount re-published, changed
-                text = (
-                    f'/tf_static gives {parent} -> {child} more than once with different values; the last is '
-                    'used for every scan'
-                )
-                self._restatic[text] = None
-                self._note(('restatic', parent, child), text)
+                self._restatic.setdefault((parent, child), old)
+                self._note(('restatic', parent, child), self._restatic_text(parent, child, T))
             self._static[child] = T
             self._static_count[child] = self._static_count.get(child, 0) + 1
         else:
@@ -182,6 +178,7 @@ class TfBuffer:
             )
             for d in (self._static, self._static_count, self._samples, self._tracks, self._parent):
                 d.pop(c, None)  # type: ignore[attr-defined]
+            self._restatic.pop((known, c), None)  # (its values are said above)
         self.add(p, c, 0, translation, rotation, static=True)
         self._given[f'{p} -> {c}'] = text
 
@@ -250,7 +247,7 @@ class TfBuffer:
             + list(self._given.values())
             + list(self._chosen.values())
             + self.parent_notes()
-            + list(self._restatic)
+            + [self._restatic_text(p, c, self._static[c]) for p, c in self._restatic if c in self._static]
             + [
                 f'ignored {n} transform{"s" if n != 1 else ""} {p} -> {c} with {why}{" (or other faults)" if n > 1 else ""}'
                 for (p, c), (n, why) in self.ignored.items()
@@ -387,6 +384,18 @@ class TfBuffer:
         if hole is not None:  # tf2 would interpolate across it: a straight line over seconds unseen
             raise TransformTimeError(f'transform {self._parent[child]} -> {child}: {hole_text(tr, stamp, *hole)}')
         return T
+
+    def _restatic_text(self, parent: str, child: str, last: np.ndarray) -> str:
+        """A mount /tf_static gave again with another value (a calibration re-published): tf2
+        keeps the last, for all time, and so does a map; the first, and how to choose."""
+        first = self._restatic[(parent, child)]
+        t = ' '.join(f'{v:.9g}' for v in first[:3, 3])
+        q = ' '.join(f'{v:.9g}' for v in rot_to_quat(first[:3, :3]))
+        return (
+            f'/tf_static gives {parent} -> {child} more than once with different values; the last is used for every '
+            f"scan, as tf2 keeps it (first {_fmt_T(first)}, last {_fmt_T(last)}): --static-transform '{t} {q} "
+            f"{parent} {child}' maps with the first"
+        )
 
     def _mount_hint(self, child: str, tr: PoseTrack) -> str:
         """Where every transform of a /tf edge is the same (a mount published on /tf rather
