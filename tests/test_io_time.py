@@ -339,3 +339,15 @@ def test_a_mount_republished_with_another_value_says_both_and_how_to_keep_the_fi
         stream = rec.scans(static_transforms=[given])
         assert {s.T_world_sensor[2, 3] for s in stream} == {1.0}
         assert not [n for n in stream.notes if n.startswith('/tf_static gives')], stream.notes
+
+
+@pytest.mark.parametrize('name', ['t_start', 't_end'])
+def test_a_time_of_the_recordings_clock_given_for_start_or_end_names_the_seconds(tmp_path: Path, name: str) -> None:
+    """--end 1700000001.5 (a stamp, as rqt_bag shows times) mapped the whole recording:
+    taken as seconds from the start, it is past the end."""
+    with open_recording(_drive(tmp_path)) as rec, pytest.raises(RecordingError) as err:
+        rec.scans(**{name: T0 / 1e9 + 1.5})
+    opt = '--start' if name == 't_start' else '--end'
+    assert f"is a time of the recording's clock, but it counts seconds from its start: {opt} 1.500 is that" in str(
+        err.value
+    )

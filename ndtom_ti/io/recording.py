@@ -884,6 +884,13 @@ class Recording:
             if v is not None and not np.isfinite(v):
                 raise ValueError(f'{name} must be a finite number of seconds from the recording\'s start, got {v}')
         long = f'{self.path} is {self.duration_ns / 1e9:.3f} s long (seconds from its first message, by record time)'
+        for name, v in (('t_start (--start)', t_start), ('t_end (--end)', t_end)):
+            # a time of the recording's clock (a stamp from rqt_bag, `ros2 bag info`) for seconds from its start
+            if v is not None and v * 1e9 > self.duration_ns and self.start_ns <= v * 1e9 <= self.end_ns + 1e9:
+                raise RecordingError(
+                    f'{name} {v:.3f} is a time of the recording\'s clock, but it counts seconds from its start: '
+                    f'{name.split()[-1][1:-1]} {(v * 1e9 - self.start_ns) / 1e9:.3f} is that time. {long}'
+                )
         if t_start is not None and t_start * 1e9 > self.duration_ns:
             raise RecordingError(f't_start (--start) {t_start:g} s is past the end: {long}')
         if t_end is not None and t_end < 0:
