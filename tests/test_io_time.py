@@ -155,6 +155,7 @@ def test_a_recording_whose_clock_jumps_back_is_mapped_one_run_at_a_time(tmp_path
             for s in scans:
                 assert s.T_world_sensor[1, 3] == pytest.approx(5.0 * run)
             assert f'poses of run {run + 1} of 2' in ' '.join(stream.notes)
+        assert len(list(rec.scans(sensor_frame_only=True))) == 42  # (the recording's poses unused)
         # a run chosen is no choice for what follows
         with pytest.raises(RecordingError, match='Map one run at a time'):
             rec.scans(pose_topic=pose_topic)

@@ -901,7 +901,9 @@ class Recording:
         if len(names) > 1 and any(not n for n in names):
             raise ValueError(f'cloud_topic {sel.cloud_topic!r}: give topic names separated by commas')
         self.use_tf([self._resolve_cloud_topic(n)[0] for n in names], sel.tf_topic)
-        run = self._use_run(sel.t_start, sel.t_end)  # (before the mounts given: they go into its TF)
+        # (before the mounts given: they go into its TF; poses from a file or none need no run)
+        own = not sel.sensor_frame_only and sel.poses_file is None
+        run = self._use_run(sel.t_start, sel.t_end) if own else None
         if sel.static_transforms:
             tf = self.tf()
             for parent, child, t, q in sel.static_transforms:  # (a recording without its /tf_static)
