@@ -1426,7 +1426,7 @@ class ScanStream:
             self.notes[at] = (
                 f'{n + 1} cloud{"s" if n else ""} {"are" if n else "is"} stamped at or before the cloud recorded '
                 f'before {"them" if n else "it"} ({text}): each is placed by its own stamp; stamps out of order are a '
-                "driver's or a clock's fault, and --cloud-time record places the clouds by their record times"
+                f"driver's or a clock's fault{self._order_fix}"
             )
             return
         clouds = f'{n + 1} cloud{"s" if n else ""} hold{"" if n else "s"}'
@@ -1520,6 +1520,7 @@ class ScanStream:
         self.total_seen = self.kept = 0
         self.notes = list(self._rec.file_notes)
         self._counted: dict[str, tuple[int, int, str]] = {}
+        self._order_fix = ''  # what helps with clouds stamped out of order (_count_note)
         self._other_frames: set[str] = set()  # topics with a cloud in another frame than their first's
         self._lags: dict[
             str, list[tuple[int, ...]]
@@ -1591,6 +1592,9 @@ class ScanStream:
                     continue
                 seen[key] = index
                 if not self._record_time and stamp != t and stamp <= last_stamp.get(topic, stamp - 1):
+                    if 'order' not in self._counted:  # record times help where the poses keep to them (not a restart)
+                        on_time = any(abs(f(t)) <= _JUMP_NS for f in part.choice.lag_at)
+                        self._order_fix = ', and --cloud-time record places the clouds by their record times' * on_time
                     self._count_note(
                         'order',
                         f'{self._which(topic, index)} at {_s(stamp)}, the one before at {_s(last_stamp[topic])}',
