@@ -345,7 +345,12 @@ def test_live_mapping_pause_step_play(room_scans, maps, make_viewer):
         time.sleep(0.05)
     assert c.scan.content == f"**Scans inserted**: {len(room_scans)} / {len(room_scans)}"
     assert v.drawn["trajectory"] == len(room_scans) and v.drawn["scan"] > 1000
-    assert len(c.chart.data[0]) == len(room_scans)
+    # every scan, or all but the first where it took more than twice the slowest later one
+    # (the chart's rule for a compile: 20-30 ms against 2-3 ms, seen on a busy machine, is so too)
+    from ndtom_ti.viewer.livepanel import chart_series
+
+    charted = chart_series(lm.times_ms, lm.compare_times_ms)[0][0]
+    assert len(c.chart.data[0]) == len(charted) >= len(room_scans) - 1
     # the same map as one built directly (known answer), and its comparison map
     with v.map_lock:  # the drawing thread may be reading the maps
         assert _keys(lm.map.gaussians()["index"]) == _keys(m_ref.gaussians()["index"])
