@@ -410,12 +410,17 @@ def storage(layout):
         return st
 
 
+def _forked() -> bool:
+    """Whether this process was forked from the one that started Taichi here."""
+    return _state.pid is not None and os.getpid() != _state.pid
+
+
 def _keep_taichi_in_child() -> None:
     """In a child forked from a process running Taichi: Taichi's program, destroyed at the
     child's exit, waits for worker threads that fork did not copy, so a child that left by
     sys.exit or the end of its code never ended. One more reference keeps it alive to the
     end; the child's memory goes with the child."""
-    if _state.pid is None or os.getpid() == _state.pid:
+    if not _forked():
         return
     try:
         import ctypes
@@ -432,7 +437,7 @@ def _keep_taichi_in_child() -> None:
 def check_process() -> None:
     """RuntimeError in a process forked after ndtom_ti started Taichi: Taichi's worker threads
     do not survive fork, so a kernel there would hang (as would a lock another thread held)."""
-    if _state.pid is not None and os.getpid() != _state.pid:
+    if _forked():
         raise RuntimeError(
             "this process was forked from one in which ndtom_ti had started Taichi, whose threads do not "
             "survive fork: a map here would hang at its first kernel. Start worker processes with "
@@ -494,7 +499,7 @@ def acquire_slot(layout):
 
 def release_slot(st, slot: int) -> None:
     """Empty a dead map's slot (its nodes go back to Taichi's free lists) and free it."""
-    if _state.pid is not None and os.getpid() != _state.pid:
+    if _forked():
         return  # a forked child's copy of a map: a kernel would hang (check_taichi), its memory is its own
     try:
         import taichi as ti

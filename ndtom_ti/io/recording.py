@@ -510,18 +510,22 @@ class Recording:
                 }
         return buf
 
+    def _tf_key(self) -> tuple[str, ...]:
+        """The TF topics poses come from: those :meth:`use_tf` chose, else every one."""
+        return self._tf_topics or tuple(self._of_type(*TF_TYPES))
+
     def tf(self) -> TfBuffer:
         """The transforms poses come from: every TFMessage topic's, or those :meth:`use_tf`
         chose (one robot's of several with namespaced TF topics)."""
         if self._tf is None:
-            self._tf = self._tf_buffer(self._tf_topics or tuple(self._of_type(*TF_TYPES)))
+            self._tf = self._tf_buffer(self._tf_key())
         return self._tf
 
     def _clock_jumps(self) -> list[tuple[int, str]]:
         """(record time, what) where the stamps of the TF edges or pose topics go back into
         stamps they gave already (:func:`_jumps_back`), in record order."""
         self.tf()
-        jumps = list(self._jumps[(self._tf_topics or tuple(self._of_type(*TF_TYPES)), None)])
+        jumps = list(self._jumps[(self._tf_key(), None)])
         for topic in self.pose_topics():
             if topic not in self._poses.jumps:
                 self._poses.track(topic)
@@ -558,7 +562,7 @@ class Recording:
                 + ' or '.join(f'--start {a:.3f} --end {b:.3f}' for a, b in rel)
             )
         k = runs.index(inside[0])
-        self._tf = self._tf_buffer(self._tf_topics or tuple(self._of_type(*TF_TYPES)), inside[0])
+        self._tf = self._tf_buffer(self._tf_key(), inside[0])
         self._poses.span = inside[0]
         return (
             f"the recording's clock jumps back (a looped playback, a restarted simulation): poses of run {k + 1} "
@@ -1100,7 +1104,7 @@ class _PoseSources:
         if rng is not None and self._clock_mismatch(first_stamp, rng[0], rng[1], tol):
             return _PoseChoice(None, f'TF: {twice}' + self._clock_text(f'the chain {chain}', first_stamp, *rng))
         up_s, up_t = tf.path(fixed, frame)
-        lags = self._rec._tf_lags.get(self._rec._tf_topics or tuple(self._rec._of_type(*TF_TYPES)), {})
+        lags = self._rec._tf_lags.get(self._rec._tf_key(), {})
         moving = tuple(lags[f] for f in up_s[:-1] + up_t[:-1] if not tf.is_static(f) and f in lags)
         return _PoseChoice(
             _tf_fn(tf, fixed, None, tol),

@@ -34,6 +34,13 @@ def _fmt_T(T: np.ndarray) -> str:
     return f'xyz ({t}) m, quaternion xyzw ({q})'
 
 
+def _static_option(T: np.ndarray, parent: str, child: str) -> str:
+    """The ``--static-transform`` that gives ``T`` as the mount ``parent -> child``."""
+    t = ' '.join(f'{v:.9g}' for v in T[:3, 3])
+    q = ' '.join(f'{v:.9g}' for v in rot_to_quat(T[:3, :3]))
+    return f"--static-transform '{t} {q} {parent} {child}'"
+
+
 @dataclass(frozen=True)
 class TfEdge:
     """One parent->child edge of the tree, as recorded."""
@@ -389,12 +396,10 @@ class TfBuffer:
         """A mount /tf_static gave again with another value (a calibration re-published): tf2
         keeps the last, for all time, and so does a map; the first, and how to choose."""
         first = self._restatic[(parent, child)]
-        t = ' '.join(f'{v:.9g}' for v in first[:3, 3])
-        q = ' '.join(f'{v:.9g}' for v in rot_to_quat(first[:3, :3]))
         return (
             f'/tf_static gives {parent} -> {child} more than once with different values; the last is used for every '
-            f"scan, as tf2 keeps it (first {_fmt_T(first)}, last {_fmt_T(last)}): --static-transform '{t} {q} "
-            f"{parent} {child}' maps with the first"
+            f'scan, as tf2 keeps it (first {_fmt_T(first)}, last {_fmt_T(last)}): '
+            f'{_static_option(first, parent, child)} maps with the first'
         )
 
     def _mount_hint(self, child: str, tr: PoseTrack) -> str:
@@ -402,12 +407,10 @@ class TfBuffer:
         than /tf_static, once or at start-up only): how to give it for all times."""
         if not tr.is_constant(1e-9):
             return ''
-        t = ' '.join(f'{v:.9g}' for v in tr.poses[0][:3, 3])
-        q = ' '.join(f'{v:.9g}' for v in rot_to_quat(tr.poses[0][:3, :3]))
         n = len(tr)
         return (
             f'. {"It has one transform" if n == 1 else f"Its {n} transforms give one value"}: a mount sent on /tf '
-            f"rather than /tf_static? --static-transform '{t} {q} {self._parent[child]} {child}' gives it for every time"
+            f'rather than /tf_static? {_static_option(tr.poses[0], self._parent[child], child)} gives it for every time'
         )
 
     def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, tolerance_ns: int = 0) -> np.ndarray:
